@@ -1,0 +1,340 @@
+"""Cameras and the calibrated stereo rig.
+
+``Camera`` is OpenCV's pinhole model with the distortion coefficients
+(k1, k2, p1, p2, k3). ``StereoRig`` holds two cameras and the extrinsics
+``R, t`` mapping left-camera coordinates to right-camera coordinates:
+``X_right = R @ X_left + t`` (what ``cv2.stereoCalibrate`` returns), in mm.
+
+Rig files are OpenCV FileStorage (YAML or XML) with the keys
+``K1 dist1 K2 dist2 R t`` and optionally ``image_size`` (width, height) —
+the layout of the original MarkerPose project's ``StereoParams.xml``.
+All file reading and writing of rigs lives in this module.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+def _as_matrix(value, shape, name) -> np.ndarray:
+    a = np.asarray(value, dtype=np.float64)
+    if a.size != int(np.prod(shape)):
+        raise ValueError(f"{name}: expected {int(np.prod(shape))} values for shape {shape}, got shape {a.shape}")
+    a = a.reshape(shape)
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: contains non-finite values")
+    return a
+
+
+def _as_dist(value, name="dist") -> np.ndarray:
+    """Distortion vector as (5,) k1 k2 p1 p2 k3; 4 coefficients are padded with k3 = 0.
+
+    Longer OpenCV vectors (8, 12, 14) are accepted only if the extra terms are zero,
+    because the rational / thin-prism / tilt models are not supported.
+    """
+    d = np.asarray(value, dtype=np.float64).ravel()
+    if d.size == 4:
+        d = np.append(d, 0.0)
+    elif d.size > 5:
+        if np.any(d[5:] != 0):
+            raise ValueError(f"{name}: only k1 k2 p1 p2 k3 are supported; higher-order terms are non-zero")
+        d = d[:5]
+    elif d.size != 5:
+        raise ValueError(f"{name}: expected 4 or 5 distortion coefficients (k1 k2 p1 p2 [k3]), got {d.size}")
+    if not np.all(np.isfinite(d)):
+        raise ValueError(f"{name}: contains non-finite values")
+    return d
+
+
+@dataclass
+class Camera:
+    """Pinhole camera with OpenCV radial-tangential distortion.
+
+    Attributes:
+        K: (3, 3) intrinsic matrix, pixels.
+        dist: (5,) k1 k2 p1 p2 k3.
+        image_size: (width, height) in pixels, or None if unknown.
+    """
+
+    K: np.ndarray
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    image_size: tuple[int, int] | None = None
+
+    def __post_init__(self):
+        self.K = _as_matrix(self.K, (3, 3), "K")
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1 or np.any(self.K[2, :2] != 0):
+            raise ValueError(f"K: not an intrinsic matrix (need fx, fy > 0 and last row 0 0 1), got {self.K.tolist()}")
+        self.dist = _as_dist(self.dist)
+        if self.image_size is not None:
+            w, h = (int(v) for v in self.image_size)
+            if w <= 0 or h <= 0:
+                raise ValueError(f"image_size must be positive (width, height), got {self.image_size}")
+            self.image_size = (w, h)
+
+    # --- projection ---------------------------------------------------------------
+    def distort(self, xn: np.ndarray) -> np.ndarray:
+        """Apply the distortion model to normalised coordinates and map to pixels.
+
+        Args:
+            xn: (N, 2) ideal normalised image coordinates (x/z, y/z).
+        Returns:
+            (N, 2) distorted pixel coordinates.
+        """
+        xn = np.asarray(xn, dtype=np.float64).reshape(-1, 2)
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xn[:, 0], xn[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        K = self.K
+        return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project 3D points given in this camera's frame.
+
+        Args:
+            points: (N, 3) points, mm, in front of the camera (z > 0).
+        Returns:
+            (N, 2) distorted pixel coordinates.
+        """
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return self.distort(p[:, :2] / p[:, 2:3])
+
+    def undistort_points(self, pixels: np.ndarray, ideal_pixels: bool = True) -> np.ndarray:
+        """Remove lens distortion from pixel coordinates.
+
+        Uses ``cv2.undistortPointsIter`` with a tight criterion (the default five
+        iterations leave errors of ~0.01 px in the corners of a 12 mm lens).
+
+        Args:
+            pixels: (N, 2) distorted pixel coordinates.
+            ideal_pixels: return ideal pixels ``K @ xn`` (True) or normalised coordinates (False).
+        Returns:
+            (N, 2) undistorted coordinates.
+        """
+        px = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
+        if px.shape[0] == 0:
+            return np.zeros((0, 2))
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+        P = self.K if ideal_pixels else None
+        out = cv2.undistortPointsIter(px, self.K, self.dist, None, P, crit)
+        return out.reshape(-1, 2)
+
+    def normalized_grid(self) -> np.ndarray:
+        """(H, W, 2) ideal normalised coordinates of every pixel centre (cached).
+
+        The inverse of the distortion model, solved to ~1e-10 px; the renderer
+        casts its rays through it.
+        """
+        if self.image_size is None:
+            raise ValueError("camera has no image_size")
+        key = (self.K.tobytes(), self.dist.tobytes(), self.image_size)
+        cache = getattr(self, "_grid_cache", None)
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        w, h = self.image_size
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        grid = self.undistort_points(np.column_stack([u.ravel(), v.ravel()]), ideal_pixels=False)
+        grid = grid.reshape(h, w, 2)
+        object.__setattr__(self, "_grid_cache", (key, grid))
+        return grid
+
+
+def _look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """Rotation camera→world for a camera at ``center`` looking at ``target`` (y down in the image)."""
+    z = target - center
+    z = z / np.linalg.norm(z)
+    x = np.cross(-np.asarray(up, float), z)  # image x to the right when y is down
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.column_stack([x, y, z])
+
+
+@dataclass
+class StereoRig:
+    """Two calibrated cameras; ``X_right = R @ X_left + t`` (mm).
+
+    Attributes:
+        left, right: the cameras.
+        R: (3, 3) rotation left→right.
+        t: (3,) translation left→right, mm.
+    """
+
+    left: Camera
+    right: Camera
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self):
+        self.R = _as_matrix(self.R, (3, 3), "R")
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
+            raise ValueError("R: not a rotation matrix (R @ R.T != I or det(R) < 0)")
+        self.t = _as_matrix(self.t, (3,), "t")
+
+    @property
+    def cameras(self) -> tuple[Camera, Camera]:
+        return (self.left, self.right)
+
+    @property
+    def T_right_left(self) -> np.ndarray:
+        """(4, 4) transform from left-camera to right-camera coordinates."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+    @property
+    def P1(self) -> np.ndarray:
+        """(3, 4) projection matrix of the left camera (ideal pixels), ``K1 [I | 0]``."""
+        return self.left.K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+
+    @property
+    def P2(self) -> np.ndarray:
+        """(3, 4) projection matrix of the right camera (ideal pixels), ``K2 [R | t]``."""
+        return self.right.K @ np.hstack([self.R, self.t.reshape(3, 1)])
+
+    @property
+    def baseline(self) -> float:
+        """Distance between the optical centres, mm."""
+        return float(np.linalg.norm(self.t))
+
+    def to_right(self, points_left: np.ndarray) -> np.ndarray:
+        """(N, 3) left-camera points → (N, 3) right-camera points."""
+        p = np.asarray(points_left, dtype=np.float64).reshape(-1, 3)
+        return p @ self.R.T + self.t
+
+    def project(self, points_left: np.ndarray) -> np.ndarray:
+        """Project left-frame 3D points into both views.
+
+        Args:
+            points_left: (N, 3) points in the left-camera frame, mm.
+        Returns:
+            (2, N, 2) distorted pixel coordinates [view][point][x, y].
+        """
+        p = np.asarray(points_left, dtype=np.float64).reshape(-1, 3)
+        return np.stack([self.left.project(p), self.right.project(self.to_right(p))])
+
+    # --- file I/O -----------------------------------------------------------------
+    @classmethod
+    def load(cls, path: str | Path) -> "StereoRig":
+        """Read a rig from OpenCV FileStorage YAML or XML (keys ``K1 dist1 K2 dist2 R t``).
+
+        Raises:
+            FileNotFoundError: the file does not exist.
+            ValueError: the file cannot be parsed, or a key is missing or malformed (named).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"rig file not found: {path}")
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        except cv2.error as e:
+            raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file ({e.err})") from None
+        if not fs.isOpened():
+            raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file")
+        try:
+            vals = {}
+            for key in ("K1", "dist1", "K2", "dist2", "R", "t"):
+                node = fs.getNode(key)
+                if node.empty() or node.isNone():
+                    raise ValueError(f"{path}: missing key '{key}'")
+                m = node.mat() if node.isMap() else None
+                if m is None:
+                    # Also accept a plain sequence of numbers.
+                    if node.isSeq():
+                        m = np.array([node.at(i).real() for i in range(node.size())])
+                    else:
+                        raise ValueError(f"{path}: key '{key}' is not a matrix")
+                vals[key] = m
+            size = None
+            node = fs.getNode("image_size")
+            if not node.empty() and not node.isNone():
+                if node.isMap():
+                    m = node.mat()
+                    arr = None if m is None else m.ravel()
+                elif node.isSeq():
+                    arr = np.array([node.at(i).real() for i in range(node.size())])
+                else:
+                    arr = None
+                if arr is None or arr.size != 2:
+                    raise ValueError(f"{path}: key 'image_size' must hold two numbers (width, height)")
+                size = (int(arr[0]), int(arr[1]))
+        finally:
+            fs.release()
+
+        def build(key, fn, *args):
+            try:
+                return fn(vals[key], *args)
+            except ValueError as e:
+                raise ValueError(f"{path}: key '{key}' is malformed: {e}") from None
+
+        K1 = build("K1", _as_matrix, (3, 3), "K1")
+        K2 = build("K2", _as_matrix, (3, 3), "K2")
+        d1 = build("dist1", _as_dist, "dist1")
+        d2 = build("dist2", _as_dist, "dist2")
+        R = build("R", _as_matrix, (3, 3), "R")
+        t = build("t", _as_matrix, (3,), "t")
+        try:
+            left = Camera(K1, d1, size)
+        except ValueError as e:
+            raise ValueError(f"{path}: key 'K1' is malformed: {e}") from None
+        try:
+            right = Camera(K2, d2, size)
+        except ValueError as e:
+            raise ValueError(f"{path}: key 'K2' is malformed: {e}") from None
+        try:
+            return cls(left, right, R, t)
+        except ValueError as e:
+            raise ValueError(f"{path}: key 'R' is malformed: {e}") from None
+
+    def save(self, path: str | Path) -> Path:
+        """Write the rig as OpenCV FileStorage; the format follows the suffix (.yaml/.yml/.xml)."""
+        path = Path(path)
+        if path.suffix.lower() not in (".yaml", ".yml", ".xml"):
+            raise ValueError(f"rig file must end in .yaml, .yml or .xml, got {path.name}")
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        fs.write("K1", self.left.K)
+        fs.write("dist1", self.left.dist.reshape(1, 5))
+        fs.write("K2", self.right.K)
+        fs.write("dist2", self.right.dist.reshape(1, 5))
+        fs.write("R", self.R)
+        fs.write("t", self.t.reshape(3, 1))
+        if self.left.image_size is not None:
+            fs.write("image_size", np.array(self.left.image_size, dtype=np.int32).reshape(1, 2))
+        fs.release()
+        return path
+
+    @classmethod
+    def default(cls) -> "StereoRig":
+        """The simulated paper-like rig shipped with the package (``data/default_rig.yaml``).
+
+        Two 1280x1024 mono cameras with 4.8 µm pixels and 12 mm lenses (f ≈ 2500 px),
+        175 mm apart and toed in toward a point 560 mm in front of the rig, so both
+        views see the marker from 350 to 800 mm; mild barrel distortion.
+        ``build_default_rig()`` is how that file was made.
+        """
+        with resources.as_file(resources.files("markerpose") / "data" / "default_rig.yaml") as p:
+            return cls.load(p)
+
+
+def build_default_rig() -> StereoRig:
+    """Construct the default rig from its physical description (see ``StereoRig.default``)."""
+    size = (1280, 1024)
+    f_px = 12.0 / 4.8e-3  # focal length / pixel pitch = 2500 px
+    K1 = np.array([[f_px * 1.0008, 0, 643.7], [0, f_px * 1.0003, 508.2], [0, 0, 1]])
+    K2 = np.array([[f_px * 0.9991, 0, 636.1], [0, f_px * 0.9995, 515.9], [0, 0, 1]])
+    d1 = np.array([-0.082, 0.141, 2.1e-4, -1.4e-4, 0.0])
+    d2 = np.array([-0.076, 0.118, -1.7e-4, 2.6e-4, 0.0])
+    baseline, converge = 175.0, 560.0
+    target = np.array([0.0, 0.0, converge])
+    c_l, c_r = np.array([-baseline / 2, 0, 0]), np.array([baseline / 2, 0, 0])
+    Rw_l, Rw_r = _look_at(c_l, target), _look_at(c_r, target)  # camera → rig
+    # X_rig = Rw_l X_l + c_l ; X_r = Rw_r^T (X_rig - c_r)
+    R = Rw_r.T @ Rw_l
+    t = Rw_r.T @ (c_l - c_r)
+    return StereoRig(Camera(K1, d1, size), Camera(K2, d2, size), R, t)

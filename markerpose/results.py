@@ -1,0 +1,50 @@
+"""What the detectors and the pipeline return."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Detection:
+    """The marker in one view.
+
+    Attributes:
+        centers: (3, 2) sub-pixel centres of c0, c1, c2 (ordered by ID) in the
+            input image's own (distorted) pixel coordinates.
+        ellipses: optional per-ring ellipse as OpenCV RotatedRect tuples
+            ((cx, cy), (w, h), angle_deg), ordered by ID.
+        score: detector-specific confidence (higher is better).
+    """
+
+    centers: np.ndarray
+    ellipses: list | None = None
+    score: float = 1.0
+
+
+@dataclass
+class Estimate:
+    """The marker's pose from a stereo pair.
+
+    Attributes:
+        T: (4, 4) T_left_marker, mm.
+        points3d: (3, 3) c0, c1, c2 in the left-camera frame, mm.
+        centers: (2, 3, 2) [view][id][x, y] sub-pixel centres in the input images.
+    """
+
+    T: np.ndarray
+    points3d: np.ndarray
+    centers: np.ndarray
+    detections: tuple = field(default=(), repr=False)
+
+    @property
+    def R(self) -> np.ndarray:
+        """(3, 3) rotation of T_left_marker."""
+        return self.T[:3, :3]
+
+    @property
+    def t(self) -> np.ndarray:
+        """(3,) translation of T_left_marker, mm (the position of c0)."""
+        return self.T[:3, 3]
