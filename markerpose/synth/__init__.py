@@ -1,0 +1,15 @@
+"""Synthetic stereo world: renderer and scene generators with exact ground truth."""
+
+from .background import clutter_background
+from .render import Imaging, StereoFrame, ViewTruth, look_at_pose, motion_kernel, render_stereo, render_view
+
+__all__ = [
+    "Imaging",
+    "StereoFrame",
+    "ViewTruth",
+    "clutter_background",
+    "look_at_pose",
+    "motion_kernel",
+    "render_stereo",
+    "render_view",
+]

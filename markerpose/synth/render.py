@@ -1,0 +1,396 @@
+"""Physically honest renderer of the marker seen by a calibrated camera or stereo rig.
+
+How an image is made (DESIGN §6):
+
+1. Geometry: every pixel's ray is cast through the inverse lens-distortion model
+   (``Camera.normalized_grid``) onto the marker plane, where the printed texture is
+   evaluated analytically (``Marker.reflectance``). Pixels whose footprint straddles
+   a ring or plate edge are supersampled on an S x S grid (S = 16 by default), so
+   the pixel value is the pixel's area coverage — edges land where the geometry
+   says to well under 0.01 px.
+2. Light: the scene (plate over a background) is multiplied by an illumination
+   field (linear gradient) and the lens vignetting, and by the exposure gain
+   ``alpha`` (the paper's darkness factor).
+3. Optics and motion: a Gaussian PSF and an optional linear motion-blur kernel.
+4. Sensor: photo-electrons with Poisson shot noise, Gaussian read noise, 8-bit
+   quantisation with clipping. Defaults are of the order of the PYTHON 1300
+   sensor of the paper's Basler acA1300-200um: ~10 ke- full well, ~10 e- read noise.
+
+Ground truth comes with every view: the projected 3D ring centres, the imaged
+outer/inner ellipses as conics (ideal, undistorted pixels) and their centres,
+a ring-ID mask and the pose. Everything is deterministic for a given seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..camera import Camera, StereoRig
+from ..geometry import circle_conic, conic_center, plane_homography, project_conic
+from ..marker import Marker
+from .background import clutter_background
+
+
+@dataclass(frozen=True)
+class Imaging:
+    """Illumination, optics and sensor settings for one view.
+
+    Attributes:
+        alpha: exposure gain, the paper's darkness factor (1 = normal, 0.039 = darkest tested).
+        exposure: fraction of the full well that white paper reaches at alpha = 1.
+        gradient: illumination falls off linearly by this fraction across the image diagonal.
+        gradient_angle: direction of the illumination gradient, degrees.
+        vignetting: relative brightness loss in the image corners (cos^4-like falloff).
+        psf_sigma: Gaussian PSF sigma, px (0 = none).
+        motion_blur: linear motion-blur kernel length, px (0 = none).
+        motion_angle: direction of the motion, degrees.
+        full_well: electrons at which the 8-bit output saturates (255).
+        read_noise: read noise, electrons rms.
+        noise: add shot and read noise (False gives the noise-free expectation, still 8-bit).
+        quantize: round to 8 bits (False returns the float image ×255, for tests).
+        supersample: S for the S x S anti-aliasing grid of edge pixels.
+        paper, ink: reflectance of the paper and of the printed black.
+    """
+
+    alpha: float = 1.0
+    exposure: float = 0.8
+    gradient: float = 0.15
+    gradient_angle: float = 30.0
+    vignetting: float = 0.15
+    psf_sigma: float = 0.6
+    motion_blur: float = 0.0
+    motion_angle: float = 0.0
+    full_well: float = 10_000.0
+    read_noise: float = 10.0
+    noise: bool = True
+    quantize: bool = True
+    supersample: int = 16
+    paper: float = 0.85
+    ink: float = 0.04
+
+    def __post_init__(self):
+        if not self.alpha > 0:
+            raise ValueError(f"alpha must be > 0, got {self.alpha}")
+        if self.supersample < 1:
+            raise ValueError(f"supersample must be >= 1, got {self.supersample}")
+        if self.motion_blur < 0 or self.psf_sigma < 0:
+            raise ValueError("motion_blur and psf_sigma must be >= 0")
+
+    @classmethod
+    def ideal(cls, **kw) -> "Imaging":
+        """Noise-free, blur-free, evenly lit, unquantised: for geometric tests."""
+        base = dict(gradient=0.0, vignetting=0.0, psf_sigma=0.0, noise=False, quantize=False)
+        base.update(kw)
+        return cls(**base)
+
+
+@dataclass
+class ViewTruth:
+    """Ground truth of one rendered view.
+
+    Attributes:
+        T_cam_marker: (4, 4) marker → this camera.
+        centers: (3, 2) projected 3D ring centres (distorted px), by ID.
+        outer_conics, inner_conics: (3, 3, 3) imaged ring circles as conics in ideal
+            (undistorted) pixels.
+        outer_centers: (3, 2) centres of the imaged outer ellipses, mapped into distorted
+            px (they differ from ``centers`` by the perspective bias).
+        mask: (H, W) uint8, ring ID + 1 where the pixel centre lies inside a ring's
+            outer circle, 0 elsewhere.
+        in_image: (3,) bool, the whole outer circle of the ring lies inside the image.
+    """
+
+    T_cam_marker: np.ndarray
+    centers: np.ndarray
+    outer_conics: np.ndarray
+    inner_conics: np.ndarray
+    outer_centers: np.ndarray
+    mask: np.ndarray
+    in_image: np.ndarray
+
+
+@dataclass
+class StereoFrame:
+    """A rendered stereo pair with its ground truth."""
+
+    images: list
+    views: list
+    T_left_marker: np.ndarray
+    imaging: tuple = field(default=(), repr=False)
+
+
+# --- geometry of the view --------------------------------------------------------------
+def _ring_truth(camera: Camera, T: np.ndarray, marker: Marker):
+    H = plane_homography(camera.K, T)
+    c2 = marker.centers2d
+    outer = np.stack([project_conic(circle_conic(c, marker.outer_radius), H) for c in c2])
+    inner = np.stack([project_conic(circle_conic(c, marker.inner_radius), H) for c in c2])
+    ideal = np.stack([conic_center(C) for C in outer])
+    xn = (ideal - camera.K[:2, 2]) / np.diag(camera.K)[:2]  # K has no skew in our rigs
+    xn[:, 0] -= camera.K[0, 1] * xn[:, 1] / camera.K[0, 0]
+    outer_centers = camera.distort(xn)
+    centers, _ = cv2.projectPoints(marker.points3d, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], camera.K, camera.dist)
+    return centers.reshape(3, 2), outer, inner, outer_centers
+
+
+def _circle_points(marker: Marker, n: int = 64) -> np.ndarray:
+    """(3, n, 3) points on each ring's outer circle, marker frame."""
+    a = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * marker.outer_radius
+    return marker.points3d[:, None, :] + ring[None]
+
+
+def _plate_bbox(camera: Camera, T: np.ndarray, marker: Marker):
+    """Pixel bounding box (x0, y0, x1, y1) of the plate, or None if not in front/visible."""
+    x0, y0, x1, y1 = marker.plate
+    s = np.linspace(0, 1, 33)
+    border = np.concatenate(
+        [
+            np.stack([x0 + (x1 - x0) * s, np.full_like(s, y0)], 1),
+            np.stack([x0 + (x1 - x0) * s, np.full_like(s, y1)], 1),
+            np.stack([np.full_like(s, x0), y0 + (y1 - y0) * s], 1),
+            np.stack([np.full_like(s, x1), y0 + (y1 - y0) * s], 1),
+        ]
+    )
+    P = np.column_stack([border, np.zeros(len(border))]) @ T[:3, :3].T + T[:3, 3]
+    if np.any(P[:, 2] <= 1.0):
+        raise ValueError("the marker plate must lie entirely in front of the camera")
+    uv = camera.project(P)
+    w, h = camera.image_size
+    bx0 = int(np.floor(uv[:, 0].min())) - 2
+    by0 = int(np.floor(uv[:, 1].min())) - 2
+    bx1 = int(np.ceil(uv[:, 0].max())) + 3
+    by1 = int(np.ceil(uv[:, 1].max())) + 3
+    bx0, by0, bx1, by1 = max(bx0, 0), max(by0, 0), min(bx1, w), min(by1, h)
+    if bx0 >= bx1 or by0 >= by1:
+        return None
+    return bx0, by0, bx1, by1
+
+
+def _plane_coords(Hinv: np.ndarray, xn: np.ndarray, yn: np.ndarray):
+    """Marker-plane coordinates (mm) of rays through normalised image points."""
+    w = Hinv[2, 0] * xn + Hinv[2, 1] * yn + Hinv[2, 2]
+    mx = (Hinv[0, 0] * xn + Hinv[0, 1] * yn + Hinv[0, 2]) / w
+    my = (Hinv[1, 0] * xn + Hinv[1, 1] * yn + Hinv[1, 2]) / w
+    return mx, my
+
+
+def _texture(marker: Marker, mx, my, paper: float, ink: float, background):
+    """Reflectance at plane points; off-plate points take the background value."""
+    val = np.full(mx.shape, paper)
+    ro2, ri2 = marker.outer_radius**2, marker.inner_radius**2
+    for cx, cy in marker.centers2d:
+        r2 = (mx - cx) ** 2 + (my - cy) ** 2
+        val[(r2 <= ro2) & (r2 > ri2)] = ink
+    x0, y0, x1, y1 = marker.plate
+    off = (mx < x0) | (mx > x1) | (my < y0) | (my > y1)
+    val[off] = np.broadcast_to(background, mx.shape)[off]
+    return val
+
+
+def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarray, imaging: Imaging):
+    """Paint the plate into ``scene`` (float, in place); return the ring-ID mask."""
+    w, h = camera.image_size
+    mask = np.zeros((h, w), np.uint8)
+    bbox = _plate_bbox(camera, T, marker)
+    if bbox is None:
+        return mask
+    bx0, by0, bx1, by1 = bbox
+    # One pixel of grid beyond the box on each side, for the central differences below.
+    gx0, gy0, gx1, gy1 = max(bx0 - 1, 0), max(by0 - 1, 0), min(bx1 + 1, w), min(by1 + 1, h)
+    grid = camera.normalized_grid()[gy0:gy1, gx0:gx1]
+    J_u = np.gradient(grid, axis=1)  # d(normalised)/d(u), central differences
+    J_v = np.gradient(grid, axis=0)
+    sl = (slice(by0 - gy0, by1 - gy0), slice(bx0 - gx0, bx1 - gx0))
+    grid, J_u, J_v = grid[sl], J_u[sl], J_v[sl]
+
+    Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
+    xn, yn = grid[..., 0], grid[..., 1]
+    mx, my = _plane_coords(Hinv, xn, yn)
+    bg = scene[by0:by1, bx0:bx1]
+    val = _texture(marker, mx, my, imaging.paper, imaging.ink, bg)
+
+    # Footprint of a pixel on the plane (mm): how far the texture can change within it.
+    dmx_u, dmy_u = np.gradient(mx, axis=1), np.gradient(my, axis=1)
+    dmx_v, dmy_v = np.gradient(mx, axis=0), np.gradient(my, axis=0)
+    foot = 0.75 * (np.hypot(dmx_u, dmy_u) + np.hypot(dmx_v, dmy_v)) + 1e-9
+    near = np.zeros(mx.shape, bool)
+    for cx, cy in marker.centers2d:
+        r = np.hypot(mx - cx, my - cy)
+        near |= np.abs(r - marker.outer_radius) < foot
+        near |= np.abs(r - marker.inner_radius) < foot
+    x0, y0, x1, y1 = marker.plate
+    near |= (np.abs(mx - x0) < foot) | (np.abs(mx - x1) < foot) | (np.abs(my - y0) < foot) | (np.abs(my - y1) < foot)
+    for i, (cx, cy) in enumerate(marker.centers2d):
+        mask[by0:by1, bx0:bx1][np.hypot(mx - cx, my - cy) <= marker.outer_radius] = i + 1
+
+    # Supersample the edge pixels: sub-pixel offsets mapped through the local Jacobian of
+    # the inverse distortion (its second-order term is ~1e-5 px over half a pixel).
+    iy, ix = np.nonzero(near)
+    S = imaging.supersample
+    if len(iy) and S > 1:
+        off = (np.arange(S) + 0.5) / S - 0.5
+        du, dv = np.meshgrid(off, off)
+        du, dv = du.ravel()[None, :], dv.ravel()[None, :]
+        chunk = max(1, 400_000 // (S * S))
+        for k in range(0, len(iy), chunk):
+            yy, xx = iy[k : k + chunk], ix[k : k + chunk]
+            sx = xn[yy, xx][:, None] + J_u[yy, xx, 0][:, None] * du + J_v[yy, xx, 0][:, None] * dv
+            sy = yn[yy, xx][:, None] + J_u[yy, xx, 1][:, None] * du + J_v[yy, xx, 1][:, None] * dv
+            smx, smy = _plane_coords(Hinv, sx, sy)
+            v = _texture(marker, smx, smy, imaging.paper, imaging.ink, bg[yy, xx][:, None])
+            val[yy, xx] = v.mean(axis=1)
+    scene[by0:by1, bx0:bx1] = val
+    return mask
+
+
+# --- light, optics, sensor -----------------------------------------------------------
+def _illumination(size, imaging: Imaging) -> np.ndarray:
+    w, h = size
+    u = (np.arange(w, dtype=np.float32) - (w - 1) / 2) / (w / 2)
+    v = (np.arange(h, dtype=np.float32) - (h - 1) / 2) / (w / 2)
+    a = np.deg2rad(imaging.gradient_angle)
+    diag = np.hypot(1.0, h / w)
+    field = 1.0 - imaging.gradient * (0.5 + (np.cos(a) * u[None, :] + np.sin(a) * v[:, None]) / (2 * diag))
+    if imaging.vignetting:
+        r2 = (u[None, :] ** 2 + v[:, None] ** 2) / diag**2
+        field = field * (1.0 - imaging.vignetting * r2)
+    return field.astype(np.float32)
+
+
+def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
+    """Normalised linear motion-blur kernel: a line of ``length`` px at ``angle_deg``, anti-aliased."""
+    n = int(np.ceil(length)) | 1
+    n = max(n, 3)
+    up = 8
+    big = np.zeros((n * up, n * up), np.float32)
+    c = (n * up - 1) / 2
+    a = np.deg2rad(angle_deg)
+    d = np.array([np.cos(a), np.sin(a)]) * (length * up - 1) / 2
+    p0 = tuple(int(round(v * 16)) for v in (c - d[0], c - d[1]))
+    p1 = tuple(int(round(v * 16)) for v in (c + d[0], c + d[1]))
+    cv2.line(big, p0, p1, 1.0, thickness=up, lineType=cv2.LINE_AA, shift=4)
+    k = cv2.resize(big, (n, n), interpolation=cv2.INTER_AREA)
+    return k / k.sum()
+
+
+def _expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
+    img = scene * _illumination(size, imaging)
+    if imaging.psf_sigma > 0:
+        img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma, borderType=cv2.BORDER_REFLECT)
+    if imaging.motion_blur > 1:
+        img = cv2.filter2D(img, -1, motion_kernel(imaging.motion_blur, imaging.motion_angle), borderType=cv2.BORDER_REFLECT)
+    electrons = img * (imaging.alpha * imaging.exposure * imaging.full_well)
+    if imaging.noise:
+        electrons = rng.poisson(np.maximum(electrons, 0)).astype(np.float32)
+        electrons += rng.normal(0.0, imaging.read_noise, electrons.shape).astype(np.float32)
+    dn = electrons * (255.0 / imaging.full_well)
+    if not imaging.quantize:
+        return dn.astype(np.float32)
+    return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+
+
+# --- public API ------------------------------------------------------------------------
+def render_view(
+    camera: Camera,
+    T_cam_marker: np.ndarray,
+    marker: Marker | None = None,
+    imaging: Imaging | None = None,
+    background: np.ndarray | None = None,
+    seed: int | np.random.Generator | None = 0,
+) -> tuple[np.ndarray, ViewTruth]:
+    """Render one view of the marker.
+
+    Args:
+        camera: camera with ``image_size``.
+        T_cam_marker: (4, 4) marker → camera, mm.
+        marker: marker geometry (default ``Marker()``).
+        imaging: light/optics/sensor settings (default ``Imaging()``).
+        background: (H, W) float reflectance in [0, 1]; None → random clutter from the seed.
+        seed: int or Generator; the same seed gives the same image.
+    Returns:
+        (image, truth): uint8 (H, W) image (float32 if ``imaging.quantize`` is False) and
+        its :class:`ViewTruth`.
+    """
+    marker = marker or Marker()
+    imaging = imaging or Imaging()
+    if camera.image_size is None:
+        raise ValueError("camera.image_size is needed to render")
+    T = np.asarray(T_cam_marker, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"T_cam_marker must be (4, 4), got {T.shape}")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    w, h = camera.image_size
+    if background is None:
+        scene = clutter_background((w, h), rng)
+    else:
+        scene = np.asarray(background, dtype=np.float32)
+        if scene.shape != (h, w):
+            raise ValueError(f"background must be (H, W) = {(h, w)}, got {scene.shape}")
+        scene = scene.copy()
+    mask = _render_plate(camera, T, marker, scene, imaging)
+    image = _expose(scene, (w, h), imaging, rng)
+    centers, outer, inner, outer_centers = _ring_truth(camera, T, marker)
+    rim = _circle_points(marker) @ T[:3, :3].T + T[:3, 3]
+    uv = camera.project(rim.reshape(-1, 3)).reshape(3, -1, 2)
+    in_image = np.all((uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1), axis=1)
+    truth = ViewTruth(T, centers, outer, inner, outer_centers, mask, in_image)
+    return image, truth
+
+
+def render_stereo(
+    rig: StereoRig,
+    T_left_marker: np.ndarray,
+    marker: Marker | None = None,
+    imaging: Imaging | tuple[Imaging, Imaging] | None = None,
+    background: np.ndarray | tuple | None = None,
+    seed: int | np.random.Generator | None = 0,
+) -> StereoFrame:
+    """Render both views of the rig.
+
+    Args:
+        rig: the stereo rig (both cameras need ``image_size``).
+        T_left_marker: (4, 4) marker → left camera, mm.
+        marker: marker geometry.
+        imaging: one :class:`Imaging` for both views, or a pair.
+        background: one (H, W) background for both, a pair, or None (random clutter per view).
+        seed: int or Generator.
+    Returns:
+        :class:`StereoFrame` with ``images[i]`` and ``views[i]`` for left (0) and right (1).
+    """
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    imgs = imaging if isinstance(imaging, tuple) else (imaging or Imaging(),) * 2
+    bgs = background if isinstance(background, (tuple, list)) else (background, background)
+    T_left = np.asarray(T_left_marker, dtype=np.float64)
+    Ts = (T_left, rig.T_right_left @ T_left)
+    images, views = [], []
+    for cam, T, im, bg in zip(rig.cameras, Ts, imgs, bgs):
+        image, truth = render_view(cam, T, marker, im, bg, rng)
+        images.append(image)
+        views.append(truth)
+    return StereoFrame(images, views, T_left, tuple(imgs))
+
+
+def look_at_pose(position: np.ndarray, tilt_deg: float = 0.0, tilt_axis_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
+    """T_cam_marker of a marker at ``position`` (c0, mm) facing the camera.
+
+    The marker starts fronto-parallel (its z toward the camera, +x right, +y up in the
+    image), is rolled by ``roll_deg`` about its normal, then tilted by ``tilt_deg`` about an
+    in-plane axis at ``tilt_axis_deg``.
+    """
+    from ..geometry import rotation_about_axis
+
+    R0 = np.diag([1.0, -1.0, -1.0])  # marker z toward the camera, y up in the image
+    Rroll = rotation_about_axis([0, 0, 1], np.deg2rad(roll_deg))
+    a = np.deg2rad(tilt_axis_deg)
+    Rtilt = rotation_about_axis([np.cos(a), np.sin(a), 0.0], np.deg2rad(tilt_deg))
+    T = np.eye(4)
+    T[:3, :3] = R0 @ Rtilt @ Rroll
+    T[:3, 3] = position
+    return T
+
+
+__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose"]
