@@ -1,7 +1,9 @@
 """markerpose: accurate real-time stereo pose of a three-ring planar marker."""
 
 from .camera import Camera, StereoRig
-from .marker import Marker
+from .marker import Marker, write_target
+from .pipeline import MarkerPose
+from .results import Detection, Estimate
 
 __version__ = "0.1.0"
-__all__ = ["Camera", "StereoRig", "Marker", "__version__"]
+__all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "Detection", "Estimate", "write_target", "__version__"]

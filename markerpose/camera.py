@@ -109,8 +109,10 @@ class Camera:
     def undistort_points(self, pixels: np.ndarray, ideal_pixels: bool = True) -> np.ndarray:
         """Remove lens distortion from pixel coordinates.
 
-        Uses ``cv2.undistortPointsIter`` with a tight criterion (the default five
-        iterations leave errors of ~0.01 px in the corners of a 12 mm lens).
+        OpenCV's fixed-point iteration (``cv2.undistortPointsIter`` on OpenCV 4,
+        ``cv2.undistortPoints`` with criteria on OpenCV 5; its default five iterations
+        leave ~0.01 px in the corners of a 12 mm lens): 20 iterations, and 200 more for
+        the points whose re-distorted position is still off by more than 1e-7 px.
 
         Args:
             pixels: (N, 2) distorted pixel coordinates.
@@ -121,9 +123,20 @@ class Camera:
         px = np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2)
         if px.shape[0] == 0:
             return np.zeros((0, 2))
-        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
-        P = self.K if ideal_pixels else None
-        out = cv2.undistortPointsIter(px, self.K, self.dist, None, P, crit)
+        xn = self._undistort_normalized(px, 20)
+        bad = np.abs(self.distort(xn) - px.reshape(-1, 2)).max(axis=1) > 1e-7
+        if bad.any():
+            xn[bad] = self._undistort_normalized(px[bad], 200)
+        if not ideal_pixels:
+            return xn
+        return xn @ self.K[:2, :2].T + self.K[:2, 2]
+
+    def _undistort_normalized(self, px: np.ndarray, iterations: int) -> np.ndarray:
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-15)
+        if hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
+            out = cv2.undistortPointsIter(px, self.K, self.dist, None, None, crit)
+        else:  # OpenCV 5 folded the criteria into undistortPoints
+            out = cv2.undistortPoints(px, self.K, self.dist, R=None, P=None, criteria=crit)
         return out.reshape(-1, 2)
 
     def normalized_grid(self) -> np.ndarray:
@@ -231,8 +244,11 @@ class StereoRig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"rig file not found: {path}")
+        # Open in two steps: a parse error inside the constructor surfaces as a bare
+        # SystemError in the Python bindings, whereas open() raises cv2.error.
+        fs = cv2.FileStorage()
         try:
-            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+            fs.open(str(path), cv2.FILE_STORAGE_READ)
         except cv2.error as e:
             raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file ({e.err})") from None
         if not fs.isOpened():
@@ -243,7 +259,10 @@ class StereoRig:
                 node = fs.getNode(key)
                 if node.empty() or node.isNone():
                     raise ValueError(f"{path}: missing key '{key}'")
-                m = node.mat() if node.isMap() else None
+                try:
+                    m = node.mat() if node.isMap() else None
+                except cv2.error:  # a map that is not an opencv-matrix
+                    raise ValueError(f"{path}: key '{key}' is not a matrix") from None
                 if m is None:
                     # Also accept a plain sequence of numbers.
                     if node.isSeq():

@@ -1,0 +1,121 @@
+"""MarkerPose: two views → sub-pixel ring centres → triangulation → pose.
+
+The public entry point (DESIGN §3)::
+
+    tracker = MarkerPose(rig, marker=Marker(), detector="classical")
+    est = tracker.estimate(left, right)   # Estimate or None
+    det = tracker.detect(image)           # Detection or None
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .camera import StereoRig
+from .geometry import POSE_METHODS, pose_from_points, triangulate
+from .marker import Marker
+from .results import Detection, Estimate
+
+DETECTORS = ("classical",)
+
+default_conf = {
+    "detector": "classical",  # the neural detector is not in this version yet
+    "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
+    "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
+}
+
+
+def as_gray(image, name: str = "image") -> np.ndarray:
+    """Validate an input image and return it as uint8 gray (H, W).
+
+    Accepts uint8 gray (H, W), (H, W, 1) or BGR (H, W, 3); anything else raises
+    ``ValueError`` saying what was wrong.
+    """
+    if image is None:
+        raise ValueError(f"{name} is None")
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"{name} must be a numpy array, got {type(image).__name__}")
+    if image.size == 0:
+        raise ValueError(f"{name} is empty (shape {image.shape})")
+    if image.dtype != np.uint8:
+        raise ValueError(f"{name} must be uint8, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim != 2:
+        raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got shape {image.shape}")
+    return image
+
+
+class MarkerPose:
+    """Stereo pose of the three-ring marker.
+
+    Args:
+        rig: the calibrated stereo rig.
+        marker: marker geometry (default: the paper's robot target).
+        detector: "classical" (paper §3.4); "neural" arrives with the networks.
+        pose: "paper" (reference) or "rigid" (orthonormal least-squares fit).
+        subpixel: classical detector's sub-pixel edge refinement (False = the paper's contour fit).
+    """
+
+    def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "classical", **conf):
+        if not isinstance(rig, StereoRig):
+            raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
+        unknown = set(conf) - set(default_conf)
+        if unknown:
+            raise ValueError(f"unknown option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
+        self.conf = {**default_conf, **conf, "detector": detector}
+        if detector not in DETECTORS:
+            if detector == "neural":
+                raise ValueError("the neural detector is not available in this version yet; use detector='classical'")
+            raise ValueError(f"unknown detector {detector!r}; choose from {DETECTORS}")
+        if self.conf["pose"] not in POSE_METHODS:
+            raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
+        self.rig = rig
+        self.marker = marker or Marker()
+
+    def __repr__(self):
+        return f"MarkerPose(detector={self.conf['detector']!r}, pose={self.conf['pose']!r}, subpixel={self.conf['subpixel']})"
+
+    def _check_size(self, image: np.ndarray, camera, name: str):
+        if camera.image_size is not None and (image.shape[1], image.shape[0]) != tuple(camera.image_size):
+            w, h = camera.image_size
+            raise ValueError(
+                f"{name} is {image.shape[1]}x{image.shape[0]} but the rig was calibrated for {w}x{h}"
+            )
+
+    def detect(self, image) -> Detection | None:
+        """Ring centres c0, c1, c2 in one view, or None if the marker is not found."""
+        from . import classical
+
+        gray = as_gray(image)
+        return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"])
+
+    def estimate(self, left, right) -> Estimate | None:
+        """Pose of the marker from a stereo pair, or None if it is not found in both views.
+
+        Args:
+            left, right: uint8 gray (H, W) or BGR (H, W, 3) images of the same size.
+        Returns:
+            :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
+        """
+        gl, gr = as_gray(left, "left image"), as_gray(right, "right image")
+        if gl.shape != gr.shape:
+            raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
+        self._check_size(gl, self.rig.left, "left image")
+        self._check_size(gr, self.rig.right, "right image")
+        from . import classical
+
+        found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
+        if found is None:
+            return None
+        return self.estimate_from_detections(*found)
+
+    def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:
+        """Triangulate matched centres (ordered by ID) and compute the pose."""
+        X = triangulate(self.rig, det_left.centers, det_right.centers)
+        T = pose_from_points(X, self.marker.points3d, self.conf["pose"])
+        centers = np.stack([det_left.centers, det_right.centers])
+        return Estimate(T=T, points3d=X, centers=centers, detections=(det_left, det_right))

@@ -1,0 +1,110 @@
+"""The public API contract (DESIGN §3) on rendered stereo pairs."""
+
+import cv2
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose.geometry import rotation_angle
+from markerpose.synth import Imaging, clutter_background, look_at_pose, render_stereo
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return mp.StereoRig.default()
+
+
+@pytest.fixture(scope="module")
+def frame(rig):
+    return render_stereo(rig, look_at_pose([15, -10, 560], 30, 40, 25), seed=11)
+
+
+def test_estimate_contract_and_accuracy(rig, frame):
+    tracker = mp.MarkerPose(rig, marker=mp.Marker(), detector="classical")
+    est = tracker.estimate(*frame.images)
+    assert est is not None
+    assert est.T.shape == (4, 4) and est.T.dtype == np.float64
+    assert est.R.shape == (3, 3) and est.t.shape == (3,)
+    assert est.points3d.shape == (3, 3) and est.centers.shape == (2, 3, 2)
+    np.testing.assert_array_equal(est.T[3], [0, 0, 0, 1])
+    gt = frame.T_left_marker
+    assert np.linalg.norm(est.t - gt[:3, 3]) < 0.5  # mm
+    assert np.rad2deg(rotation_angle(est.R, gt[:3, :3])) < 0.5
+    px = np.linalg.norm(est.centers - np.stack([v.centers for v in frame.views]), axis=2)
+    assert px.max() < 1.0
+
+
+def test_detect_one_view_orders_by_id(rig, frame):
+    det = mp.MarkerPose(rig).detect(frame.images[0])
+    assert det is not None and det.centers.shape == (3, 2)
+    assert np.linalg.norm(det.centers - frame.views[0].centers, axis=1).max() < 1.0
+
+
+def test_bgr_input_equals_gray(rig, frame):
+    tracker = mp.MarkerPose(rig)
+    a = tracker.estimate(*frame.images)
+    b = tracker.estimate(*(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR) for im in frame.images))
+    np.testing.assert_allclose(a.T, b.T, atol=1e-9)
+
+
+def test_rigid_pose_is_orthonormal_and_agrees_with_paper(rig, frame):
+    paper = mp.MarkerPose(rig, pose="paper").estimate(*frame.images)
+    rigid = mp.MarkerPose(rig, pose="rigid").estimate(*frame.images)
+    np.testing.assert_allclose(rigid.R @ rigid.R.T, np.eye(3), atol=1e-12)
+    assert np.rad2deg(rotation_angle(paper.R, rigid.R)) < 0.5
+    np.testing.assert_allclose(paper.points3d, rigid.points3d)
+
+
+def test_marker_free_pair_is_none(rig):
+    rng = np.random.default_rng(5)
+    imgs = [(clutter_background((1280, 1024), rng) * 200).astype(np.uint8) for _ in range(2)]
+    assert mp.MarkerPose(rig).estimate(*imgs) is None
+
+
+def test_marker_in_one_view_only_is_none(rig, frame):
+    rng = np.random.default_rng(6)
+    empty = (clutter_background((1280, 1024), rng) * 200).astype(np.uint8)
+    assert mp.MarkerPose(rig).estimate(frame.images[0], empty) is None
+
+
+def test_dark_pair_still_tracked(rig):
+    f = render_stereo(rig, look_at_pose([0, 0, 500], 20, 0, 0), imaging=Imaging(alpha=0.25), seed=2)
+    est = mp.MarkerPose(rig).estimate(*f.images)
+    assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 1.0
+
+
+@pytest.mark.parametrize(
+    "left, right, match",
+    [
+        (None, "ok", "left image is None"),
+        (np.zeros((0, 0), np.uint8), "ok", "empty"),
+        (np.zeros((1024, 1280), np.float32), "ok", "uint8"),
+        (np.zeros((1024, 1280, 4), np.uint8), "ok", "gray"),
+        ("ok", np.zeros((1000, 1280), np.uint8), "differ in size"),
+        ([[0]], "ok", "numpy array"),
+    ],
+)
+def test_bad_input_raises(rig, frame, left, right, match):
+    left = frame.images[0] if isinstance(left, str) else left
+    right = frame.images[1] if isinstance(right, str) else right
+    with pytest.raises(ValueError, match=match):
+        mp.MarkerPose(rig).estimate(left, right)
+
+
+def test_image_size_must_match_the_calibration(rig):
+    small = np.zeros((480, 640), np.uint8)
+    with pytest.raises(ValueError, match="calibrated for 1280x1024"):
+        mp.MarkerPose(rig).estimate(small, small)
+
+
+def test_bad_configuration(rig):
+    with pytest.raises(ValueError, match="neural detector"):
+        mp.MarkerPose(rig, detector="neural")
+    with pytest.raises(ValueError, match="unknown detector"):
+        mp.MarkerPose(rig, detector="magic")
+    with pytest.raises(ValueError, match="unknown pose"):
+        mp.MarkerPose(rig, pose="best")
+    with pytest.raises(ValueError, match="unknown option"):
+        mp.MarkerPose(rig, speed=3)
+    with pytest.raises(ValueError, match="StereoRig"):
+        mp.MarkerPose("rig.yaml")
