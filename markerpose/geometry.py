@@ -175,6 +175,34 @@ def ellipse_to_conic(center, axes, angle_deg) -> np.ndarray:
     return C
 
 
+def imaged_circle_centers(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, radius: float) -> np.ndarray:
+    """Centres of the ellipses that circles of the plane z = 0 make in the image.
+
+    The ellipse centre is not the image of the circle's centre under perspective
+    (the "perspective bias"); this is where an ellipse fit lands. The centre is
+    computed in ideal pixels and mapped through the lens distortion.
+
+    Args:
+        camera: the :class:`~markerpose.camera.Camera`.
+        T_cam_plane: (4, 4) plane → camera.
+        centers2d: (N, 2) circle centres in the plane, mm.
+        radius: circle radius, mm.
+    Returns:
+        (N, 2) distorted pixel coordinates of the imaged ellipses' centres.
+    """
+    H = plane_homography(camera.K, T_cam_plane)
+    ideal = np.stack([conic_center(project_conic(circle_conic(c, radius), H)) for c in np.asarray(centers2d)])
+    Kinv = np.linalg.inv(camera.K)
+    xn = ideal @ Kinv[:2, :2].T + Kinv[:2, 2]
+    return camera.distort(xn)
+
+
+def perspective_bias(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, radius: float) -> np.ndarray:
+    """(N, 2) imaged-ellipse centre minus projected circle centre, distorted px."""
+    c3 = np.column_stack([np.asarray(centers2d, dtype=np.float64), np.zeros(len(centers2d))])
+    return imaged_circle_centers(camera, T_cam_plane, centers2d, radius) - camera.project(c3 @ T_cam_plane[:3, :3].T + T_cam_plane[:3, 3])
+
+
 def plane_homography(K: np.ndarray, T_cam_plane: np.ndarray) -> np.ndarray:
     """(3, 3) homography from plane coordinates (x, y, 1) (z = 0) to ideal pixels: ``K [r1 r2 t]``."""
     return K @ np.column_stack([T_cam_plane[:3, 0], T_cam_plane[:3, 1], T_cam_plane[:3, 3]])

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from .camera import StereoRig
-from .geometry import POSE_METHODS, pose_from_points, triangulate
+from .geometry import POSE_METHODS, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .marker import Marker
 from .results import Detection, Estimate
 
@@ -23,6 +23,7 @@ default_conf = {
     "detector": "classical",  # the neural detector is not in this version yet
     "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
     "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
+    "bias_correction": True,  # remove the perspective bias of ellipse centres (False = paper)
 }
 
 
@@ -58,6 +59,9 @@ class MarkerPose:
         detector: "classical" (paper §3.4); "neural" arrives with the networks.
         pose: "paper" (reference) or "rigid" (orthonormal least-squares fit).
         subpixel: classical detector's sub-pixel edge refinement (False = the paper's contour fit).
+        bias_correction: an ellipse's centre is not the image of the circle's centre; with
+            the first pose, predict that offset in each view, subtract it and triangulate
+            again (False = the paper, which triangulates the ellipse centres).
     """
 
     def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "classical", **conf):
@@ -77,7 +81,8 @@ class MarkerPose:
         self.marker = marker or Marker()
 
     def __repr__(self):
-        return f"MarkerPose(detector={self.conf['detector']!r}, pose={self.conf['pose']!r}, subpixel={self.conf['subpixel']})"
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.conf.items())
+        return f"MarkerPose({opts})"
 
     def _check_size(self, image: np.ndarray, camera, name: str):
         if camera.image_size is not None and (image.shape[1], image.shape[0]) != tuple(camera.image_size):
@@ -114,8 +119,21 @@ class MarkerPose:
         return self.estimate_from_detections(*found)
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:
-        """Triangulate matched centres (ordered by ID) and compute the pose."""
-        X = triangulate(self.rig, det_left.centers, det_right.centers)
+        """Triangulate matched centres (ordered by ID) and compute the pose.
+
+        With ``bias_correction`` the returned ``centers`` are the corrected ones: estimates
+        of where the rings' 3D centres project, rather than the fitted ellipses' centres.
+        """
+        centers = np.stack([det_left.centers, det_right.centers]).astype(np.float64)
+        X = triangulate(self.rig, centers[0], centers[1])
+        if self.conf["bias_correction"]:
+            measured = centers.copy()
+            m = self.marker
+            for _ in range(2):  # the bias varies slowly with pose: two rounds converge
+                T = pose_rigid(X, m.points3d)
+                Ts = (T, self.rig.T_right_left @ T)
+                for i, cam in enumerate(self.rig.cameras):
+                    centers[i] = measured[i] - perspective_bias(cam, Ts[i], m.centers2d, m.outer_radius)
+                X = triangulate(self.rig, centers[0], centers[1])
         T = pose_from_points(X, self.marker.points3d, self.conf["pose"])
-        centers = np.stack([det_left.centers, det_right.centers])
         return Estimate(T=T, points3d=X, centers=centers, detections=(det_left, det_right))

@@ -30,11 +30,13 @@ default_conf = {
     "alpha": 1.0,
     "configs": {
         # The paper's classical method (§3.4): binarise, contours, cv2.fitEllipse on the contour.
-        "classical (paper)": {"detector": "classical", "subpixel": False, "pose": "paper"},
-        # Ours: sub-pixel edge refinement of the outer ellipse; same pose as the paper.
-        "classical (sub-pixel)": {"detector": "classical", "subpixel": True, "pose": "paper"},
-        # Ours + orthonormal least-squares rigid fit of the three points.
-        "classical (sub-pixel, rigid)": {"detector": "classical", "subpixel": True, "pose": "rigid"},
+        "classical (paper)": {"detector": "classical", "subpixel": False, "pose": "paper", "bias_correction": False},
+        # + sub-pixel edge refinement of the outer ellipse; same centres and pose as the paper.
+        "classical + sub-pixel": {"detector": "classical", "subpixel": True, "pose": "paper", "bias_correction": False},
+        # + perspective-bias correction of the centres.
+        "classical + sub-pixel + bias": {"detector": "classical", "subpixel": True, "pose": "paper", "bias_correction": True},
+        # + orthonormal least-squares rigid fit of the three points (the package default).
+        "classical + sub-pixel + bias + rigid": {"detector": "classical", "subpixel": True, "pose": "rigid", "bias_correction": True},
     },
 }
 

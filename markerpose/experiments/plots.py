@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")  # files only; no display needed
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 _MARKERS = ("o", "s", "^", "D", "v")
 
@@ -24,6 +25,7 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
         ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g} mm")
         ax.set_title(f"centre c{c}")
         ax.set_xlabel("pair of consecutive frames")
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("estimated displacement (mm)")
     axes[0].legend(fontsize=8)
@@ -42,6 +44,7 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
         ax.plot(np.arange(1, len(a) + 1), a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name)
     ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g}°")
     ax.set_xlabel("pair of consecutive frames")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("estimated rotation (°)")
     ax.set_title("Rotation experiment (5° steps)")
     ax.grid(alpha=0.3)

@@ -29,7 +29,7 @@ import cv2
 import numpy as np
 
 from ..camera import Camera, StereoRig
-from ..geometry import circle_conic, conic_center, plane_homography, project_conic
+from ..geometry import circle_conic, imaged_circle_centers, plane_homography, project_conic
 from ..marker import Marker
 from .background import clutter_background
 
@@ -128,10 +128,7 @@ def _ring_truth(camera: Camera, T: np.ndarray, marker: Marker):
     c2 = marker.centers2d
     outer = np.stack([project_conic(circle_conic(c, marker.outer_radius), H) for c in c2])
     inner = np.stack([project_conic(circle_conic(c, marker.inner_radius), H) for c in c2])
-    ideal = np.stack([conic_center(C) for C in outer])
-    xn = (ideal - camera.K[:2, 2]) / np.diag(camera.K)[:2]  # K has no skew in our rigs
-    xn[:, 0] -= camera.K[0, 1] * xn[:, 1] / camera.K[0, 0]
-    outer_centers = camera.distort(xn)
+    outer_centers = imaged_circle_centers(camera, T, c2, marker.outer_radius)
     centers, _ = cv2.projectPoints(marker.points3d, cv2.Rodrigues(T[:3, :3])[0], T[:3, 3], camera.K, camera.dist)
     return centers.reshape(3, 2), outer, inner, outer_centers
 

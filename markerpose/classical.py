@@ -1,0 +1,1062 @@
+"""The classical detector (paper §3.4): binarise, contours, concentric ellipses, layout IDs.
+
+How it works, and why:
+
+1. **Binarisation** (:func:`binarize`): a light Gaussian pre-blur, then a local-mean
+   threshold at two window sizes (fractions of the image size, so a ring of any size in
+   use has a window larger than its black band). The offset below the local mean is a
+   multiple of the image's noise (estimated from the median absolute Laplacian-like
+   residual), so the same setting works from full exposure down to a gain of ~0.05,
+   where paper and ink differ by ~10 grey levels.
+2. **Ring candidates** (:func:`find_rings`): in each binary image, a dark component
+   whose outer contour and whose largest hole (the white inner disk) are both ellipses
+   (``cv2.fitEllipse``, area/fill check), concentric within a tolerance, with the
+   inner/outer size ratio of the :class:`~markerpose.marker.Marker` and a similar shape.
+   A hole that is a good ellipse inside a dark region that is *not* one (a ring merged
+   with a neighbour by blur, or touched by an occluder) also gives a candidate, its outer
+   ellipse predicted from the hole. Every candidate must pass a grey-level check (dark
+   band between a brighter hole and brighter surround) and duplicates across windows
+   are merged.
+3. **Sub-pixel centre** (:func:`refine_ring`): ``subpixel=False`` is the paper's
+   choice, the centre of ``cv2.fitEllipse`` on the outer contour. ``subpixel=True``
+   (default) samples the grey profile along rays of the coarse ellipse and locates each
+   edge by the *area* method: the integral of the normalised profile across the edge
+   equals the edge position for any symmetric blur and is exact for area-sampled pixels
+   (a bare 50 % crossing with linear interpolation has a pixel-phase error). The plateau
+   levels (ink, paper) are planes fitted over the ring from the rays that reach them, so
+   lighting gradients do not bias the edges and motion-blurred rays still get the right
+   50 % level. Rays spoilt by something next to the ring (a neighbour's blur, an
+   occluder) are dropped. A direct least-squares ellipse fit (Halir-Flusser) with robust
+   outlier rejection, iterated to convergence, gives the ellipse; with a camera the edge
+   points are undistorted first (an imaged circle is an ellipse in ideal pixels only).
+4. **IDs by layout** (:func:`find_triples`): the three outer ellipses give the local
+   affine map of the marker plane; undoing it (the symmetric square root of their mean
+   quadratic form) rectifies the centres into marker units of one outer radius. A
+   rotation+scale (no reflection) fit to the marker's layout then scores every ordered
+   triple; the sign of the signed area rejects mirror images outright.
+5. **Stereo** (:func:`detect_stereo`): among the best triples of each view, the pair
+   whose same-ID centres satisfy the epipolar constraint wins, so a marker-like
+   distractor seen in one view only cannot produce a pose.
+
+All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field, replace
+
+import cv2
+import numpy as np
+
+from .camera import Camera, StereoRig
+from .geometry import epipolar_distance
+from .marker import Marker
+from .results import Detection
+
+default_conf: dict = {
+    # --- binarisation -----------------------------------------------------------------
+    "blur_sigma": 1.0,  # Gaussian pre-blur before thresholding, px
+    "block_sizes": (0.06, 0.2),  # local-mean windows, fractions of min(H, W)
+    "min_block": 7,  # smallest window, px
+    "offset_noise_k": 3.0,  # threshold offset below the local mean, in noise sigmas (after blur)
+    "offset_min": 1.0,  # smallest offset, grey levels
+    # --- ring candidates --------------------------------------------------------------
+    "min_outer_px": 10.0,  # smallest outer diameter (major axis), px
+    "min_inner_px": 4.0,  # smallest inner-disk diameter, px
+    "max_outer_frac": 0.6,  # largest outer diameter, fraction of min(H, W)
+    "min_axis_ratio": 0.15,  # minor/major of the outer ellipse (a ring seen at <= ~80°)
+    "fill_tol": 0.12,  # |contour area / ellipse area - 1|
+    "ratio_tol": 0.15,  # |inner/outer diameter ratio - marker's|
+    "concentric_tol": 0.08,  # centre distance / outer major axis (plus 1 px)
+    "shape_tol": 0.3,  # outer vs inner log-shape distance (plus 1.5 / inner minor axis px)
+    "hole_candidates": True,  # rings whose outer contour is merged: outer ellipse from the hole
+    "contrast_frac": 0.6,  # fraction of rays where the band is darker than hole and surround
+    "nms_frac": 0.3,  # duplicates: centre distance < this * outer minor semi-axis
+    "max_candidates": 60,  # keep the best-scored candidates
+    # --- sub-pixel edges ----------------------------------------------------------------
+    "edge_method": "area",  # "area" (integral of the profile) or "midlevel" (50 % crossing)
+    "edge_spacing": 1.5,  # arc length between rays, px
+    "min_rays": 24,
+    "max_rays": 360,
+    "edge_step": 0.5,  # sample step along a ray, px
+    "area_window": (0.5, 0.5),  # area method: half-window = a * (10-90 % edge width) + b, px
+    "level_samples": 0.2,  # fraction of a profile at each end used for the plateau levels
+    "level_smooth": 1 / 16,  # levels are averaged over this fraction of the ellipse (fallback)
+    "level_tol": 0.25,  # drop rays whose two ends depart from the ring's levels unequally (x contrast)
+    "refine_iters": 10,  # at most this many resample-and-fit passes ...
+    "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
+    "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
+    "outlier_min_px": 0.15,  # ... but never tighter than this, px
+    "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse
+    "min_free_frac": 0.25,  # rays kept after dropping those near neighbours, else keep all
+    "refine_inner": False,  # also refine the inner (hole) ellipse (always for "concentric")
+    "center": "outer",  # "outer": centre of the outer ellipse (the paper's point);
+    #                     "concentric": projected circle centre from outer+inner conics
+    # --- layout -----------------------------------------------------------------------
+    "prune_tol": 0.5,  # pairwise rectified distance vs the marker's, relative
+    "layout_tol": 0.15,  # RMS residual of the similarity fit / RMS spread of the triple
+    "scale_tol": 1.6,  # rectified scale within [1/scale_tol, scale_tol] outer radii
+    "size_ratio_max": 1.6,  # largest / smallest outer major axis among the three
+    "triple_shape_tol": 0.5,  # log-shapes of the three outer ellipses agree within this
+    "max_triples": 8,  # triples kept per view (stereo matching considers these)
+    # --- stereo -------------------------------------------------------------------------
+    "epipolar_tol": 3.0,  # max symmetric epipolar distance of a same-ID pair, px
+}
+
+
+@dataclass
+class Ring:
+    """One ring candidate in an image.
+
+    Attributes:
+        center: (2,) its centre, px (outer-ellipse centre unless conf["center"] says otherwise).
+        outer: outer (black) ellipse as an OpenCV RotatedRect ((cx, cy), (w, h), angle_deg).
+        inner: inner (white disk) ellipse, RotatedRect.
+        score: quality in (0, 1], higher is better.
+        refined: True when the ellipses come from sub-pixel edges.
+        from_hole: True when the outer ellipse was predicted from the hole (merged contour).
+    """
+
+    center: np.ndarray
+    outer: tuple
+    inner: tuple
+    score: float
+    refined: bool = False
+    from_hole: bool = False
+    # Internal: the ellipses as centre + quadratic form, (x - c)^T Q (x - c) = 1.
+    _outer_cq: tuple = field(default=None, repr=False)
+    _inner_cq: tuple = field(default=None, repr=False)
+
+
+# --- input handling ------------------------------------------------------------------------
+def _merge_conf(conf: dict | None) -> dict:
+    c = dict(default_conf)
+    if conf:
+        unknown = set(conf) - set(default_conf)
+        if unknown:
+            raise ValueError(f"unknown classical-detector settings: {sorted(unknown)}")
+        c.update(conf)
+    if c["edge_method"] not in ("area", "midlevel"):
+        raise ValueError(f"edge_method must be 'area' or 'midlevel', got {c['edge_method']!r}")
+    if c["center"] not in ("outer", "concentric"):
+        raise ValueError(f"center must be 'outer' or 'concentric', got {c['center']!r}")
+    return c
+
+
+def to_gray(image, name: str = "image") -> np.ndarray:
+    """Validate an image and return it as float32 grey levels (H, W) on the 0..255 scale.
+
+    Accepts uint8 gray (H, W), (H, W, 1) or BGR (H, W, 3); float32 on the 0..255 scale is
+    accepted too (noise-free renders). Raises ValueError naming the problem otherwise.
+    """
+    if image is None:
+        raise ValueError(f"{name} is None")
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"{name} must be a numpy array, got {type(image).__name__}")
+    if image.dtype not in (np.uint8, np.float32):
+        raise ValueError(f"{name} must be uint8 (or float32 on the 0..255 scale), got dtype {image.dtype}")
+    if image.size == 0:
+        raise ValueError(f"{name} is empty (shape {image.shape})")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim == 3:
+        if image.shape[2] != 3:
+            raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got {image.shape[2]} channels")
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    elif image.ndim != 2:
+        raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got shape {image.shape}")
+    if min(image.shape) < 16:
+        raise ValueError(f"{name} is too small: {image.shape}, need at least 16 x 16")
+    out = np.ascontiguousarray(image, dtype=np.float32)
+    if image.dtype == np.float32 and not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} contains non-finite values")
+    return out
+
+
+# --- ellipse helpers ------------------------------------------------------------------------
+def _rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
+    """RotatedRect → (centre (2,), Q (2, 2)) with (x - c)^T Q (x - c) = 1."""
+    (cx, cy), (w, h), ang = rect
+    a, b = max(w, 1e-6) / 2.0, max(h, 1e-6) / 2.0
+    t = np.deg2rad(ang)
+    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    return np.array([cx, cy], float), R @ np.diag([1 / a**2, 1 / b**2]) @ R.T
+
+
+def _cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
+    """(centre, Q) → RotatedRect ((cx, cy), (w, h), angle_deg), width = major axis along angle."""
+    lam, V = np.linalg.eigh(Q)  # ascending: lam[0] ↔ major axis
+    a, b = 1 / np.sqrt(lam[0]), 1 / np.sqrt(lam[1])
+    ang = np.degrees(np.arctan2(V[1, 0], V[0, 0])) % 180.0
+    return ((float(c[0]), float(c[1])), (float(2 * a), float(2 * b)), float(ang))
+
+
+def _sqrtm_spd(Q: np.ndarray, power: float = 0.5) -> np.ndarray:
+    lam, V = np.linalg.eigh(Q)
+    return (V * lam**power) @ V.T
+
+
+def _cq_to_conic(c: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    C = np.zeros((3, 3))
+    C[:2, :2] = Q
+    C[:2, 2] = C[2, :2] = -Q @ c
+    C[2, 2] = c @ Q @ c - 1.0
+    return C
+
+
+def fit_ellipse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Direct least-squares ellipse fit (Fitzgibbon; Halir-Flusser's stable form).
+
+    Args:
+        points: (N, 2) points, N >= 6.
+    Returns:
+        (centre (2,), Q (2, 2)) with (x - c)^T Q (x - c) = 1, or None if degenerate.
+    """
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(p) < 6:
+        return None
+    m = p.mean(0)
+    s = np.sqrt(((p - m) ** 2).sum(1).mean())
+    if not s > 0:
+        return None
+    x, y = ((p - m) / s).T  # normalised: well-conditioned scatter matrices
+    D1 = np.column_stack([x * x, x * y, y * y])
+    D2 = np.column_stack([x, y, np.ones_like(x)])
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    try:
+        T = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError:
+        return None
+    M = S1 + S2 @ T
+    M = np.array([M[2] / 2, -M[1], M[0] / 2])
+    w, v = np.linalg.eig(M)
+    v = np.real(v)
+    cond = 4 * v[0] * v[2] - v[1] ** 2
+    ok = np.nonzero(cond > 0)[0]
+    if len(ok) == 0:
+        return None
+    a1 = v[:, ok[0]]
+    A, B, C = a1
+    Dd, E, F = T @ a1
+    A2 = np.array([[A, B / 2], [B / 2, C]])
+    b2 = np.array([Dd / 2, E / 2])
+    try:
+        uc = -np.linalg.solve(A2, b2)
+    except np.linalg.LinAlgError:
+        return None
+    fc = F + b2 @ uc
+    if fc == 0:
+        return None
+    Qu = A2 / (-fc)
+    if not (np.all(np.isfinite(Qu)) and np.linalg.eigvalsh(Qu)[0] > 0):
+        return None
+    return m + s * uc, Qu / s**2
+
+
+def concentric_center(outer_cq, inner_cq) -> np.ndarray | None:
+    """Image of the common centre of two concentric circles from their imaged ellipses.
+
+    For concentric circles Q_o = diag(1, 1, -r_o^2), Q_i = diag(1, 1, -r_i^2), the matrix
+    Q_o^-1 Q_i has the centre (0, 0, 1) as the eigenvector of its single eigenvalue; under a
+    homography H the imaged conics give C_o^-1 C_i = H (Q_o^-1 Q_i) H^-1 up to scale, whose
+    matching eigenvector is H (0, 0, 1): the projected centre, free of the perspective bias
+    of the ellipse centres. (Exact for a pinhole; lens distortion across one ring is small.)
+    """
+    Co = _cq_to_conic(*outer_cq)
+    Ci = _cq_to_conic(*inner_cq)
+    try:
+        w, v = np.linalg.eig(np.linalg.solve(Co, Ci))
+    except np.linalg.LinAlgError:
+        return None
+    w = np.real(w)
+    # The single eigenvalue is the one farthest from the other two (a double pair).
+    k = int(np.argmax([abs(w[i] - w[(i + 1) % 3]) + abs(w[i] - w[(i + 2) % 3]) for i in range(3)]))
+    e = np.real(v[:, k])
+    if abs(e[2]) < 1e-12:
+        return None
+    return e[:2] / e[2]
+
+
+# --- binarisation ----------------------------------------------------------------------------
+def noise_sigma(gray: np.ndarray) -> float:
+    """Robust estimate of the per-pixel noise sigma (grey levels) of a float image.
+
+    Median absolute value of ``I - mean(4-neighbours)`` over a subsampled grid (edges and
+    texture are a minority of pixels, so the median sees the noise).
+    """
+    # Residuals at every k-th pixel (with its direct neighbours): ~60k samples suffice.
+    k = max(1, int(np.sqrt(gray.size / 60_000)))
+    g = gray
+    r = g[1:-1:k, 1:-1:k] - 0.25 * (g[:-2:k, 1:-1:k] + g[2::k, 1:-1:k] + g[1:-1:k, :-2:k] + g[1:-1:k, 2::k])
+    # var(r) = sigma^2 (1 + 4/16) for white noise; MAD → sigma for a Gaussian.
+    return float(1.4826 * np.median(np.abs(r)) / np.sqrt(1.25))
+
+
+def binarize(gray: np.ndarray, conf: dict | None = None, noise: float | None = None) -> list[np.ndarray]:
+    """Dark-region masks of a float grey image, one per local-mean window.
+
+    Args:
+        gray: (H, W) float32 grey levels.
+        noise: the image's noise sigma if known (else :func:`noise_sigma`).
+    Returns:
+        list of (H, W) uint8 masks, 255 where the (pre-blurred) image is darker than its
+        local mean minus an offset.
+    """
+    c = _merge_conf(conf)
+    h, w = gray.shape
+    s = c["blur_sigma"]
+    blur = cv2.GaussianBlur(gray, (0, 0), s) if s > 0 else gray
+    # Noise after a Gaussian of sigma s drops by 1 / (2 s sqrt(pi)) for white noise.
+    noise = noise_sigma(gray) if noise is None else noise
+    sig = noise * (1.0 / (2 * s * np.sqrt(np.pi)) if s > 0 else 1.0)
+    offset = max(c["offset_min"], c["offset_noise_k"] * sig)
+    masks = []
+    for frac in c["block_sizes"]:
+        b = max(int(c["min_block"]), int(round(frac * min(h, w))) | 1)
+        mean = cv2.blur(blur, (b, b), borderType=cv2.BORDER_REPLICATE)
+        masks.append(((blur < mean - offset).astype(np.uint8)) * 255)
+    return masks
+
+
+# --- ring candidates ---------------------------------------------------------------------------
+def _log_shape(Q: np.ndarray) -> np.ndarray:
+    """Log of the unit-determinant shape matrix: a scale-free ellipse shape whose Frobenius
+    distances treat thin and round ellipses alike (sqrt(2) |log ratio of axis ratios| when aligned)."""
+    lam, V = np.linalg.eigh(Q)
+    ll = np.log(lam) - 0.5 * np.log(lam).sum()
+    return (V * ll) @ V.T
+
+
+def _inset(rect, d: float) -> np.ndarray:
+    """Quadratic form of a RotatedRect whose axes are grown by ``d`` px (negative: shrunk)."""
+    (cx, cy), (w, h), ang = rect
+    return _rect_to_cq(((cx, cy), (max(w + d, 0.5), max(h + d, 0.5)), ang))[1]
+
+
+def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``img`` at float coordinates (any shape); also a validity mask.
+
+    Done in float64 numpy, not ``cv2.remap``, whose fixed-point weights quantise positions
+    to 1/32 px.
+    """
+    h, w = img.shape
+    valid = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    xc = np.clip(x, 0, w - 1.000001)
+    yc = np.clip(y, 0, h - 1.000001)
+    x0 = np.floor(xc).astype(np.intp)
+    y0 = np.floor(yc).astype(np.intp)
+    fx, fy = xc - x0, yc - y0
+    flat = img.ravel()
+    i00 = y0 * w + x0
+    v00, v01 = flat[i00], flat[i00 + 1]
+    v10, v11 = flat[i00 + w], flat[i00 + w + 1]
+    top = v00 + fx * (v01 - v00)
+    bot = v10 + fx * (v11 - v10)
+    return top + fy * (bot - top), valid
+
+
+def _contrast_check(gray, c, Q, rho, gap, offset, n=32):
+    """Fraction of rays where the ring band is darker than the hole and the surround."""
+    L = _sqrtm_spd(Q, -0.5)
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    u = L @ np.stack([np.cos(t), np.sin(t)])  # (2, n) ellipse points relative to c
+    lams = np.array([0.5 * rho, 0.5 * (1 + rho), 1 + 0.5 * gap])
+    P = c[:, None, None] + u[:, None, :] * lams[None, :, None]  # (2, 3, n)
+    v, ok = _bilinear(gray, P[0], P[1])
+    hole, band, out = v
+    good = (band < hole - offset) & (band < out - offset) & ok.all(0)
+    contrast = float(np.median(np.minimum(hole, out) - band))
+    return float(good.mean()), contrast
+
+
+def find_rings(
+    image: np.ndarray,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    subpixel: bool = False,
+    camera: Camera | None = None,
+) -> list[Ring]:
+    """All ring candidates in one image, best first.
+
+    Args:
+        image: uint8 gray (H, W) or BGR (H, W, 3).
+        marker: the marker (gives the inner/outer ratio and the gap between rings).
+        conf: overrides of :data:`default_conf`.
+        subpixel: refine every candidate's ellipses with :func:`refine_ring`.
+        camera: the camera that took the image (optional; see :func:`refine_ring`).
+    Returns:
+        list of :class:`Ring`, highest score first (at most conf["max_candidates"]).
+    """
+    c = _merge_conf(conf)
+    gray = to_gray(image)
+    noise = noise_sigma(gray)
+    rings = _find_rings_gray(gray, marker, c, noise)
+    if subpixel:
+        rings = [refine_ring(gray, r, marker, c, noise, camera=camera) for r in rings]
+    return rings
+
+
+def _marker_gap(marker: Marker) -> float:
+    """Smallest white gap between two rings, in outer radii."""
+    p = marker.centers2d
+    d = min(np.linalg.norm(p[i] - p[j]) for i, j in ((0, 1), (0, 2), (1, 2)))
+    return (d - marker.outer_diameter) / marker.outer_radius
+
+
+def _find_rings_gray(gray: np.ndarray, marker: Marker, c: dict, noise: float) -> list[Ring]:
+    h, w = gray.shape
+    rho = marker.inner_diameter / marker.outer_diameter
+    gap = min(_marker_gap(marker), 1.0)
+    max_outer = c["max_outer_frac"] * min(h, w)
+    min_outer_len = 0.8 * np.pi * c["min_outer_px"] / 1.5  # contour points of the smallest ring
+    offset = max(c["offset_min"], c["offset_noise_k"] * noise / np.sqrt(3.0))  # ~3-sample averages
+    cands: list[Ring] = []
+    for mask in binarize(gray, c, noise):
+        contours, hier = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+        if hier is None:
+            continue
+        hier = hier[0]
+        lens = np.fromiter((len(k) for k in contours), dtype=np.int64, count=len(contours))
+        # Top-level dark components with at least one hole, long enough to be a ring.
+        tops = np.nonzero((hier[:, 3] < 0) & (hier[:, 2] >= 0) & (lens >= min_outer_len))[0]
+        for i in tops:
+            holes = []
+            j = hier[i, 2]
+            while j >= 0:
+                if lens[j] >= 6:
+                    holes.append(j)
+                j = hier[j, 0]
+            if not holes:
+                continue
+            areas = [cv2.contourArea(contours[j]) for j in holes]
+            hole = holes[int(np.argmax(areas))]
+            inner = _ellipse_of_contour(contours[hole], max(areas), c)
+            if inner is None:
+                continue
+            ci, Qi, inner_rect = inner
+            if max(inner_rect[1]) < c["min_inner_px"]:
+                continue
+            outer = _ellipse_of_contour(contours[i], cv2.contourArea(contours[i]), c)
+            ring = None
+            if outer is not None:
+                ring = _ring_from_pair(outer, inner, rho, max_outer, c)
+            if ring is None and c["hole_candidates"]:
+                # The dark region is not one ellipse (merged / touched): predict the outer
+                # ellipse from the hole, corrected for the contour's half-pixel inset.
+                lam, V = np.linalg.eigh(Qi)
+                semi = 1 / np.sqrt(lam)  # the hole's semi-axes along V's columns
+                Qo = (V / ((semi - 0.5) / rho) ** 2) @ V.T
+                rect = _cq_to_rect(ci, Qo)
+                major = max(rect[1])
+                if c["min_outer_px"] <= major <= max_outer and min(rect[1]) / major >= c["min_axis_ratio"]:
+                    ring = Ring(
+                        ci.copy(), rect, inner_rect, 0.5, from_hole=True, _outer_cq=(ci, Qo), _inner_cq=(ci, Qi)
+                    )
+            if ring is None:
+                continue
+            frac, _ = _contrast_check(gray, ring._outer_cq[0], ring._outer_cq[1], rho, gap, offset)
+            if frac < c["contrast_frac"]:
+                continue
+            ring.score *= frac
+            cands.append(ring)
+    return _nms(cands, c)
+
+
+def _ellipse_of_contour(contour, area, c):
+    """cv2.fitEllipse of a contour with a fill check; (centre, Q, rect) or None."""
+    if len(contour) < 6:
+        return None
+    rect = cv2.fitEllipse(contour)
+    (cx, cy), (w_, h_), ang = rect
+    if not (w_ > 0 and h_ > 0 and np.isfinite(cx) and np.isfinite(cy)):
+        return None
+    ea = np.pi * w_ * h_ / 4.0
+    if abs(abs(area) / ea - 1.0) > c["fill_tol"] + 2.0 / min(w_, h_):
+        return None
+    cen, Q = _rect_to_cq(rect)
+    return cen, Q, rect
+
+
+def _ring_from_pair(outer, inner, rho, max_outer, c) -> Ring | None:
+    co, Qo, rect_o = outer
+    ci, Qi, rect_i = inner
+    major, minor = max(rect_o[1]), min(rect_o[1])
+    if not (c["min_outer_px"] <= major <= max_outer) or minor / major < c["min_axis_ratio"]:
+        return None
+    # Contours run through the boundary pixels of the dark region: the outer one lies
+    # ~0.5 px inside the region's edge, the hole's ~0.5 px outside the white disk.
+    d_o = np.sqrt(rect_o[1][0] * rect_o[1][1]) + 1.0
+    d_i = max(np.sqrt(rect_i[1][0] * rect_i[1][1]) - 1.0, 1e-3)
+    ratio = d_i / d_o
+    if abs(ratio - rho) > c["ratio_tol"]:
+        return None
+    dc = np.linalg.norm(co - ci)
+    if dc > c["concentric_tol"] * major + 1.0:
+        return None
+    # Same shape (axis ratio, orientation), after the half-pixel contour insets.
+    dshape = np.linalg.norm(_log_shape(_inset(rect_o, 1.0)) - _log_shape(_inset(rect_i, -1.0)))
+    shape_tol = c["shape_tol"] + 1.5 / max(min(rect_i[1]), 1.0)
+    if dshape > shape_tol:
+        return None
+    cost = (
+        ((ratio - rho) / c["ratio_tol"]) ** 2
+        + (dc / (c["concentric_tol"] * major + 1.0)) ** 2
+        + (dshape / shape_tol) ** 2
+    )
+    return Ring(co.copy(), rect_o, rect_i, float(np.exp(-0.5 * cost)), _outer_cq=(co, Qo), _inner_cq=(ci, Qi))
+
+
+def _nms(cands: list[Ring], c: dict) -> list[Ring]:
+    cands = sorted(cands, key=lambda r: -r.score)
+    kept: list[Ring] = []
+    for r in cands:
+        b = min(r.outer[1]) / 2.0
+        a = max(r.outer[1])
+        dup = False
+        for k in kept:
+            if np.linalg.norm(k.center - r.center) < c["nms_frac"] * max(b, min(k.outer[1]) / 2.0):
+                if 0.6 < a / max(k.outer[1]) < 1.6:
+                    dup = True
+                    break
+        if not dup:
+            kept.append(r)
+        if len(kept) >= c["max_candidates"]:
+            break
+    return kept
+
+
+# --- sub-pixel refinement ------------------------------------------------------------------
+def _crossings(f, lam, r):
+    """Per ray: 50 % crossing nearest the window centre (lambda), its validity, and the
+    10-90 % width of the transition around it (px)."""
+    n, S = f.shape
+    rows = np.arange(n)
+    dl = lam[1] - lam[0]
+    above = f >= 0.5
+    cross = above[:, :-1] & ~above[:, 1:]
+    dist = np.where(cross, np.abs(np.arange(S - 1)[None, :] - (S - 1) / 2), np.inf)
+    j = np.argmin(dist, axis=1)
+    found = np.isfinite(dist[rows, j])
+    f0, f1 = f[rows, j], f[rows, j + 1]
+    e = lam[j] + dl * (f0 - 0.5) / np.where(f0 - f1 != 0, f0 - f1, 1.0)
+    # Only the run of in-between samples around the crossing counts: in dark images noise
+    # puts isolated plateau samples in (0.1, 0.9).
+    mid = (f > 0.1) & (f < 0.9)
+    idx = np.arange(S)[None, :]
+    last_out = np.maximum.accumulate(np.where(~mid, idx, -1), axis=1)
+    next_out = (S - 1) - np.maximum.accumulate(np.where(~mid, (S - 1) - idx, -1)[:, ::-1], axis=1)[:, ::-1]
+    run = np.maximum(next_out[rows, j] - last_out[rows, j], next_out[rows, j + 1] - last_out[rows, j + 1]) - 1
+    return e, found, np.maximum(run, 0) * dl * r, j
+
+
+def _plane_levels(xy, values, use, center, scale, floor):
+    """Fit ``values ≈ a + g . (xy - center)`` on the rays ``use``; evaluate at all rays.
+
+    Robust: rays farther than max(3 MAD, ``floor``) from the median, then from the fit, are
+    left out (a dark occluder across a few rays must not tilt the plane). The gradient is
+    ridge-regularised (weight ~ (0.15 scale)^2 per ray), so directions the used rays do not
+    span — e.g. only two opposite sectors are clean under motion blur — fall back to a
+    constant level instead of an extrapolated slope.
+    """
+    A = np.column_stack([np.ones(len(xy)), xy - center])
+    pen = np.diag([0.0, 1.0, 1.0]) * (0.15 * scale) ** 2
+    res = values - np.median(values[use])
+    coef = np.array([np.median(values[use]), 0.0, 0.0])
+    for _ in range(2):
+        mad = 1.4826 * np.median(np.abs(res[use]))
+        sel = use & (np.abs(res) <= max(3 * mad, floor))
+        if sel.sum() < 6:
+            break
+        Au = A[sel]
+        coef = np.linalg.solve(Au.T @ Au + len(Au) * pen, Au.T @ values[sel])
+        res = values - A @ coef
+    return A @ coef
+
+
+def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
+    """Sub-pixel edge points along rays of the ellipse ``cq``.
+
+    Rays run from the centre through the ellipse (radial lines are images of the circle's
+    radii under an affine map, so each ray crosses the edge once); each is sampled over
+    ``lambda in [1 - half, 1 + half]`` (lambda = 1 on the ellipse).
+
+    Plateau levels (ink, paper) are fitted as planes over the ring from the rays that
+    reach them — those whose transition is narrow compared with the window and which do
+    not look toward a neighbour. Under motion blur the rays along the motion never reach
+    a plateau inside the window; levels taken from their own ends would put the 50 %
+    level wherever the window happens to be, so the estimate would not move toward the edge.
+
+    Args:
+        cq: (centre, Q) of the current ellipse.
+        half: half-window in units of the ellipse.
+        dark_inside: polarity (True for the outer edge of a ring).
+        contrast_floor: smallest inner/outer level difference, grey levels.
+        others: (centre, Q) outer ellipses of neighbouring rings: rays whose window ends
+            within a blur width of them are dropped (their light bleeds into the profile).
+    Returns:
+        (P (K, 2) valid edge points, number of rays not dropped for a neighbour).
+    """
+    cen, Q = cq
+    L = _sqrtm_spd(Q, -0.5)
+    eig = np.linalg.eigvalsh(Q)
+    a, b = 1 / np.sqrt(eig[0]), 1 / np.sqrt(eig[1])
+    perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
+    n = 2 * int(np.clip(round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2))  # even
+    S = int(np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200)) + 1
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    u = L @ np.stack([np.cos(t), np.sin(t)])  # (2, n): edge point at lambda = 1
+    r = np.hypot(u[0], u[1])  # px per unit lambda along each ray
+    lam = 1.0 + np.linspace(-half, half, S)  # (S,)
+    X = cen[0] + u[0][:, None] * lam[None, :]
+    Y = cen[1] + u[1][:, None] * lam[None, :]
+    v, ok = _bilinear(gray, X, Y)  # (n, S)
+    ok = ok.all(1)
+    edge = cen[:, None] + u  # (2, n) current edge points
+
+    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
+    m = max(2, int(round(c["level_samples"] * S)))
+    v_in = v[:, :m].mean(1)
+    v_out = v[:, -m:].mean(1)
+    diff = v_in - v_out  # > 0 when the inner side is brighter
+    f = (v - v_out[:, None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[:, None]
+    e, found, w1090, _ = _crossings(f, lam, r)
+    contrast = -diff if dark_inside else diff
+    sane = ok & found & (contrast > contrast_floor)
+    width = float(np.percentile(w1090[sane], 75)) if sane.any() else 0.0
+    far = np.ones(n, bool)
+    n_use = n
+    if len(others):
+        # A blurred neighbour darkens this profile's outer plateau when its edge is closer
+        # than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
+        reach = half * r + 0.65 * width + 1.0
+        for co, Qo in others:
+            d = edge - co[:, None]
+            lam_o = np.sqrt(np.einsum("in,ij,jn->n", d, Qo, d))
+            b_o = 1 / np.sqrt(np.linalg.eigvalsh(Qo)[1])
+            far &= (lam_o - 1.0) * b_o > reach  # lower bound on the distance to its edge, px
+        # Drop the opposite rays too: the blurred edge is centrally symmetric about the
+        # centre (not an ellipse under motion blur), so a symmetric point set keeps the
+        # fitted centre unbiased where a one-sided gap would not.
+        far &= np.roll(far, n // 2)
+        n_use = int(far.sum())
+        if n_use >= c["min_free_frac"] * n:
+            ok &= far
+        else:  # better contaminated rays than none
+            far[:] = True
+            n_use = n
+
+    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
+    clean = sane & far & (w1090 < 1.2 * half * r)
+    if clean.sum() >= max(6, 0.1 * n):
+        xy, scale = edge.T, np.sqrt(a * b)
+        raw_in, raw_out = v_in, v_out
+        floor = 0.1 * abs(np.median(v_in[clean]) - np.median(v_out[clean]))
+        v_in = _plane_levels(xy, v_in, clean, cen, scale, floor)
+        v_out = _plane_levels(xy, v_out, clean, cen, scale, floor)
+        # Blur moves both ends of a profile toward the middle by about the same amount;
+        # something dark or bright next to the ring (an occluder, clutter, a neighbour)
+        # moves one end only. Such rays are dropped.
+        lopsided = np.abs((raw_in - v_in) + (raw_out - v_out)) > c["level_tol"] * np.abs(v_in - v_out)
+        ok &= ~lopsided
+    else:
+        # Too few: smooth the local levels along the ellipse (circularly) instead.
+        k = max(1, int(round(c["level_smooth"] * n)))
+        if k > 1:
+            ker = np.ones(k) / k
+            v_in = np.convolve(np.r_[v_in[-k:], v_in, v_in[:k]], ker, "same")[k:-k]
+            v_out = np.convolve(np.r_[v_out[-k:], v_out, v_out[:k]], ker, "same")[k:-k]
+    diff = v_in - v_out
+    contrast = -diff if dark_inside else diff
+    med = np.median(contrast[ok]) if ok.any() else 0.0
+    ok &= contrast > max(contrast_floor, 0.3 * med)
+    f = (v - v_out[:, None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[:, None]  # 1 inside, 0 outside
+    e, found, w1090, _ = _crossings(f, lam, r)
+    ok &= found
+    if c["edge_method"] == "area":
+        # Integral of the normalised profile over [e - h, e + h] is the edge position minus
+        # (e - h) for any symmetric blur, and exact for area-sampled pixels. The window
+        # grows with the blur (a high quantile: motion blur widens one direction only).
+        width = float(np.percentile(w1090[ok], 75)) if ok.any() else 0.0
+        h = (c["area_window"][0] * width + c["area_window"][1]) / r
+        lo_, hi_ = np.maximum(e - h, lam[0]), np.minimum(e + h, lam[-1])
+        e = lo_ + _integral(f, lam, hi_) - _integral(f, lam, lo_)
+    # The edge must lie well inside the window.
+    lo, hi = lam[0] + 0.15 * (lam[-1] - lam[0]), lam[-1] - 0.15 * (lam[-1] - lam[0])
+    ok &= (e > lo) & (e < hi)
+    P = cen[None, :] + (u * e[None, :]).T
+    return P[ok], n_use
+
+
+def _integral(f: np.ndarray, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Per row, the integral from lam[0] to x[row] of the piecewise-linear profile f[row]."""
+    n, S = f.shape
+    dl = lam[1] - lam[0]
+    seg = 0.5 * (f[:, 1:] + f[:, :-1]) * dl
+    F = np.concatenate([np.zeros((n, 1)), np.cumsum(seg, axis=1)], axis=1)  # at the samples
+    pos = np.clip((x - lam[0]) / dl, 0, S - 1 - 1e-9)
+    j = np.floor(pos).astype(np.intp)
+    t = pos - j
+    rows = np.arange(n)
+    f0, f1 = f[rows, j], f[rows, np.minimum(j + 1, S - 1)]
+    return F[rows, j] + dl * (t * f0 + 0.5 * t * t * (f1 - f0))
+
+
+def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
+    """Inliers of edge points by least-median-of-squares on a linearised ellipse model.
+
+    Near the current ellipse ``frame``, a slightly different ellipse moves the edge along
+    each ray by ``a0 + a1 cos t + b1 sin t + a2 cos 2t + b2 sin 2t`` (size, centre, shape).
+    Fitting this 5-parameter model to the radial offsets on random 5-point subsets and
+    keeping the one with the smallest median residual tolerates a contiguous spoilt sector
+    (an occluder across the edge) that a least-squares fit would bend toward and so hide.
+    The subsets come from a fixed seed: the result is deterministic.
+    """
+    cen, Q = frame
+    d = P - cen
+    W = _sqrtm_spd(Q)
+    q = d @ W.T  # unit-circle frame
+    lam = np.hypot(q[:, 0], q[:, 1])
+    t = np.arctan2(q[:, 1], q[:, 0])
+    off = (lam - 1.0) * np.hypot(d[:, 0], d[:, 1]) / np.maximum(lam, 1e-9)  # radial offset, px
+    X = np.column_stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)])
+    n = len(P)
+    rng = np.random.default_rng(0)
+    idx = np.stack([rng.choice(n, 5, replace=False) for _ in range(n_subsets)])
+    A = X[idx]  # (S, 5, 5)
+    good = np.abs(np.linalg.det(A)) > 1e-6
+    if not good.any():
+        return np.ones(n, bool)
+    coef = np.linalg.solve(A[good], off[idx[good]][..., None])[..., 0]  # (S', 5)
+    res = np.abs(off[None, :] - coef @ X.T)
+    med = np.median(res, axis=1)
+    best = int(np.argmin(med))
+    sigma = 1.4826 * (1 + 5.0 / max(n - 5, 1)) * med[best]
+    return res[best] <= max(2.5 * sigma, c["outlier_min_px"])
+
+
+def _fit_robust(P, c, frame=None):
+    """Ellipse fit with iterative rejection of points far from the fitted curve
+    (after a least-median-of-squares screen around ``frame`` if given)."""
+    keep = np.ones(len(P), bool)
+    if frame is not None and len(P) >= 12:
+        keep = _lmeds_inliers(P, frame, c)
+    fit = None
+    for _ in range(3):
+        if keep.sum() < 6:
+            return None, keep
+        fit = fit_ellipse(P[keep])
+        if fit is None:
+            return None, keep
+        cen, Q = fit
+        d = P - cen
+        lam = np.sqrt(np.einsum("ni,ij,nj->n", d, Q, d))
+        # Radial residual in px: (lambda - 1) times the ray's length to the curve.
+        res = (lam - 1.0) * np.linalg.norm(d, axis=1) / np.maximum(lam, 1e-9)
+        r = res[keep]
+        sig = 1.4826 * np.median(np.abs(r - np.median(r)))
+        new = np.abs(res) <= max(c["outlier_k"] * sig, c["outlier_min_px"])
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return fit, keep
+
+
+def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
+    """(N, 2) ideal (undistorted) pixels → distorted pixels of ``camera``."""
+    K = camera.K
+    p = np.asarray(p, dtype=np.float64).reshape(-1, 2)
+    y = (p[:, 1] - K[1, 2]) / K[1, 1]
+    x = (p[:, 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+    return camera.distort(np.column_stack([x, y]))
+
+
+def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
+    """Iterated edge sampling + robust fit; (ellipse in image px, ellipse in ideal px | None) or None.
+
+    Iterates until the ellipse moves less than conf["refine_tol"] px: under heavy blur the
+    plateau levels are only reached near the true edge, so each pass halves the error at best.
+    """
+    found = None
+    for it in range(max(1, c["refine_iters"])):
+        P, n = _edge_points(gray, cq, half, dark_inside, c, floor, others)
+        need = max(6, c["min_valid_frac"] * n)
+        if len(P) < need:
+            break
+        fit, keep = _fit_robust(P, c, cq)
+        if fit is None or keep.sum() < need:
+            break
+        # Largest displacement of the curve: centre shift plus change of the semi-axes.
+        move = np.linalg.norm(fit[0] - cq[0]) + np.abs(
+            np.sqrt(1 / np.linalg.eigvalsh(fit[1])) - np.sqrt(1 / np.linalg.eigvalsh(cq[1]))
+        ).max()
+        cq, found = fit, P[keep]
+        if it >= 1 and move < c["refine_tol"]:
+            break
+    if found is None:
+        return None
+    ideal = None
+    if camera is not None:
+        # The imaged circle is an ellipse in ideal (undistorted) pixels, not in the raw
+        # image: fit there (the centre is mapped back by the caller).
+        ideal = fit_ellipse(camera.undistort_points(found))
+    return cq, ideal
+
+
+def refine_ring(
+    gray: np.ndarray,
+    ring: Ring,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    noise: float | None = None,
+    others: list[Ring] = (),
+    camera: Camera | None = None,
+) -> Ring:
+    """Sub-pixel ellipses of one ring candidate: the outer one, and the inner one when
+    conf["refine_inner"] is set or conf["center"] is "concentric".
+
+    Args:
+        gray: (H, W) float32 grey image (see :func:`to_gray`), not blurred.
+        ring: a candidate from :func:`find_rings`.
+        marker: the marker geometry (inner/outer ratio, gaps: the sampling windows).
+        conf: overrides of :data:`default_conf`.
+        noise: the image's noise sigma if known (else :func:`noise_sigma`).
+        others: the marker's other rings; outer-edge rays that look toward them are not
+            used where a blurred neighbour could bleed into the profile.
+        camera: if given, the edge points are undistorted before the ellipse fit, and the
+            centre is mapped back to the image's (distorted) pixels. Without it the
+            ellipse is fitted in the distorted image, which is off by up to ~0.08 px for
+            rings far from the principal point of a 12 mm lens.
+    Returns:
+        a new :class:`Ring` with refined ellipses and centre (``refined=True``), or the
+        input unchanged when too few edge points are found (occlusion, image border).
+    """
+    c = _merge_conf(conf)
+    rho = marker.inner_diameter / marker.outer_diameter
+    gap = _marker_gap(marker)
+    # Half-windows in units of the ellipse: up to the middle of the black band on one side
+    # and to the middle of the gap between rings (outer) or deep into the hole (inner).
+    half_band = 0.5 * (1 - rho)  # outer radii
+    w_out = 0.9 * min(half_band, 0.5 * gap)
+    w_in = 0.9 * min(half_band / rho, 0.8)
+    noise = noise_sigma(gray) if noise is None else noise
+    floor = max(1.0, 2.0 * noise)  # smallest edge contrast, grey levels
+    others = [o._outer_cq for o in others if o is not ring]
+    out = _refine_edge(gray, ring._outer_cq, w_out, True, c, floor, others, camera)
+    if out is None:
+        return ring
+    outer_cq, outer_ideal = out
+    # The inner ellipse: start from the hole's, or from the outer one scaled by rho.
+    inner_cq = ring._inner_cq
+    if inner_cq is None or ring.from_hole:
+        inner_cq = (outer_cq[0], outer_cq[1] / rho**2)
+    inn = None
+    if c["refine_inner"] or c["center"] == "concentric":
+        inn = _refine_edge(gray, inner_cq, w_in, False, c, floor, (), camera)
+    inner_ideal = None
+    if inn is not None:
+        inner_cq, inner_ideal = inn
+    use_ideal = camera is not None and outer_ideal is not None
+    center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
+    if c["center"] == "concentric" and inn is not None:
+        if use_ideal and inner_ideal is not None:
+            cc = concentric_center(outer_ideal, inner_ideal)
+            cc = None if cc is None else _ideal_to_pixels(camera, cc)[0]
+        else:
+            cc = concentric_center(outer_cq, inner_cq)
+        # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
+        if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
+            center = cc
+    return replace(
+        ring,
+        center=center,
+        outer=_cq_to_rect(*outer_cq),
+        inner=_cq_to_rect(*inner_cq) if inn is not None else ring.inner,
+        refined=True,
+        _outer_cq=outer_cq,
+        _inner_cq=inner_cq,
+    )
+
+
+# --- IDs from the layout -------------------------------------------------------------------
+def find_triples(
+    rings: list[Ring], marker: Marker = Marker(), conf: dict | None = None
+) -> list[tuple[float, tuple[int, int, int]]]:
+    """Ordered triples of candidates that look like the marker, best first.
+
+    Each candidate's outer ellipse is the affine image of a circle of one outer radius, so
+    the symmetric square root W of the triple's mean quadratic form maps the image to the
+    marker plane up to a rotation and the residual perspective: ``W (p - p0)`` is in outer
+    radii. A rotation+scale fit (no reflection) to the marker's centres (y flipped, as seen
+    in a y-down image) scores the triple; its signed area must be negative (mirror images
+    never occur physically).
+
+    Args:
+        rings: candidates from :func:`find_rings`.
+    Returns:
+        list of (cost, (i0, i1, i2)) with ``rings[i_k]`` the candidate for ring c_k, lowest
+        cost first, at most conf["max_triples"].
+    """
+    c = _merge_conf(conf)
+    n = len(rings)
+    if n < 3:
+        return []
+    ro = marker.outer_radius
+    M = marker.centers2d / ro * np.array([1.0, -1.0])  # marker layout as seen (y down), outer radii
+    dm = {(i, j): np.linalg.norm(M[i] - M[j]) for i, j in ((0, 1), (0, 2), (1, 2))}
+    P = np.array([r.center for r in rings])
+    Qs = np.array([r._outer_cq[1] for r in rings])
+    major = np.array([max(r.outer[1]) for r in rings])
+    # Pairwise distances in outer radii under the pair's mean ellipse.
+    D = P[:, None, :] - P[None, :, :]
+    Qp = 0.5 * (Qs[:, None] + Qs[None, :])
+    R = np.sqrt(np.einsum("abi,abij,abj->ab", D, Qp, D))
+    sz = np.maximum(major[:, None], major[None, :]) / np.minimum(major[:, None], major[None, :])
+    okz = sz <= c["size_ratio_max"]
+    tol = c["prune_tol"]
+
+    def near(d):
+        return okz & (np.abs(R / d - 1) < tol)
+
+    A01, A02, A12 = near(dm[0, 1]), near(dm[0, 2]), near(dm[1, 2])
+    idx = np.argwhere(A01[:, :, None] & A02[:, None, :] & A12[None, :, :])
+    idx = idx[(idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])]
+    out = []
+    Mc = M - M.mean(0)
+    wm = Mc[:, 0] + 1j * Mc[:, 1]
+    for i0, i1, i2 in idx:
+        tri = (int(i0), int(i1), int(i2))
+        p = P[list(tri)]
+        v1, v2 = p[1] - p[0], p[2] - p[0]
+        if v1[0] * v2[1] - v1[1] * v2[0] >= 0:  # handedness: c0→c1→c2 negative in y-down images
+            continue
+        if major[list(tri)].max() / major[list(tri)].min() > c["size_ratio_max"]:
+            continue
+        shp = [_log_shape(Qs[k]) for k in tri]
+        dshape = max(np.linalg.norm(shp[a] - shp[b]) for a, b in ((0, 1), (0, 2), (1, 2)))
+        if dshape > c["triple_shape_tol"]:
+            continue
+        W = _sqrtm_spd(Qs[list(tri)].mean(0))
+        q = (p - p.mean(0)) @ W.T
+        z = q[:, 0] + 1j * q[:, 1]
+        alpha = np.vdot(wm, z) / np.vdot(wm, wm)
+        res = z - alpha * wm
+        rel = float(np.sqrt((np.abs(res) ** 2).sum() / (np.abs(z) ** 2).sum()))
+        scale = abs(alpha)
+        if rel > c["layout_tol"] or not (1 / c["scale_tol"] <= scale <= c["scale_tol"]):
+            continue
+        cost = (
+            (rel / c["layout_tol"]) ** 2
+            + (np.log(scale) / np.log(c["scale_tol"])) ** 2
+            + (dshape / c["triple_shape_tol"]) ** 2
+            + sum(1.0 - rings[k].score for k in tri)
+        )
+        out.append((float(cost), tri))
+    out.sort(key=lambda x: x[0])
+    return out[: c["max_triples"]]
+
+
+def _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera) -> Detection:
+    chosen = [rings[k] for k in tri]
+    if subpixel:
+        chosen = [refine_ring(gray, r, marker, c, noise, others=chosen, camera=camera) for r in chosen]
+    centers = np.array([r.center for r in chosen], dtype=np.float64)
+    return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)))
+
+
+def detect(
+    image: np.ndarray,
+    marker: Marker = Marker(),
+    subpixel: bool = True,
+    conf: dict | None = None,
+    camera: Camera | None = None,
+) -> Detection | None:
+    """The marker in one view, IDs from the layout.
+
+    Args:
+        image: uint8 gray (H, W) or BGR (H, W, 3).
+        marker: the marker geometry.
+        subpixel: True (default) → sub-pixel edge refinement; False → the paper's centre of
+            ``cv2.fitEllipse`` on the outer contour.
+        conf: overrides of :data:`default_conf`.
+        camera: the camera that took the image, optional: with it the sub-pixel ellipses
+            are fitted in undistorted coordinates (see :func:`refine_ring`).
+    Returns:
+        :class:`~markerpose.results.Detection` (centres (3, 2) by ID, outer ellipses) or
+        None when no marker-like triple is found.
+    """
+    c = _merge_conf(conf)
+    gray = to_gray(image)
+    noise = noise_sigma(gray)
+    rings = _find_rings_gray(gray, marker, c, noise)
+    triples = find_triples(rings, marker, c)
+    if not triples:
+        return None
+    cost, tri = triples[0]
+    return _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera)
+
+
+def detect_stereo(
+    left: np.ndarray,
+    right: np.ndarray,
+    rig: StereoRig,
+    marker: Marker = Marker(),
+    subpixel: bool = True,
+    conf: dict | None = None,
+) -> tuple[Detection, Detection] | None:
+    """The marker in both views, the pair of triples chosen by the epipolar constraint.
+
+    Args:
+        left, right: uint8 gray or BGR images of the rig's left and right cameras.
+        rig: the calibrated stereo rig (its cameras also undistort the edge points).
+        marker, subpixel, conf: as in :func:`detect`.
+    Returns:
+        (left Detection, right Detection), or None when no pair of marker-like triples
+        has all three same-ID centres within conf["epipolar_tol"] px of their epipolar lines.
+    """
+    c = _merge_conf(conf)
+    gl, gr = to_gray(left, "left image"), to_gray(right, "right image")
+    for g, cam, name in ((gl, rig.left, "left"), (gr, rig.right, "right")):
+        if cam.image_size is not None and (g.shape[1], g.shape[0]) != tuple(cam.image_size):
+            raise ValueError(
+                f"{name} image is {g.shape[1]}x{g.shape[0]} but the rig's {name} camera is "
+                f"{cam.image_size[0]}x{cam.image_size[1]}"
+            )
+    nl, nr = noise_sigma(gl), noise_sigma(gr)
+    rl, rr = _find_rings_gray(gl, marker, c, nl), _find_rings_gray(gr, marker, c, nr)
+    tl, tr = find_triples(rl, marker, c), find_triples(rr, marker, c)
+    if not tl or not tr:
+        return None
+    best = None
+    for (cl, il), (cr, ir) in itertools.product(tl, tr):
+        pl = np.array([rl[k].center for k in il])
+        pr = np.array([rr[k].center for k in ir])
+        d = np.diag(epipolar_distance(rig, pl, pr))
+        if d.max() > c["epipolar_tol"]:
+            continue
+        cost = cl + cr + float((d / c["epipolar_tol"]) @ (d / c["epipolar_tol"]))
+        if best is None or cost < best[0]:
+            best = (cost, il, ir, cl, cr)
+    if best is None:
+        return None
+    _, il, ir, cl, cr = best
+    return (
+        _detection(gl, rl, il, cl, marker, subpixel, c, nl, rig.left),
+        _detection(gr, rr, ir, cr, marker, subpixel, c, nr, rig.right),
+    )
+
+
+__all__ = [
+    "Ring",
+    "default_conf",
+    "to_gray",
+    "noise_sigma",
+    "binarize",
+    "find_rings",
+    "refine_ring",
+    "fit_ellipse",
+    "concentric_center",
+    "find_triples",
+    "detect",
+    "detect_stereo",
+]
