@@ -151,6 +151,21 @@ def test_sensor_noise_and_darkness(rig):
         assert patch.var() == pytest.approx((electrons + im.read_noise**2) * gain**2, rel=0.25)
 
 
+def test_shot_noise_is_poisson_when_light_is_scarce(rig):
+    """Few electrons: exact Poisson counts (integers, mean = variance); many: normal with var = λ."""
+    cam = mp.Camera(rig.left.K, np.zeros(5), (200, 160))
+    T = look_at_pose([0, 0, 5000], 0, 0, 0)  # marker far away: a small plate amid the background
+    bg = np.full((160, 200), 0.5, np.float32)
+    for alpha, exact in ((0.002, True), (0.5, False)):
+        im = Imaging(alpha=alpha, gradient=0.0, vignetting=0.0, psf_sigma=0.0, read_noise=0.0, quantize=False)
+        img, _ = render_view(cam, T, imaging=im, background=bg, seed=5)
+        e = img[:40].astype(np.float64) * im.full_well / 255.0  # background rows, in electrons
+        lam = alpha * im.exposure * im.full_well * 0.5
+        assert e.mean() == pytest.approx(lam, rel=0.03)
+        assert e.var() == pytest.approx(lam, rel=0.08)
+        assert np.allclose(e, np.rint(e), atol=1e-3) == exact
+
+
 def test_motion_kernel():
     k = motion_kernel(25, 30)
     assert k.sum() == pytest.approx(1.0)
