@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import time
+
 import numpy as np
 from tqdm import tqdm
 
@@ -86,22 +88,29 @@ class Sequence:
 
 
 def render_sequences(rig: StereoRig, scene: RobotScene, marker: Marker, imaging: Imaging, seed: int = 0, progress: bool = True):
-    """Render the displacement and rotation sequences over one static cluttered lab background."""
+    """Render the displacement and rotation sequences over one static cluttered lab background.
+
+    Returns:
+        (sequences, seconds): the sequences, and the render time of each stereo pair.
+    """
     rng = np.random.default_rng(seed)
     size = rig.left.image_size
     backgrounds = (clutter_background(size, rng), clutter_background(size, rng))
     seqs = [Sequence("displacement", scene.displacement_poses()), Sequence("rotation", scene.rotation_poses())]
     total = sum(len(s.poses) for s in seqs)
+    seconds = []
     with tqdm(total=total, desc="render", unit="pair", disable=not progress) as bar:
         for s in seqs:
             for T in s.poses:
+                t0 = time.perf_counter()
                 f = render_stereo(rig, T, marker, imaging, backgrounds, rng)
+                seconds.append(time.perf_counter() - t0)
                 for v in f.views:
                     if not v.in_image.all():
                         raise ValueError(f"{s.name}: a ring leaves the image; adjust the RobotScene")
                 s.frames.append(f)
                 bar.update()
-    return seqs
+    return seqs, seconds
 
 
 def error_stats(err) -> dict:
