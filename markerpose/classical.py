@@ -996,6 +996,74 @@ def detect(
     return _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera)
 
 
+def _shift_ring(ring: Ring, d: np.ndarray) -> Ring:
+    """The same ring in a frame shifted by ``d`` (ROI → full image)."""
+
+    def rect(r):
+        return ((r[0][0] + d[0], r[0][1] + d[1]), r[1], r[2])
+
+    def cq(v):
+        return None if v is None else (v[0] + d, v[1])
+
+    return replace(ring, center=ring.center + d, outer=rect(ring.outer), inner=rect(ring.inner),
+                   _outer_cq=cq(ring._outer_cq), _inner_cq=cq(ring._inner_cq))
+
+
+def refine_points(
+    image: np.ndarray,
+    points: np.ndarray,
+    marker: Marker = Marker(),
+    subpixel: bool = True,
+    conf: dict | None = None,
+    camera: Camera | None = None,
+) -> tuple[np.ndarray, np.ndarray, list]:
+    """Classical sub-pixel centres of the rings near given rough points (e.g. stage 1's).
+
+    Each point gets a window of about four ring radii (the radius judged from the spacing
+    of the three points), the ring candidates of that window (:func:`find_rings`), the
+    candidate nearest the point, and its sub-pixel ellipse (:func:`refine_ring`).
+
+    Args:
+        image: uint8 gray (H, W) or BGR.
+        points: (3, 2) rough centres c0, c1, c2, px.
+        marker, subpixel, conf, camera: as in :func:`detect`.
+    Returns:
+        (centers (3, 2), found (3,) bool, ellipses): where no ring is found near a point,
+        its centre is the input point, ``found`` is False and its ellipse None.
+    """
+    c = _merge_conf(conf)
+    gray = to_gray(image)
+    h, w = gray.shape
+    pts = np.asarray(points, np.float64).reshape(3, 2)
+    d01, d02 = np.linalg.norm(pts[1] - pts[0]), np.linalg.norm(pts[2] - pts[0])
+    r_est = max(d01 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[1]), 1e-9),
+                d02 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[2]), 1e-9), 4.0)
+    half = int(np.ceil(2.2 * r_est)) + 4
+    noise = noise_sigma(gray)
+    rings: list[Ring | None] = []
+    for p in pts:
+        x0, y0 = max(int(p[0]) - half, 0), max(int(p[1]) - half, 0)
+        x1, y1 = min(int(p[0]) + half + 1, w), min(int(p[1]) + half + 1, h)
+        if x1 - x0 < 16 or y1 - y0 < 16:
+            rings.append(None)
+            continue
+        roi = gray[y0:y1, x0:x1]
+        cands = _find_rings_gray(roi, marker, c, noise)
+        off = np.array([x0, y0], np.float64)
+        best = None
+        for r in cands:
+            dist = np.linalg.norm(r.center + off - p)
+            if dist < 0.6 * r_est + 4 and (best is None or dist < best[0]):
+                best = (dist, r)
+        rings.append(None if best is None else _shift_ring(best[1], off))
+    found = np.array([r is not None for r in rings])
+    present = [r for r in rings if r is not None]
+    if subpixel:
+        rings = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
+    centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
+    return centers, found, [None if r is None else r.outer for r in rings]
+
+
 def detect_stereo(
     left: np.ndarray,
     right: np.ndarray,
@@ -1059,4 +1127,5 @@ __all__ = [
     "find_triples",
     "detect",
     "detect_stereo",
+    "refine_points",
 ]

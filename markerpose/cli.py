@@ -104,6 +104,32 @@ def cmd_estimate(args):
     return 0
 
 
+def cmd_train_keypoints(args):
+    from .train import keypoints as tk
+
+    conf = {k: getattr(args, k) for k in ("width", "lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")}
+    t0 = time.perf_counter()
+    best = tk.main(conf, args.out, resume=args.resume, data_dir=args.data)
+    print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
+    if args.export:
+        print(f"exported the weights to {tk.export(best, args.export)}")
+
+
+def cmd_eval_keypoints(args):
+    from .train import keypoints as tk
+
+    res = tk.evaluate(args.weights, args.data, args.sets, args.workers)
+    print("| test set | views | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name, r in res.items():
+        print(
+            f"| {name} | {r['n_views'] or r['n_negatives']} | {r['detected']:.4f} | {r['id_accuracy']:.4f} | {r['median_px']:.2f} | "
+            f"{r['p95_px']:.2f} | {r['false_positive']:.4f} | {r['seconds_per_image']:.3f} |"
+        )
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1))
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="markerpose", description="Stereo 6-DoF tracking of a three-ring marker (MarkerPose).")
     sub = p.add_subparsers(dest="command", required=True)
@@ -146,6 +172,35 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--pose", default="paper", choices=["paper", "rigid"])
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
+
+    t = sub.add_parser("train", help="train a network on rendered data")
+    tsub = t.add_subparsers(dest="what", required=True)
+    tk = tsub.add_parser("keypoints", help="stage 1: the SuperPoint-like centre + ID network")
+    tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
+    tk.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: the paper's 1e-4)")
+    tk.add_argument("--schedule", default="constant", choices=["constant", "cosine"])
+    tk.add_argument("--epochs", type=int, default=10)
+    tk.add_argument("--batch-size", type=int, default=16)
+    tk.add_argument("--train-size", type=int, default=12000, help="rendered training images (cached)")
+    tk.add_argument("--val-size", type=int, default=400)
+    tk.add_argument("--seed", type=int, default=0)
+    tk.add_argument("--workers", type=int, default=2, help="processes rendering the data")
+    tk.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
+    tk.add_argument("--out", default="runs/keypoints", help="checkpoints and history")
+    tk.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    tk.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    tk.add_argument("--export", help="also write the best weights, slimmed, to this path")
+    tk.set_defaults(func=cmd_train_keypoints)
+
+    ev = sub.add_parser("eval", help="evaluate a network on the held-out test sets")
+    esub = ev.add_subparsers(dest="what", required=True)
+    ek = esub.add_parser("keypoints", help="stage 1 on the held-out sets (standard, dark, blur, negatives)")
+    ek.add_argument("--weights", help="checkpoint (default: the shipped weights)")
+    ek.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    ek.add_argument("--sets", nargs="*", help="subset of the test sets")
+    ek.add_argument("--workers", type=int, default=2)
+    ek.add_argument("--json", help="also write the metrics as JSON")
+    ek.set_defaults(func=cmd_eval_keypoints)
     return p
 
 

@@ -13,17 +13,23 @@ import cv2
 import numpy as np
 
 from .camera import StereoRig
-from .geometry import POSE_METHODS, perspective_bias, pose_from_points, pose_rigid, triangulate
+from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .marker import Marker
 from .results import Detection, Estimate
 
-DETECTORS = ("classical",)
+DETECTORS = ("classical", "neural")
+REFINERS = ("classical", "none")
 
 default_conf = {
-    "detector": "classical",  # the neural detector is not in this version yet
+    "detector": "classical",  # "classical" (paper §3.4) or "neural" (stage 1 network + refinement)
     "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
     "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
     "bias_correction": True,  # remove the perspective bias of ellipse centres (False = paper)
+    "refine": "classical",  # neural: sub-pixel centres from the classical ring fit near each
+    #                         stage-1 point, or "none" (the stage-1 points themselves)
+    "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
+    "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
+    "epipolar_tol_coarse": 12.0,  # ... of stage-1 points that could not be refined, px
 }
 
 
@@ -56,12 +62,16 @@ class MarkerPose:
     Args:
         rig: the calibrated stereo rig.
         marker: marker geometry (default: the paper's robot target).
-        detector: "classical" (paper §3.4); "neural" arrives with the networks.
+        detector: "classical" (paper §3.4) or "neural": stage 1 (the SuperPoint-like network,
+            both views in one batch) finds the rough centres and IDs, then ``refine``.
         pose: "paper" (reference) or "rigid" (orthonormal least-squares fit).
         subpixel: classical detector's sub-pixel edge refinement (False = the paper's contour fit).
         bias_correction: an ellipse's centre is not the image of the circle's centre; with
             the first pose, predict that offset in each view, subtract it and triangulate
             again (False = the paper, which triangulates the ellipse centres).
+        refine: neural detector's sub-pixel stage: "classical" (the classical ring fit near
+            each stage-1 point) or "none" (stage-1 points, ~1 px).
+        keypoint_weights: stage-1 checkpoint for the neural detector (None: shipped weights).
     """
 
     def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "classical", **conf):
@@ -72,13 +82,37 @@ class MarkerPose:
             raise ValueError(f"unknown option(s) {sorted(unknown)}; known: {sorted(default_conf)}")
         self.conf = {**default_conf, **conf, "detector": detector}
         if detector not in DETECTORS:
-            if detector == "neural":
-                raise ValueError("the neural detector is not available in this version yet; use detector='classical'")
             raise ValueError(f"unknown detector {detector!r}; choose from {DETECTORS}")
+        if self.conf["refine"] not in REFINERS:
+            raise ValueError(f"unknown refine method {self.conf['refine']!r}; choose from {REFINERS}")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig
         self.marker = marker or Marker()
+        self._keypoints = None
+        if detector == "neural":
+            try:
+                from .keypoints import KeypointNet
+            except ImportError as exc:  # torch missing
+                raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
+            self._keypoints = KeypointNet(self.conf["keypoint_weights"])
+
+    def _neural(self, grays: list, cameras: list) -> list:
+        """Stage 1 on all views in one batch, then the sub-pixel stage: a Detection or None per view."""
+        from . import classical
+
+        out = []
+        for gray, cam, found in zip(grays, cameras, self._keypoints(grays)):
+            if found is None:
+                out.append(None)
+                continue
+            pts, score = found
+            if self.conf["refine"] == "none":
+                out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
+                continue
+            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], camera=cam)
+            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
+        return out
 
     def __repr__(self):
         opts = ", ".join(f"{k}={v!r}" for k, v in self.conf.items())
@@ -93,9 +127,11 @@ class MarkerPose:
 
     def detect(self, image) -> Detection | None:
         """Ring centres c0, c1, c2 in one view, or None if the marker is not found."""
+        gray = as_gray(image)
+        if self._keypoints is not None:
+            return self._neural([gray], [None])[0]
         from . import classical
 
-        gray = as_gray(image)
         return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"])
 
     def estimate(self, left, right) -> Estimate | None:
@@ -111,11 +147,21 @@ class MarkerPose:
             raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
         self._check_size(gl, self.rig.left, "left image")
         self._check_size(gr, self.rig.right, "right image")
-        from . import classical
+        if self._keypoints is not None:
+            found = self._neural([gl, gr], list(self.rig.cameras))
+            if found[0] is None or found[1] is None:
+                return None
+            # The IDs give the correspondences; the epipolar constraint checks them.
+            d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
+            both = found[0].refined & found[1].refined
+            if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
+                return None
+        else:
+            from . import classical
 
-        found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
-        if found is None:
-            return None
+            found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
+            if found is None:
+                return None
         return self.estimate_from_detections(*found)
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:

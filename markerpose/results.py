@@ -17,11 +17,17 @@ class Detection:
         ellipses: optional per-ring ellipse as OpenCV RotatedRect tuples
             ((cx, cy), (w, h), angle_deg), ordered by ID.
         score: detector-specific confidence (higher is better).
+        refined: (3,) bool, which centres are sub-pixel (None: all of them).
     """
 
     centers: np.ndarray
     ellipses: list | None = None
     score: float = 1.0
+    refined: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.refined is None:
+            self.refined = np.ones(3, bool)
 
 
 @dataclass

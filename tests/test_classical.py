@@ -444,3 +444,27 @@ def test_stereo_subpixel_false_is_the_paper_configuration(rig):
         e_p = np.linalg.norm(paper[v].centers - f.views[v].outer_centers, axis=1)
         e_s = np.linalg.norm(sub[v].centers - f.views[v].outer_centers, axis=1)
         assert e_p.max() < 0.8 and e_s.max() < 0.03
+
+
+# --- sub-pixel centres near rough points (the neural detector's refinement) ----------------
+def test_refine_points_matches_the_classical_fit():
+    rig = StereoRig.default()
+    T = synth.look_at_pose([15, -20, 600], 40, 75, 220)
+    img, truth = synth.render_view(rig.left, T, seed=21)
+    rough = truth.centers + np.random.default_rng(0).uniform(-5, 5, (3, 2))
+    centers, found, ellipses = C.refine_points(img, rough, camera=rig.left)
+    assert found.all() and all(e is not None for e in ellipses)
+    np.testing.assert_allclose(centers, truth.outer_centers, atol=0.03)
+    full = C.detect(img, camera=rig.left)
+    np.testing.assert_allclose(centers, full.centers, atol=1e-6)
+
+
+def test_refine_points_keeps_a_point_with_no_ring():
+    rig = StereoRig.default()
+    T = synth.look_at_pose([0, 0, 600], 20, 0, 0)
+    img, truth = synth.render_view(rig.left, T, seed=2)
+    rough = truth.centers.copy()
+    rough[2] = [60.0, 60.0]  # nowhere near a ring
+    centers, found, _ = C.refine_points(img, rough, camera=rig.left)
+    assert found.tolist() == [True, True, False]
+    np.testing.assert_array_equal(centers[2], rough[2])

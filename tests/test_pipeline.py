@@ -98,8 +98,10 @@ def test_image_size_must_match_the_calibration(rig):
 
 
 def test_bad_configuration(rig):
-    with pytest.raises(ValueError, match="neural detector"):
-        mp.MarkerPose(rig, detector="neural")
+    with pytest.raises(ValueError, match="weights not found"):
+        mp.MarkerPose(rig, detector="neural", keypoint_weights="/nonexistent/keypoints.pt")
+    with pytest.raises(ValueError, match="unknown refine"):
+        mp.MarkerPose(rig, detector="neural", refine="magic")
     with pytest.raises(ValueError, match="unknown detector"):
         mp.MarkerPose(rig, detector="magic")
     with pytest.raises(ValueError, match="unknown pose"):

@@ -190,3 +190,18 @@ def test_bad_inputs(rig):
         render_view(rig.left, look_at_pose([0, 0, 500], 0, 0, 0), background=np.zeros((10, 10)))
     with pytest.raises(ValueError, match="alpha"):
         Imaging(alpha=0)
+
+
+def test_regression_plate_one_pixel_inside_the_image(rig):
+    """A plate whose box is one pixel thin at the image border rendered without error
+    (np.gradient on the 1-px box raised while training data were generated)."""
+    cam = mp.Camera(rig.left.K, np.zeros(5), (64, 48))
+    m = mp.Marker()
+    z = 2000.0
+    fx, cx = cam.K[0, 0], cam.K[0, 2]
+    for u in np.arange(-2.0, 2.01, 0.25):  # where the plate's right edge lands, px
+        T = look_at_pose([0, 0, z])
+        T[0, 3] = (u - cx) * z / fx - m.plate[2]
+        T[1, 3] = -(m.plate[1] + m.plate[3]) / 2  # plate centred vertically (y is flipped)
+        img, truth = render_view(cam, T, m, Imaging(noise=False), seed=0)
+        assert img.shape == (48, 64)

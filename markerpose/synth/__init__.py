@@ -1,7 +1,7 @@
 """Synthetic stereo world: renderer and scene generators with exact ground truth."""
 
 from .background import clutter_background
-from .render import Imaging, StereoFrame, ViewTruth, look_at_pose, motion_kernel, render_stereo, render_view
+from .render import Imaging, StereoFrame, ViewTruth, look_at_pose, motion_kernel, render_stereo, render_view, sensor_readout
 
 __all__ = [
     "Imaging",
@@ -12,4 +12,5 @@ __all__ = [
     "motion_kernel",
     "render_stereo",
     "render_view",
+    "sensor_readout",
 ]

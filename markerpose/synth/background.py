@@ -17,6 +17,7 @@ def clutter_background(
     n_shapes: int | None = None,
     ring_distractors: int | None = None,
     ring_ratio: float = 0.4,
+    scale: float | None = None,
 ) -> np.ndarray:
     """Random cluttered background.
 
@@ -26,6 +27,8 @@ def clutter_background(
         n_shapes: number of rectangles/lines/blobs (None → random 10..40).
         ring_distractors: number of single rings and dark disks (None → random 0..6).
         ring_ratio: inner/outer diameter ratio of the ring distractors (the marker's, by default).
+        scale: size of the shapes relative to a 1280 px wide frame (None: width / 1280, i.e.
+            the image is a whole frame; 1 for a full-resolution crop of a frame).
     Returns:
         (H, W) float32 reflectance in [0, 1].
     """
@@ -36,7 +39,7 @@ def clutter_background(
     mean = rng.uniform(0.15, 0.6)
     img = np.clip(mean + 0.25 * (base - 0.5), 0, 1).astype(np.float32)
     n_shapes = int(rng.integers(10, 41)) if n_shapes is None else n_shapes
-    scale = w / 1280.0
+    scale = w / 1280.0 if scale is None else scale
     for _ in range(n_shapes):
         kind = rng.integers(0, 4)
         g = float(rng.uniform(0.0, 0.95))

@@ -201,18 +201,20 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
     grid = camera.normalized_grid()[gy0:gy1, gx0:gx1]
     J_u = np.gradient(grid, axis=1)  # d(normalised)/d(u), central differences
     J_v = np.gradient(grid, axis=0)
-    sl = (slice(by0 - gy0, by1 - gy0), slice(bx0 - gx0, bx1 - gx0))
-    grid, J_u, J_v = grid[sl], J_u[sl], J_v[sl]
-
     Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
+    mx, my = _plane_coords(Hinv, grid[..., 0], grid[..., 1])
+    # Footprint of a pixel on the plane (mm): how far the texture can change within it.
+    # Differences on the grown grid, so a box one pixel thin still has neighbours.
+    dmx_u, dmy_u = np.gradient(mx, axis=1), np.gradient(my, axis=1)
+    dmx_v, dmy_v = np.gradient(mx, axis=0), np.gradient(my, axis=0)
+    sl = (slice(by0 - gy0, by1 - gy0), slice(bx0 - gx0, bx1 - gx0))
+    grid, J_u, J_v, mx, my = grid[sl], J_u[sl], J_v[sl], mx[sl], my[sl]
+    dmx_u, dmy_u, dmx_v, dmy_v = dmx_u[sl], dmy_u[sl], dmx_v[sl], dmy_v[sl]
+
     xn, yn = grid[..., 0], grid[..., 1]
-    mx, my = _plane_coords(Hinv, xn, yn)
     bg = scene[by0:by1, bx0:bx1]
     val = _texture(marker, mx, my, imaging.paper, imaging.ink, bg)
 
-    # Footprint of a pixel on the plane (mm): how far the texture can change within it.
-    dmx_u, dmy_u = np.gradient(mx, axis=1), np.gradient(my, axis=1)
-    dmx_v, dmy_v = np.gradient(mx, axis=0), np.gradient(my, axis=0)
     foot = 0.75 * (np.hypot(dmx_u, dmy_u) + np.hypot(dmx_v, dmy_v)) + 1e-9
     near = np.zeros(mx.shape, bool)
     for cx, cy in marker.centers2d:
@@ -283,9 +285,22 @@ def _expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator)
         img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma, borderType=cv2.BORDER_REFLECT)
     if imaging.motion_blur > 1:
         img = cv2.filter2D(img, -1, motion_kernel(imaging.motion_blur, imaging.motion_angle), borderType=cv2.BORDER_REFLECT)
-    electrons = img * (imaging.alpha * imaging.exposure * imaging.full_well)
+    dn = img * np.float32(imaging.alpha * imaging.exposure * 255.0)
+    return sensor_readout(dn, imaging, rng)
+
+
+def sensor_readout(dn: np.ndarray, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
+    """The sensor's output for an expected signal.
+
+    Args:
+        dn: (H, W) float expected signal in 8-bit units (255 = full well).
+        imaging: ``full_well``, ``read_noise``, ``noise`` and ``quantize`` are used.
+        rng: random generator for the noise.
+    Returns:
+        uint8 (H, W), or float32 DN when ``imaging.quantize`` is False.
+    """
+    electrons = np.maximum(np.asarray(dn, np.float32), 0) * np.float32(imaging.full_well / 255.0)
     if imaging.noise:
-        electrons = np.maximum(electrons, 0).astype(np.float32)
         # Shot noise: exact Poisson draws where few electrons arrive; above
         # _POISSON_EXACT_BELOW the normal approximation N(λ, λ) is used (its error in
         # the variance is nil and its skew is < 0.2), which is 4x faster on a full frame.
@@ -295,10 +310,10 @@ def _expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator)
             lam = electrons[low]
             shot[low] = rng.poisson(lam).astype(np.float32) - lam
         electrons = electrons + shot + np.float32(imaging.read_noise) * rng.standard_normal(electrons.shape, dtype=np.float32)
-    dn = electrons * (255.0 / imaging.full_well)
+    out = electrons * np.float32(255.0 / imaging.full_well)
     if not imaging.quantize:
-        return dn.astype(np.float32)
-    return np.clip(np.rint(dn), 0, 255).astype(np.uint8)
+        return out.astype(np.float32)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
 
 
 # --- public API ------------------------------------------------------------------------
@@ -401,4 +416,4 @@ def look_at_pose(position: np.ndarray, tilt_deg: float = 0.0, tilt_axis_deg: flo
     return T
 
 
-__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose"]
+__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose", "sensor_readout"]

@@ -1,0 +1,293 @@
+"""Stage 1: the SuperPoint-like network that finds the three ring centres and their IDs.
+
+The image is resized to 320x240 (the paper's input), a VGG-style encoder brings it to
+H/8 x W/8 cells, and two heads classify every cell:
+
+- the detector head (65 channels): which of the 64 pixels of the 8x8 cell holds a ring
+  centre, or channel 64, "no centre here";
+- the ID head (4 channels): c0, c1, c2 or background.
+
+Decoding (:func:`decode`) turns the two heads into at most one point per ID: softmax,
+depth-to-space score map, non-maximum suppression, a threshold, then the best triple of
+candidates whose ID assignment is consistent with the marker (distinct IDs, the right
+handedness). Points are scaled back to the full-resolution image.
+
+The network needs torch; the decoding and the training targets are numpy functions.
+"""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
+CELL = 8
+PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
+PAPER_HEAD = 256
+
+default_conf = {
+    "width": 1.0,  # multiplier of the paper's layer widths (1.0 = the paper's network)
+    "nms_radius": 4,  # px at 320x240: a ring centre is at least a ring radius (>= 5 px) from another
+    "threshold": 0.05,  # minimum location score of a candidate
+    "max_candidates": 8,  # best candidates kept after NMS, per image
+    "min_id_prob": 0.2,  # an assigned ID must have at least this probability at its point
+    "min_score": 0.15,  # geometric mean of the three points' (score x ID probability)
+}
+
+
+def layer_widths(width: float = 1.0) -> tuple[tuple[int, ...], int]:
+    """(encoder widths (8,), head width) for a width multiplier (1.0 = the paper's)."""
+    enc = tuple(max(8, int(round(c * width))) for c in PAPER_WIDTHS)
+    return enc, max(16, int(round(PAPER_HEAD * width)))
+
+
+def build_network(width: float = 1.0):
+    """The SuperPoint-like network (torch ``nn.Module``), paper widths times ``width``.
+
+    Input: (B, 1, H, W) float in [0, 1], H and W multiples of 8.
+    Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits.
+    """
+    import torch
+    from torch import nn
+
+    enc, head = layer_widths(width)
+
+    def conv(cin, cout, k=3):
+        return [nn.Conv2d(cin, cout, k, padding=k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+
+    class SuperPointLike(nn.Module):
+        def __init__(self):
+            super().__init__()
+            layers, cin = [], 1
+            for i, c in enumerate(enc):
+                layers += conv(cin, c)
+                cin = c
+                if i % 2 == 1 and i < 7:  # 2x2 max-pool after every two convs, three pools
+                    layers.append(nn.MaxPool2d(2, 2))
+            self.encoder = nn.Sequential(*layers)
+            self.det_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, CELL * CELL + 1, 1))
+            self.id_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, 4, 1))
+            self.width = width
+
+        def forward(self, x: torch.Tensor):
+            f = self.encoder(x)
+            return self.det_head(f), self.id_head(f)
+
+    return SuperPointLike()
+
+
+# --- training targets ------------------------------------------------------------------
+def make_targets(points: np.ndarray, labels: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """Cell targets of the two heads from the ring centres of one image.
+
+    Args:
+        points: (3, 2) centres c0, c1, c2 in the network input's pixels (x, y).
+        labels: (3,) int: 1 = visible (a target), 0 = absent, -1 = ambiguous (ignored
+            by the loss: e.g. a ring half occluded or half outside the image).
+        size: (W, H) of the network input.
+    Returns:
+        det: (H/8, W/8) int64 in 0..64 (64 = no centre) or -100 (ignored);
+        ids: (H/8, W/8) int64 in 0..3 (3 = background) or -100.
+    """
+    w, h = size
+    det = np.full((h // CELL, w // CELL), CELL * CELL, np.int64)
+    ids = np.full((h // CELL, w // CELL), 3, np.int64)
+    for i, ((x, y), lab) in enumerate(zip(np.asarray(points, np.float64), labels)):
+        if lab == 0 or not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        px, py = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))  # nearest pixel centre
+        if not (0 <= px < w and 0 <= py < h):
+            continue
+        cy, cx = py // CELL, px // CELL
+        if lab < 0:
+            det[cy, cx], ids[cy, cx] = -100, -100
+        else:
+            det[cy, cx] = (py % CELL) * CELL + px % CELL
+            ids[cy, cx] = i
+    return det, ids
+
+
+# --- decoding --------------------------------------------------------------------------
+def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
+    e = np.exp(x - x.max(axis=axis, keepdims=True))
+    return e / e.sum(axis=axis, keepdims=True)
+
+
+def score_map(det_logits: np.ndarray) -> np.ndarray:
+    """(65, Hc, Wc) detector logits → (8 Hc, 8 Wc) probability that a pixel is a centre."""
+    p = _softmax(det_logits.astype(np.float64), 0)[:-1]  # drop the "no centre" channel
+    hc, wc = p.shape[1:]
+    return p.reshape(CELL, CELL, hc, wc).transpose(2, 0, 3, 1).reshape(hc * CELL, wc * CELL)
+
+
+def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray:
+    """Local maxima of a score map above a threshold, best first.
+
+    Returns:
+        (N, 3) rows (x, y, score), N <= k.
+    """
+    size = 2 * radius + 1
+    scores = scores.astype(np.float32)  # compare like with like: dilate works in float32
+    dil = cv2.dilate(scores, cv2.getStructuringElement(cv2.MORPH_RECT, (size, size)))
+    ys, xs = np.nonzero((scores >= dil) & (scores >= threshold))
+    s = scores[ys, xs]
+    order = np.argsort(-s)
+    kept: list[tuple[float, float, float]] = []
+    for j in order:  # plateaus: drop maxima within the radius of a better one
+        if all((xs[j] - x) ** 2 + (ys[j] - y) ** 2 > radius**2 for x, y, _ in kept):
+            kept.append((float(xs[j]), float(ys[j]), float(s[j])))
+        if len(kept) == k:
+            break
+    return np.array(kept, np.float64).reshape(-1, 3)
+
+
+def _refine(scores: np.ndarray, x: float, y: float) -> tuple[float, float]:
+    """Score-weighted centroid of the 3x3 neighbourhood: a fraction of a pixel better than the peak."""
+    h, w = scores.shape
+    x0, y0 = int(x), int(y)
+    ys, xs = np.mgrid[max(y0 - 1, 0) : min(y0 + 2, h), max(x0 - 1, 0) : min(x0 + 2, w)]
+    s = scores[ys, xs]
+    return float((s * xs).sum() / s.sum()), float((s * ys).sum() / s.sum())
+
+
+def signed_area(p: np.ndarray) -> float:
+    """Signed area of the triangle p0 p1 p2 ((3, 2), y down): negative for the real marker."""
+    (x0, y0), (x1, y1), (x2, y2) = p
+    return 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
+
+
+def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None):
+    """The three ring centres and their IDs from the two heads of one image.
+
+    Args:
+        det_logits: (65, Hc, Wc) detector-head logits.
+        id_logits: (4, Hc, Wc) ID-head logits.
+        conf: overrides of :data:`default_conf`.
+    Returns:
+        (points (3, 2) in network-input pixels ordered by ID, score) or None when no
+        consistent triple is found.
+
+    The ID head gives each candidate a distribution over c0, c1, c2, background; the
+    triple and the assignment of IDs maximise the product of (location score x ID
+    probability) over the three points, subject to distinct IDs and the marker's
+    handedness (c0 → c1 → c2 turns the same way in every real image). A collision (two
+    points claiming the same ID) is thereby repaired by the second-best assignment, and
+    a triple that no assignment makes consistent is rejected.
+    """
+    c = {**default_conf, **(conf or {})}
+    scores = score_map(det_logits)
+    cand = nms(scores, c["nms_radius"], c["threshold"], c["max_candidates"])
+    if len(cand) < 3:
+        return None
+    pid = _softmax(id_logits.astype(np.float64), 0)  # (4, Hc, Wc)
+    cells = np.clip((cand[:, 1] // CELL).astype(int), 0, pid.shape[1] - 1), np.clip(
+        (cand[:, 0] // CELL).astype(int), 0, pid.shape[2] - 1
+    )
+    prob = pid[:3, cells[0], cells[1]].T  # (N, 3): P(ID = j) at candidate n
+    pts = np.array([_refine(scores, x, y) for x, y, _ in cand])
+    best = None
+    for trio in itertools.combinations(range(len(cand)), 3):
+        for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
+            p_id = prob[list(perm), [0, 1, 2]]
+            if p_id.min() < c["min_id_prob"]:
+                continue
+            p = pts[list(perm)]
+            if signed_area(p) >= 0:  # wrong handedness or degenerate
+                continue
+            s = float(np.prod(cand[list(perm), 2] * p_id) ** (1 / 3))
+            if best is None or s > best[1]:
+                best = (p, s)
+    if best is None or best[1] < c["min_score"]:
+        return None
+    return best
+
+
+def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """A full-resolution gray image → the network's input and the scale back.
+
+    Returns:
+        (image (H, W) float32 in [0, 1] at ``size``, scale (2,) = full / input, per axis).
+    """
+    w, h = size
+    small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+    return small.astype(np.float32) / 255.0, np.array([gray.shape[1] / w, gray.shape[0] / h])
+
+
+def to_full(points: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Network-input pixels → full-resolution pixels (pixel centres at integers in both)."""
+    return (np.asarray(points, np.float64) + 0.5) * scale - 0.5
+
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+
+
+class KeypointNet:
+    """Stage 1 with its weights: full-resolution images → ring centres by ID.
+
+    Args:
+        weights: a checkpoint path (``.pt``) or None for the shipped default.
+        conf: decoding overrides of :data:`default_conf`; ``width`` comes from the checkpoint.
+        device: torch device ("cpu" by default; "cuda" when wanted and present).
+    """
+
+    default_weights = WEIGHTS_DIR / "keypoints.pt"
+
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu"):
+        import torch
+
+        path = Path(weights) if weights is not None else self.default_weights
+        if not path.is_file():
+            raise ValueError(
+                f"keypoint weights not found: {path} (train them with `markerpose train keypoints`)"
+            )
+        ckpt = torch.load(path, map_location=device, weights_only=True)
+        for key in ("state_dict", "width"):
+            if key not in ckpt:
+                raise ValueError(f"{path} is not a markerpose keypoint checkpoint: no {key!r}")
+        self.conf = {**default_conf, **(conf or {}), "width": float(ckpt["width"])}
+        self.net = build_network(self.conf["width"]).to(device).eval()
+        self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
+        self.device = device
+        self.path = path
+
+    def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(B, H, W) float32 inputs → (det (B, 65, Hc, Wc), ids (B, 4, Hc, Wc)) logits."""
+        import torch
+
+        with torch.inference_mode():
+            x = torch.from_numpy(np.ascontiguousarray(batch, np.float32))[:, None].to(self.device)
+            det, ids = self.net(x)
+        return det.float().cpu().numpy(), ids.float().cpu().numpy()
+
+    def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:
+        """Centres in full-resolution pixels for a batch of uint8 gray images (one forward pass).
+
+        Returns:
+            per image, (centers (3, 2) by ID, score) or None.
+        """
+        inputs, scales = zip(*(to_input(g) for g in images))
+        det, ids = self.logits(np.stack(inputs))
+        out = []
+        for k, s in enumerate(scales):
+            found = decode(det[k], ids[k], self.conf)
+            out.append(None if found is None else (to_full(found[0], s), found[1]))
+        return out
+
+
+__all__ = [
+    "INPUT_SIZE",
+    "KeypointNet",
+    "build_network",
+    "decode",
+    "default_conf",
+    "layer_widths",
+    "make_targets",
+    "nms",
+    "score_map",
+    "signed_area",
+    "to_full",
+    "to_input",
+]

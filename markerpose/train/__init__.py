@@ -1,0 +1,1 @@
+"""Training: random scenes from the renderer, augmentations, and the training loops."""

@@ -1,0 +1,152 @@
+"""Stage 1: network shapes, training targets, decoding, and the shipped weights."""
+
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose import keypoints as kp
+
+torch = pytest.importorskip("torch")
+
+
+# --- the network -------------------------------------------------------------------------
+def _conv_widths(net):
+    return [m.out_channels for m in net.encoder if isinstance(m, torch.nn.Conv2d)]
+
+
+def test_paper_network_widths_and_shapes():
+    """The paper's configuration: 64-64-64-64-128-128-128-128, three pools, 65 + 4 channels at H/8 x W/8."""
+    net = kp.build_network(1.0).eval()
+    assert _conv_widths(net) == [64, 64, 64, 64, 128, 128, 128, 128]
+    assert sum(isinstance(m, torch.nn.MaxPool2d) for m in net.encoder) == 3
+    assert sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.encoder) == 8
+    with torch.inference_mode():
+        det, ids = net(torch.zeros(2, 1, 240, 320))
+    assert det.shape == (2, 65, 30, 40)
+    assert ids.shape == (2, 4, 30, 40)
+
+
+def test_width_option_scales_layers():
+    net = kp.build_network(0.25)
+    assert _conv_widths(net) == [16, 16, 16, 16, 32, 32, 32, 32]
+    with torch.inference_mode():
+        det, ids = net.eval()(torch.zeros(1, 1, 240, 320))
+    assert det.shape[1:] == (65, 30, 40) and ids.shape[1:] == (4, 30, 40)
+
+
+# --- targets and decoding ------------------------------------------------------------------
+def _logits_from_targets(det, ids, sharp=20.0):
+    """Ideal network outputs for given cell targets (ignored cells → background)."""
+    d = np.where(det < 0, 64, det)
+    i = np.where(ids < 0, 3, ids)
+    det_logits = np.zeros((65,) + d.shape)
+    id_logits = np.zeros((4,) + i.shape)
+    yy, xx = np.mgrid[0 : d.shape[0], 0 : d.shape[1]]
+    det_logits[d, yy, xx] = sharp
+    id_logits[i, yy, xx] = sharp
+    return det_logits, id_logits
+
+
+MARKER_PTS = np.array([[100.3, 150.2], [140.7, 160.1], [88.2, 90.6]])  # c0, c1, c2: negative signed area
+
+
+def test_targets_round_trip_through_decode():
+    labels = np.ones(3, np.int8)
+    det, ids = kp.make_targets(MARKER_PTS, labels)
+    assert det.shape == (30, 40) and ids.shape == (30, 40)
+    assert (det != 64).sum() == 3 and (ids != 3).sum() == 3
+    pts, score = kp.decode(*_logits_from_targets(det, ids))
+    # The targets keep the nearest pixel; decoding returns it.
+    np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
+    assert score > 0.9
+
+
+def test_targets_ignore_and_absent():
+    det, ids = kp.make_targets(MARKER_PTS, np.array([1, -1, 0], np.int8))
+    assert (det == -100).sum() == 1 and (ids == -100).sum() == 1
+    assert (det < 64).sum() - (det == -100).sum() == 1  # only c0 is a target
+    assert ids[int(MARKER_PTS[0, 1] + 0.5) // 8, int(MARKER_PTS[0, 0] + 0.5) // 8] == 0
+
+
+def test_decode_repairs_colliding_ids():
+    det, ids = kp.make_targets(MARKER_PTS, np.ones(3, np.int8))
+    dl, il = _logits_from_targets(det, ids)
+    # The ID head calls both c1 and c2 "c1", but is unsure about the c2 point.
+    cy, cx = int(MARKER_PTS[2, 1] + 0.5) // 8, int(MARKER_PTS[2, 0] + 0.5) // 8
+    il[:, cy, cx] = [0.0, 2.0, 1.5, -5.0]
+    pts, _ = kp.decode(dl, il)
+    np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
+
+
+def test_decode_rejects_mirror_image_and_empty():
+    mirrored = MARKER_PTS.copy()
+    mirrored[:, 0] = 319 - mirrored[:, 0]
+    assert kp.signed_area(MARKER_PTS) < 0 < kp.signed_area(mirrored)
+    det, ids = kp.make_targets(mirrored, np.ones(3, np.int8))
+    assert kp.decode(*_logits_from_targets(det, ids)) is None
+    det, ids = kp.make_targets(MARKER_PTS, np.zeros(3, np.int8))
+    assert kp.decode(*_logits_from_targets(det, ids)) is None
+    det, ids = kp.make_targets(MARKER_PTS, np.array([1, 1, 0], np.int8))
+    assert kp.decode(*_logits_from_targets(det, ids)) is None  # two rings are not a marker
+
+
+def test_nms_keeps_separated_maxima():
+    s = np.zeros((40, 60))
+    s[10, 10], s[10, 12], s[30, 50] = 0.9, 0.8, 0.5
+    out = kp.nms(s, radius=4, threshold=0.1, k=5)
+    np.testing.assert_array_equal(out[:, :2], [[10, 10], [50, 30]])
+
+
+def test_input_and_full_resolution_mapping():
+    gray = np.zeros((1024, 1280), np.uint8)
+    gray[500:520, 600:640] = 255
+    x, scale = kp.to_input(gray)
+    assert x.shape == (240, 320) and x.dtype == np.float32 and x.max() <= 1.0
+    np.testing.assert_allclose(scale, [4.0, 1024 / 240])
+    # Pixel centres: input pixel (0, 0) covers full pixels 0..3 → centre 1.5.
+    np.testing.assert_allclose(kp.to_full(np.array([[0.0, 0.0]]), scale)[0], [1.5, (1024 / 240 - 1) / 2])
+
+
+def test_missing_weights_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="weights not found"):
+        kp.KeypointNet(tmp_path / "nope.pt")
+    torch.save({"foo": 1}, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="state_dict"):
+        kp.KeypointNet(tmp_path / "bad.pt")
+
+
+# --- the shipped weights on rendered views ------------------------------------------------------
+shipped = pytest.mark.skipif(not kp.KeypointNet.default_weights.is_file(), reason="no shipped stage-1 weights")
+
+
+@shipped
+def test_shipped_network_finds_the_marker_in_a_rendered_view():
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    net = kp.KeypointNet()
+    T = look_at_pose([20, -10, 550], 35, 60, 130)
+    img, truth = render_view(rig.left, T, imaging=Imaging(alpha=0.5), seed=4)
+    empty = np.full_like(img, 90)
+    found, nothing = net([img, empty])
+    assert nothing is None
+    assert found is not None
+    err = np.linalg.norm(found[0] - truth.centers, axis=1)
+    assert err.max() < 8.0, err
+
+
+@shipped
+def test_neural_pipeline_pose_agrees_with_ground_truth():
+    from markerpose.synth import Imaging, look_at_pose, render_stereo
+
+    rig = mp.StereoRig.default()
+    T = look_at_pose([10, 5, 520], 25, 10, 200)
+    frame = render_stereo(rig, T, imaging=Imaging(alpha=0.7), seed=11)
+    tracker = mp.MarkerPose(rig, detector="neural", pose="rigid")
+    est = tracker.estimate(*frame.images)
+    assert est is not None
+    assert np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
+    assert est.detections[0].refined.all() and est.detections[1].refined.all()
+    coarse = mp.MarkerPose(rig, detector="neural", refine="none").estimate(*frame.images)
+    assert coarse is not None and np.linalg.norm(coarse.t - T[:3, 3]) < 10.0
+    assert tracker.estimate(np.full_like(frame.images[0], 80), frame.images[1]) is None

@@ -1,0 +1,112 @@
+"""Training data (scenes, augmentations), metrics and the stage-1 training loop."""
+
+import json
+
+import numpy as np
+import pytest
+
+from markerpose.train import augment as aug
+from markerpose.train import scenes
+
+
+def test_scene_sample_is_deterministic_and_labelled():
+    a = scenes.sample(np.random.default_rng(3), negative=False, conf={"inside": True, "p_occlude": 0.0})
+    b = scenes.sample(np.random.default_rng(3), negative=False, conf={"inside": True, "p_occlude": 0.0})
+    np.testing.assert_array_equal(a.image, b.image)
+    assert a.image.shape == (240, 320) and a.image.dtype == np.uint8
+    assert a.points.shape == (3, 2) and a.labels.shape == (3,)
+    vis = a.labels == 1
+    assert vis.any()
+    assert np.all((a.points[vis] >= 0) & (a.points[vis] <= [319, 239]))
+    # Ink where a labelled centre's ring is: the ring band is darker than its white centre's
+    # surroundings on average (a loose check that labels and pixels agree).
+    assert a.scale.shape == (2,) and np.all(a.scale >= 2)
+
+
+def test_negative_sample_has_no_marker():
+    s = scenes.sample(np.random.default_rng(0), negative=True)
+    assert np.all(s.labels == 0) and np.all(np.isnan(s.points)) and s.ring_px == 0
+
+
+def test_fixed_conditions_are_obeyed():
+    s = scenes.sample(np.random.default_rng(5), negative=False, conf={"alpha": 0.0625, "blur": 25.0})
+    assert s.alpha == 0.0625 and s.blur == 25.0
+    s = scenes.sample(np.random.default_rng(5), negative=False, conf={"alpha": (0.25, 0.3)})
+    assert 0.25 <= s.alpha <= 0.3
+
+
+def test_geometric_augmentation_moves_points_with_pixels():
+    rng = np.random.default_rng(0)
+    pts = np.array([[60.0, 50.0], [200.0, 120.0], [150.0, 200.0]], np.float32)
+    for trial in range(10):
+        img = np.zeros((240, 320), np.uint8)
+        for x, y in pts:
+            img[int(y) - 1 : int(y) + 2, int(x) - 1 : int(x) + 2] = 255
+        out, p, lab = aug.geometric(img, pts, np.ones(3, np.int8), rng, {"p_affine": 1.0})
+        for (x, y), l in zip(p, lab):
+            if l != 1:
+                continue
+            ys, xs = np.nonzero(out[max(int(y) - 4, 0) : int(y) + 5, max(int(x) - 4, 0) : int(x) + 5] > 60)
+            assert len(xs), trial
+            cx = xs.mean() + max(int(x) - 4, 0)
+            cy = ys.mean() + max(int(y) - 4, 0)
+            assert abs(cx - x) < 1.0 and abs(cy - y) < 1.0
+
+
+def test_points_pushed_out_of_the_image_become_absent():
+    rng = np.random.default_rng(1)
+    pts = np.array([[2.0, 2.0], [160.0, 120.0], [318.0, 238.0]], np.float32)
+    conf = {"p_affine": 1.0, "translate": 0.0, "rotate": 0.0, "shear": 0.0, "scale": (1.5, 1.5), "p_hflip": 0, "p_vflip": 0}
+    _, p, lab = aug.geometric(np.zeros((240, 320), np.uint8), pts, np.ones(3, np.int8), rng, conf)
+    assert lab[0] == 0 and lab[2] == 0 and lab[1] == 1
+
+
+def test_photometric_keeps_shape_and_type():
+    rng = np.random.default_rng(2)
+    img = (np.random.default_rng(0).uniform(0, 255, (240, 320))).astype(np.uint8)
+    conf = {k: 1.0 for k in aug.default_conf if k.startswith("p_")}
+    out = aug.photometric(img, rng, conf)
+    assert out.shape == img.shape and out.dtype == np.uint8
+
+
+def test_score_counts_failures_as_failures():
+    from markerpose.train.keypoints import score
+
+    pts = np.array([[[10, 10], [20, 10], [10, 30]]] * 3, np.float32)
+    data = {"points": pts, "labels": np.array([[1, 1, 1], [1, 1, 1], [0, 0, 0]], np.int8), "scale": np.full((3, 2), 4.0, np.float32)}
+    preds = [(pts[0] + 0.5, 1.0), None, None]
+    m = score(preds, data, tolerance_px=8.0)
+    assert m["n_views"] == 2 and m["detected"] == 0.5
+    assert m["median_px"] == pytest.approx(np.hypot(2, 2))
+    assert m["false_positive"] == 0.0 and m["n_negatives"] == 1
+    preds = [(pts[0][[1, 0, 2]], 1.0), (pts[0] + 3, 1.0), (pts[0], 1.0)]  # swapped IDs; 17 px off; a false positive
+    m = score(preds, data, tolerance_px=8.0)
+    assert m["detected"] == 0.0 and m["false_positive"] == 1.0
+    assert m["id_accuracy"] == pytest.approx(4 / 6)
+
+
+def test_generation_does_not_depend_on_the_number_of_workers(monkeypatch):
+    from markerpose.train import keypoints as tk
+
+    monkeypatch.setattr(tk, "_CHUNK", 2)
+    a = tk.generate(4, seed=9, workers=1)
+    b = tk.generate(4, seed=9, workers=2)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_training_loop_checkpoints_and_resumes(tmp_path):
+    pytest.importorskip("torch")
+    from markerpose import keypoints as kp
+    from markerpose.train import keypoints as tk
+
+    conf = {"width": 0.125, "epochs": 1, "train_size": 32, "val_size": 8, "batch_size": 8, "workers": 1}
+    best = tk.main(conf, tmp_path / "run", data_dir=tmp_path / "data")
+    assert best.is_file() and (tmp_path / "run" / "last.pt").is_file()
+    tk.main({**conf, "epochs": 2}, tmp_path / "run", resume=True, data_dir=tmp_path / "data")
+    hist = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["epoch"] for h in hist] == [1, 2]
+    slim = tk.export(best, tmp_path / "w.pt")
+    net = kp.KeypointNet(slim)
+    assert net.conf["width"] == 0.125
+    assert len(net([np.zeros((480, 640), np.uint8)])) == 1
