@@ -115,6 +115,43 @@ def cmd_train_keypoints(args):
         print(f"exported the weights to {tk.export(best, args.export)}")
 
 
+def cmd_train_ellipses(args):
+    from .train import ellipses as te
+
+    conf = {k: getattr(args, k) for k in ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")}
+    t0 = time.perf_counter()
+    best = te.main(conf, args.out, resume=args.resume, data_dir=args.data)
+    print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
+    if args.export:
+        print(f"exported the weights to {te.export(best, args.export)}")
+
+
+def cmd_eval_ellipses(args):
+    from .train import ellipses as te
+
+    res = te.evaluate(args.weights, args.data, args.sets, args.workers)
+    print("| test set | patches | IoU | centre fit | found | median px (true ellipse centre) | p95 px | median px (projected 3D centre) | p95 px |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, r in res.items():
+        for fit in ("ellipse", "moments", "subpixel"):
+            f = r[fit]
+            print(
+                f"| {name} | {r['n']} | {r['iou_mean']:.4f} | {fit} | {f['found']:.4f} | {f['median_px']:.3f} | {f['p95_px']:.3f} | "
+                f"{f['median_px_vs_3d']:.3f} | {f['p95_px_vs_3d']:.3f} |"
+            )
+    for name, r in res.items():
+        print(f"\n{name}: median centre error (px) by condition, and the perspective bias of the same patches")
+        print("| bin | patches | bias median | bias max | fitEllipse vs true | vs 3D | sub-pixel vs true | vs 3D |")
+        print("|---|---|---|---|---|---|---|---|")
+        for b in r["by_condition"]:
+            print(
+                f"| {b['bin']} | {b['n']} | {b['bias_median']:.3f} | {b['bias_max']:.3f} | {b['ellipse_median']:.3f} | "
+                f"{b['ellipse_median_3d']:.3f} | {b['subpixel_median']:.3f} | {b['subpixel_median_3d']:.3f} |"
+            )
+    if args.json:
+        Path(args.json).write_text(json.dumps(res, indent=1))
+
+
 def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
@@ -192,6 +229,22 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--export", help="also write the best weights, slimmed, to this path")
     tk.set_defaults(func=cmd_train_keypoints)
 
+    te = tsub.add_parser("ellipses", help="stage 2: EllipSegNet on 120x120 patches")
+    te.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: the paper's 1e-4)")
+    te.add_argument("--schedule", default="constant", choices=["constant", "cosine"])
+    te.add_argument("--epochs", type=int, default=10)
+    te.add_argument("--batch-size", type=int, default=32)
+    te.add_argument("--train-size", type=int, default=11010, help="rendered training patches (cached; the paper had 11010)")
+    te.add_argument("--val-size", type=int, default=400)
+    te.add_argument("--seed", type=int, default=0)
+    te.add_argument("--workers", type=int, default=2, help="processes rendering the data")
+    te.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
+    te.add_argument("--out", default="runs/ellipses", help="checkpoints and history")
+    te.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    te.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    te.add_argument("--export", help="also write the best weights, slimmed, to this path")
+    te.set_defaults(func=cmd_train_ellipses)
+
     ev = sub.add_parser("eval", help="evaluate a network on the held-out test sets")
     esub = ev.add_subparsers(dest="what", required=True)
     ek = esub.add_parser("keypoints", help="stage 1 on the held-out sets (standard, dark, blur, negatives)")
@@ -201,6 +254,13 @@ def build_parser() -> argparse.ArgumentParser:
     ek.add_argument("--workers", type=int, default=2)
     ek.add_argument("--json", help="also write the metrics as JSON")
     ek.set_defaults(func=cmd_eval_keypoints)
+    ee = esub.add_parser("ellipses", help="stage 2 on the held-out patch sets (standard, dark, blur)")
+    ee.add_argument("--weights", help="checkpoint (default: the shipped weights)")
+    ee.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    ee.add_argument("--sets", nargs="*", help="subset of the test sets")
+    ee.add_argument("--workers", type=int, default=2)
+    ee.add_argument("--json", help="also write the metrics as JSON")
+    ee.set_defaults(func=cmd_eval_ellipses)
     return p
 
 

@@ -39,7 +39,7 @@ default_conf = {
     "min_side": 48,  # adaptive window limits, full-resolution px
     "max_side": 480,
     "threshold": 0.5,  # mask probability threshold
-    "min_area_frac": 0.02,  # a mask smaller than this fraction of the patch is "no ring"
+    "min_area_frac": 0.005,  # a mask smaller than this fraction of the patch is "no ring"
 }
 
 
@@ -174,7 +174,7 @@ def _iso_points(prob: np.ndarray, comp: np.ndarray, level: float) -> np.ndarray:
     return np.concatenate(pts).astype(np.float32)
 
 
-def mask_center(prob: np.ndarray, fit: str = "subpixel", threshold: float = 0.5, min_area_frac: float = 0.02):
+def mask_center(prob: np.ndarray, fit: str = "subpixel", threshold: float = 0.5, min_area_frac: float = 0.005):
     """Centre of the ellipse nearest the patch centre in a probability mask.
 
     Args:

@@ -18,16 +18,19 @@ from .marker import Marker
 from .results import Detection, Estimate
 
 DETECTORS = ("classical", "neural")
-REFINERS = ("classical", "none")
+REFINERS = ("ellipsegnet", "classical", "none")
 
 default_conf = {
     "detector": "classical",  # "classical" (paper §3.4) or "neural" (stage 1 network + refinement)
     "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
     "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
     "bias_correction": True,  # remove the perspective bias of ellipse centres (False = paper)
-    "refine": "classical",  # neural: sub-pixel centres from the classical ring fit near each
-    #                         stage-1 point, or "none" (the stage-1 points themselves)
+    "refine": "classical",  # neural: "ellipsegnet" (stage 2, the paper), "classical" (the
+    #                         classical ring fit near each stage-1 point) or "none" (stage-1 points)
+    "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
+    "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line fit (ours), "ellipse" (paper), "moments"
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
+    "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
     "epipolar_tol_coarse": 12.0,  # ... of stage-1 points that could not be refined, px
 }
@@ -69,9 +72,12 @@ class MarkerPose:
         bias_correction: an ellipse's centre is not the image of the circle's centre; with
             the first pose, predict that offset in each view, subtract it and triangulate
             again (False = the paper, which triangulates the ellipse centres).
-        refine: neural detector's sub-pixel stage: "classical" (the classical ring fit near
-            each stage-1 point) or "none" (stage-1 points, ~1 px).
-        keypoint_weights: stage-1 checkpoint for the neural detector (None: shipped weights).
+        refine: neural detector's sub-pixel stage: "ellipsegnet" (stage 2: EllipSegNet on a
+            patch around each stage-1 point), "classical" (the classical ring fit near each
+            stage-1 point) or "none" (stage-1 points, ~1 px).
+        patch, fit: EllipSegNet's window ("adaptive" or the paper's "fixed" 120 px) and how
+            the centre comes from its mask ("subpixel", the paper's "ellipse", "moments").
+        keypoint_weights, ellipse_weights: checkpoints of the two networks (None: shipped).
     """
 
     def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "classical", **conf):
@@ -96,13 +102,26 @@ class MarkerPose:
             except ImportError as exc:  # torch missing
                 raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
             self._keypoints = KeypointNet(self.conf["keypoint_weights"])
+        self._ellipses = None
+        if detector == "neural" and self.conf["refine"] == "ellipsegnet":
+            from .ellipses import EllipseNet
+
+            self._ellipses = EllipseNet(self.conf["ellipse_weights"], {"patch": self.conf["patch"], "fit": self.conf["fit"]})
 
     def _neural(self, grays: list, cameras: list) -> list:
         """Stage 1 on all views in one batch, then the sub-pixel stage: a Detection or None per view."""
         from . import classical
 
+        stage1 = self._keypoints(grays)
+        if self._ellipses is not None:
+            seen = [k for k, f in enumerate(stage1) if f is not None]
+            refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker)
+            out = [None] * len(grays)
+            for k, (centers, ok) in zip(seen, refined):
+                out[k] = Detection(centers=centers, score=stage1[k][1], refined=ok)
+            return out
         out = []
-        for gray, cam, found in zip(grays, cameras, self._keypoints(grays)):
+        for gray, cam, found in zip(grays, cameras, stage1):
             if found is None:
                 out.append(None)
                 continue
