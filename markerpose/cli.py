@@ -104,6 +104,14 @@ def cmd_estimate(args):
     return 0
 
 
+def cmd_bench(args):
+    from .experiments import bench
+
+    conf = {"pairs": args.pairs, "repeats": args.repeats, "threads": args.threads, "configs": args.configs}
+    res = bench.main(conf, args.json, progress=not args.quiet)
+    print(bench.report(res))
+
+
 def cmd_train_keypoints(args):
     from .train import keypoints as tk
 
@@ -209,6 +217,15 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--pose", default="paper", choices=["paper", "rigid"])
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
+
+    b = sub.add_parser("bench", help="speed of the stereo pipeline per configuration (interleaved, same frames)")
+    b.add_argument("--pairs", type=int, default=8, help="rendered stereo pairs")
+    b.add_argument("--repeats", type=int, default=3, help="passes over the pairs (the first warms up)")
+    b.add_argument("--threads", type=int, help="torch threads (default: all cores)")
+    b.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
+    b.add_argument("--json", help="also write the figures as JSON")
+    b.add_argument("--quiet", action="store_true")
+    b.set_defaults(func=cmd_bench)
 
     t = sub.add_parser("train", help="train a network on rendered data")
     tsub = t.add_subparsers(dest="what", required=True)

@@ -9,6 +9,8 @@ The public entry point (DESIGN §3)::
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 
@@ -95,6 +97,7 @@ class MarkerPose:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig
         self.marker = marker or Marker()
+        self.timings: dict = {}  # seconds per stage of the last estimate() (see markerpose bench)
         self._keypoints = None
         if detector == "neural":
             try:
@@ -110,16 +113,23 @@ class MarkerPose:
 
     def _neural(self, grays: list, cameras: list) -> list:
         """Stage 1 on all views in one batch, then the sub-pixel stage: a Detection or None per view."""
-        from . import classical
-
+        t0 = time.perf_counter()
         stage1 = self._keypoints(grays)
-        if self._ellipses is not None:
+        t1 = time.perf_counter()
+        out = self._refine(grays, cameras, stage1)
+        self.timings.update(stage1=t1 - t0, refine=time.perf_counter() - t1)
+        return out
+
+    def _refine(self, grays: list, cameras: list, stage1: list) -> list:
+        if self._ellipses is not None:  # all patches of all views in one batch
             seen = [k for k, f in enumerate(stage1) if f is not None]
             refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker)
             out = [None] * len(grays)
             for k, (centers, ok) in zip(seen, refined):
                 out[k] = Detection(centers=centers, score=stage1[k][1], refined=ok)
             return out
+        from . import classical
+
         out = []
         for gray, cam, found in zip(grays, cameras, stage1):
             if found is None:
@@ -147,6 +157,7 @@ class MarkerPose:
     def detect(self, image) -> Detection | None:
         """Ring centres c0, c1, c2 in one view, or None if the marker is not found."""
         gray = as_gray(image)
+        self.timings = {}
         if self._keypoints is not None:
             return self._neural([gray], [None])[0]
         from . import classical
@@ -166,6 +177,8 @@ class MarkerPose:
             raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
         self._check_size(gl, self.rig.left, "left image")
         self._check_size(gr, self.rig.right, "right image")
+        self.timings = {}
+        t0 = time.perf_counter()
         if self._keypoints is not None:
             found = self._neural([gl, gr], list(self.rig.cameras))
             if found[0] is None or found[1] is None:
@@ -181,7 +194,13 @@ class MarkerPose:
             found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
             if found is None:
                 return None
-        return self.estimate_from_detections(*found)
+        t1 = time.perf_counter()
+        if self._keypoints is None:
+            self.timings["detect"] = t1 - t0
+        est = self.estimate_from_detections(*found)
+        t2 = time.perf_counter()
+        self.timings.update(geometry=t2 - t1, total=t2 - t0)
+        return est
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:
         """Triangulate matched centres (ordered by ID) and compute the pose.

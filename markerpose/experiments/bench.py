@@ -1,0 +1,107 @@
+"""``markerpose bench``: speed of the whole stereo pipeline per configuration.
+
+Renders a few 1280x1024 stereo pairs of the marker in the working volume, then times
+every configuration on the same pairs, interleaved (pair 1 with every configuration,
+then pair 2, ...) so that the machine's state affects them alike. Reports the median
+time per pair, frames per second, the ratio to the reference configuration (the
+paper-faithful neural one when its weights exist, else the paper's classical one),
+the median time of each stage, and the process's peak memory.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..camera import StereoRig
+from ..marker import Marker
+from ..pipeline import MarkerPose
+from ..synth import Imaging, look_at_pose, render_stereo
+from .configs import available
+
+default_conf = {
+    "pairs": 8,
+    "repeats": 3,  # passes over the pairs (the first pass also warms up)
+    "seed": 0,
+    "threads": None,  # torch threads (None: torch's default, all cores)
+    "configs": None,  # names from experiments.configs; None = all available
+}
+
+
+def _pairs(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    rig, marker = StereoRig.default(), Marker()
+    frames = []
+    while len(frames) < n:
+        T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(400, 750)], rng.uniform(0, 45), rng.uniform(0, 360), rng.uniform(0, 360))
+        f = render_stereo(rig, T, marker, Imaging(alpha=rng.uniform(0.5, 1.0)), seed=rng)
+        if all(v.in_image.all() for v in f.views):
+            frames.append(f)
+    return rig, marker, frames
+
+
+def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
+    """Run the benchmark; returns (and optionally writes as JSON) the figures."""
+    c = {**default_conf, **(conf or {})}
+    if c["threads"]:
+        import torch
+
+        torch.set_num_threads(int(c["threads"]))
+    rig, marker, frames = _pairs(c["pairs"], c["seed"])
+    configs = available(c["configs"])
+    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
+    times = {name: [] for name in trackers}
+    stages = {name: {} for name in trackers}
+    found = {name: 0 for name in trackers}
+    with tqdm(total=c["repeats"] * len(frames), desc="bench", unit="pair", disable=not progress) as bar:
+        for rep in range(c["repeats"]):
+            for f in frames:
+                for name, tr in trackers.items():
+                    t0 = time.perf_counter()
+                    est = tr.estimate(*f.images)
+                    dt = time.perf_counter() - t0
+                    if rep == 0:
+                        continue  # warm-up pass: caches, lazy initialisation
+                    times[name].append(dt)
+                    found[name] += est is not None
+                    for k, v in tr.timings.items():
+                        stages[name].setdefault(k, []).append(v)
+                bar.update()
+    ref = "neural (paper)" if "neural (paper)" in trackers else "classical (paper)"
+    res = {"conf": {k: v for k, v in c.items()}, "reference": ref, "configs": {}}
+    for name in trackers:
+        med = float(np.median(times[name]))
+        res["configs"][name] = {
+            "median_ms": 1000 * med,
+            "fps": 1.0 / med,
+            "speed_vs_reference": float(np.median(times[ref]) / med),
+            "stages_ms": {k: 1000 * float(np.median(v)) for k, v in stages[name].items()},
+            "found": found[name] / len(times[name]),
+        }
+    res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if out:
+        Path(out).write_text(json.dumps(res, indent=1))
+    return res
+
+
+def report(res: dict) -> str:
+    """The benchmark as a Markdown table."""
+    lines = [
+        f"Stereo 1280x1024 pairs, median over {res['conf']['pairs'] * (res['conf']['repeats'] - 1)} runs per configuration "
+        f"(interleaved); speed relative to **{res['reference']}**; peak memory of the process {res['peak_rss_mb']:.0f} MB.",
+        "",
+        "| configuration | ms / pair | FPS | speed vs reference | stages (ms) | found |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, r in res["configs"].items():
+        st = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_ms"].items() if k != "total")
+        lines.append(f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} |")
+    return "\n".join(lines)
+
+
+__all__ = ["default_conf", "main", "report"]

@@ -1,0 +1,57 @@
+"""The named pipeline configurations every experiment compares, in one place.
+
+Each is a set of :class:`~markerpose.pipeline.MarkerPose` options. The "(paper)" rows are
+the paper's configurations; the others switch on our improvements one at a time, so each
+gain is measured in the same run on the same frames (DESIGN §5).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+
+from ..ellipses import EllipseNet
+from ..keypoints import KeypointNet
+
+PAPER_POSE = {"pose": "paper", "bias_correction": False}
+OURS_POSE = {"pose": "rigid", "bias_correction": True}
+
+CLASSICAL = {
+    # The paper's classical method (§3.4): binarise, contours, cv2.fitEllipse on the contour.
+    "classical (paper)": {"detector": "classical", "subpixel": False, **PAPER_POSE},
+    # + sub-pixel edge refinement of the outer ellipse; same centres and pose as the paper.
+    "classical + sub-pixel": {"detector": "classical", "subpixel": True, **PAPER_POSE},
+    # + perspective-bias correction of the centres.
+    "classical + sub-pixel + bias": {"detector": "classical", "subpixel": True, "pose": "paper", "bias_correction": True},
+    # + orthonormal least-squares rigid fit of the three points.
+    "classical + sub-pixel + bias + rigid": {"detector": "classical", "subpixel": True, **OURS_POSE},
+}
+
+NEURAL = {
+    # The paper's MarkerPose: stage 1, EllipSegNet on fixed 120 px patches, cv2.fitEllipse.
+    "neural (paper)": {"detector": "neural", "refine": "ellipsegnet", "patch": "fixed", "fit": "ellipse", **PAPER_POSE},
+    # + adaptive patches and the sub-pixel iso-line fit of the mask.
+    "neural + adaptive + sub-pixel": {"detector": "neural", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **PAPER_POSE},
+    # + perspective-bias correction and the rigid fit (the package default).
+    "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **OURS_POSE},
+    # Stage 1 with the classical ring fit instead of EllipSegNet.
+    "neural stage 1 + classical refine + bias + rigid": {"detector": "neural", "refine": "classical", "subpixel": True, **OURS_POSE},
+}
+
+
+# The package's default configuration (what MarkerPose(rig) runs).
+DEFAULT = "neural + adaptive + sub-pixel + bias + rigid"
+
+
+def available(names=None) -> dict:
+    """The configurations whose weights are present (all by default, or those in ``names``)."""
+    torch = importlib.util.find_spec("torch") is not None
+    have_kp = torch and KeypointNet.default_weights.is_file()
+    have_es = EllipseNet.default_weights.is_file()
+    out = {}
+    for name, c in {**NEURAL, **CLASSICAL}.items():
+        if names is not None and name not in names:
+            continue
+        if c["detector"] == "neural" and (not have_kp or (c.get("refine") == "ellipsegnet" and not have_es)):
+            continue
+        out[name] = c
+    return out
