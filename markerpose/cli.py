@@ -88,7 +88,10 @@ def cmd_estimate(args):
 
     from .pipeline import MarkerPose
 
-    tracker = MarkerPose(_rig(args.rig), _marker(args), detector=args.detector, pose=args.pose)
+    opts = {"pose": args.pose}
+    if args.detector == "neural":
+        opts["refine"] = args.refine
+    tracker = MarkerPose(_rig(args.rig), _marker(args), detector=args.detector, **opts)
     images = []
     for p in (args.left, args.right):
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
@@ -213,7 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("left")
     e.add_argument("right")
     e.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
-    e.add_argument("--detector", default="classical", choices=["classical"])
+    e.add_argument("--detector", default="classical", choices=["neural", "classical"])
+    e.add_argument("--refine", default="classical", choices=["ellipsegnet", "classical", "none"], help="neural: sub-pixel stage")
     e.add_argument("--pose", default="paper", choices=["paper", "rigid"])
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)

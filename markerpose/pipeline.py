@@ -35,6 +35,8 @@ default_conf = {
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
     "epipolar_tol_coarse": 12.0,  # ... of stage-1 points that could not be refined, px
+    "max_shape_error": 2.0,  # mm: the triangulated centres must match the marker's layout
+    #                          (RMS residual of the rigid fit) or the estimate is rejected
 }
 
 
@@ -59,6 +61,13 @@ def as_gray(image, name: str = "image") -> np.ndarray:
     if image.ndim != 2:
         raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got shape {image.shape}")
     return image
+
+
+def shape_error(points3d: np.ndarray, model: np.ndarray) -> float:
+    """RMS distance (mm) between measured points (N, 3) and the rigidly fitted model (N, 3)."""
+    T = pose_rigid(points3d, model)
+    fitted = model @ T[:3, :3].T + T[:3, 3]
+    return float(np.sqrt(np.mean(np.sum((fitted - points3d) ** 2, axis=1))))
 
 
 class MarkerPose:
@@ -200,6 +209,10 @@ class MarkerPose:
         est = self.estimate_from_detections(*found)
         t2 = time.perf_counter()
         self.timings.update(geometry=t2 - t1, total=t2 - t0)
+        # A wrong triple (a decoy, an occluded ring replaced by something else) triangulates
+        # to points that do not have the marker's shape: reject rather than return a wrong pose.
+        if shape_error(est.points3d, self.marker.points3d) > self.conf["max_shape_error"]:
+            return None
         return est
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:

@@ -110,3 +110,17 @@ def test_bad_configuration(rig):
         mp.MarkerPose(rig, speed=3)
     with pytest.raises(ValueError, match="StereoRig"):
         mp.MarkerPose("rig.yaml")
+
+
+def test_a_triple_without_the_marker_shape_is_rejected(rig, frame):
+    """Regression guard: a wrong triple triangulates to a shape unlike the marker's → None."""
+    from markerpose.pipeline import shape_error
+
+    tracker = mp.MarkerPose(rig, detector="classical")
+    est = tracker.estimate(*frame.images)
+    assert est is not None and shape_error(est.points3d, tracker.marker.points3d) < 0.05
+    bad = est.points3d.copy()
+    bad[2] += [0.0, 8.0, 0.0]  # c2 somewhere else: 40 mm → ~48 mm from c0
+    assert shape_error(bad, tracker.marker.points3d) > 2.0
+    strict = mp.MarkerPose(rig, detector="classical", max_shape_error=1e-6)
+    assert strict.estimate(*frame.images) is None  # the check is applied
