@@ -163,6 +163,16 @@ def cmd_eval_ellipses(args):
         Path(args.json).write_text(json.dumps(res, indent=1))
 
 
+def cmd_eval_pipeline(args):
+    from .experiments import endtoend
+
+    conf = {"pairs": args.pairs, "configs": args.configs}
+    if args.sets:
+        conf["sets"] = tuple(args.sets)
+    res = endtoend.main(conf, args.json, progress=not args.quiet)
+    print(endtoend.report(res))
+
+
 def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
@@ -282,6 +292,13 @@ def build_parser() -> argparse.ArgumentParser:
     ee.add_argument("--workers", type=int, default=2)
     ee.add_argument("--json", help="also write the metrics as JSON")
     ee.set_defaults(func=cmd_eval_ellipses)
+    ep = esub.add_parser("pipeline", help="end to end on held-out stereo pairs: detection, centres, pose, per configuration")
+    ep.add_argument("--pairs", type=int, default=200, help="pairs per set")
+    ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25 (default: all)")
+    ep.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
+    ep.add_argument("--json", help="also write the figures as JSON")
+    ep.add_argument("--quiet", action="store_true")
+    ep.set_defaults(func=cmd_eval_pipeline)
     return p
 
 
