@@ -115,26 +115,28 @@ def cmd_bench(args):
     print(bench.report(res))
 
 
-def cmd_train_keypoints(args):
-    from .train import keypoints as tk
-
-    conf = {k: getattr(args, k) for k in ("width", "lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")}
+def _train(module, args, keys: tuple):
+    conf = {k: getattr(args, k) for k in keys}
     t0 = time.perf_counter()
-    best = tk.main(conf, args.out, resume=args.resume, data_dir=args.data)
+    best = module.main(conf, args.out, resume=args.resume, data_dir=args.data)
     print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
     if args.export:
-        print(f"exported the weights to {tk.export(best, args.export)}")
+        print(f"exported the weights to {module.export(best, args.export)}")
+
+
+_TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")
+
+
+def cmd_train_keypoints(args):
+    from .train import keypoints
+
+    _train(keypoints, args, ("width",) + _TRAIN_KEYS)
 
 
 def cmd_train_ellipses(args):
-    from .train import ellipses as te
+    from .train import ellipses
 
-    conf = {k: getattr(args, k) for k in ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")}
-    t0 = time.perf_counter()
-    best = te.main(conf, args.out, resume=args.resume, data_dir=args.data)
-    print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
-    if args.export:
-        print(f"exported the weights to {te.export(best, args.export)}")
+    _train(ellipses, args, _TRAIN_KEYS)
 
 
 def cmd_eval_ellipses(args):
@@ -186,6 +188,30 @@ def cmd_eval_keypoints(args):
         )
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))
+
+
+def _add_train_args(p, name: str, batch: int, size: int, unit: str):
+    p.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: the paper's 1e-4)")
+    p.add_argument("--schedule", default="constant", choices=["constant", "cosine"], help="constant (paper) or cosine decay")
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--batch-size", type=int, default=batch)
+    p.add_argument("--train-size", type=int, default=size, help=f"rendered training {unit}, cached")
+    p.add_argument("--val-size", type=int, default=400)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--workers", type=int, default=2, help="processes rendering the data")
+    p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
+    p.add_argument("--out", default=f"runs/{name}", help="checkpoints and history")
+    p.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--export", help="also write the best weights, slimmed, to this path")
+
+
+def _eval_args(p, what: str):
+    p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
+    p.add_argument("--data", default="runs/data", help="cache of rendered sets")
+    p.add_argument("--sets", nargs="*", help="subset of the test sets")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--json", help="also write the metrics as JSON")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -245,52 +271,19 @@ def build_parser() -> argparse.ArgumentParser:
     tsub = t.add_subparsers(dest="what", required=True)
     tk = tsub.add_parser("keypoints", help="stage 1: the SuperPoint-like centre + ID network")
     tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
-    tk.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: the paper's 1e-4)")
-    tk.add_argument("--schedule", default="constant", choices=["constant", "cosine"])
-    tk.add_argument("--epochs", type=int, default=10)
-    tk.add_argument("--batch-size", type=int, default=16)
-    tk.add_argument("--train-size", type=int, default=12000, help="rendered training images (cached)")
-    tk.add_argument("--val-size", type=int, default=400)
-    tk.add_argument("--seed", type=int, default=0)
-    tk.add_argument("--workers", type=int, default=2, help="processes rendering the data")
-    tk.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
-    tk.add_argument("--out", default="runs/keypoints", help="checkpoints and history")
-    tk.add_argument("--data", default="runs/data", help="cache of rendered sets")
-    tk.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    tk.add_argument("--export", help="also write the best weights, slimmed, to this path")
+    _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)
-
     te = tsub.add_parser("ellipses", help="stage 2: EllipSegNet on 120x120 patches")
-    te.add_argument("--lr", type=float, default=1e-4, help="Adam learning rate (default: the paper's 1e-4)")
-    te.add_argument("--schedule", default="constant", choices=["constant", "cosine"])
-    te.add_argument("--epochs", type=int, default=10)
-    te.add_argument("--batch-size", type=int, default=32)
-    te.add_argument("--train-size", type=int, default=11010, help="rendered training patches (cached; the paper had 11010)")
-    te.add_argument("--val-size", type=int, default=400)
-    te.add_argument("--seed", type=int, default=0)
-    te.add_argument("--workers", type=int, default=2, help="processes rendering the data")
-    te.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
-    te.add_argument("--out", default="runs/ellipses", help="checkpoints and history")
-    te.add_argument("--data", default="runs/data", help="cache of rendered sets")
-    te.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
-    te.add_argument("--export", help="also write the best weights, slimmed, to this path")
+    _add_train_args(te, "ellipses", batch=32, size=11010, unit="patches (the paper had 11010)")
     te.set_defaults(func=cmd_train_ellipses)
 
     ev = sub.add_parser("eval", help="evaluate a network on the held-out test sets")
     esub = ev.add_subparsers(dest="what", required=True)
     ek = esub.add_parser("keypoints", help="stage 1 on the held-out sets (standard, dark, blur, negatives)")
-    ek.add_argument("--weights", help="checkpoint (default: the shipped weights)")
-    ek.add_argument("--data", default="runs/data", help="cache of rendered sets")
-    ek.add_argument("--sets", nargs="*", help="subset of the test sets")
-    ek.add_argument("--workers", type=int, default=2)
-    ek.add_argument("--json", help="also write the metrics as JSON")
+    _eval_args(ek, "stage-1")
     ek.set_defaults(func=cmd_eval_keypoints)
     ee = esub.add_parser("ellipses", help="stage 2 on the held-out patch sets (standard, dark, blur)")
-    ee.add_argument("--weights", help="checkpoint (default: the shipped weights)")
-    ee.add_argument("--data", default="runs/data", help="cache of rendered sets")
-    ee.add_argument("--sets", nargs="*", help="subset of the test sets")
-    ee.add_argument("--workers", type=int, default=2)
-    ee.add_argument("--json", help="also write the metrics as JSON")
+    _eval_args(ee, "EllipSegNet")
     ee.set_defaults(func=cmd_eval_ellipses)
     ep = esub.add_parser("pipeline", help="end to end on held-out stereo pairs: detection, centres, pose, per configuration")
     ep.add_argument("--pairs", type=int, default=200, help="pairs per set")

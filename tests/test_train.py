@@ -86,9 +86,10 @@ def test_score_counts_failures_as_failures():
 
 
 def test_generation_does_not_depend_on_the_number_of_workers(monkeypatch):
+    from markerpose.train import data
     from markerpose.train import keypoints as tk
 
-    monkeypatch.setattr(tk, "_CHUNK", 2)
+    monkeypatch.setattr(data, "CHUNK", 2)
     a = tk.generate(4, seed=9, workers=1)
     b = tk.generate(4, seed=9, workers=2)
     for k in a:

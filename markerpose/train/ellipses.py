@@ -15,24 +15,23 @@ and against the projection of the ring's 3D centre (they differ by the perspecti
 
 from __future__ import annotations
 
-import json
-import math
-import multiprocessing as mp
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import ellipses as es
 from ..camera import Camera
 from ..marker import Marker
 from ..synth import Imaging, clutter_background, look_at_pose, render_view, sensor_readout
 from .augment import photometric
+from .data import cached as data_cache
+from .data import draw as draw_value
+from .data import render_many
 from .loop import export as export_checkpoint
 from .loop import fit
-from .scenes import FULL_SIZES, _loguniform, _occluders
+from .scenes import FULL_SIZES, _loguniform, _occluders, random_imaging
 
 default_conf = {
     "lr": 1e-4,  # Adam (the paper's)
@@ -51,9 +50,6 @@ TEST_SETS = {
     "dark_0.0625": (2002, 300, {"alpha": 0.0625, "blur": (0.0, 9.0), "p_occlude": 0.0}),
     "blur_25": (2003, 300, {"alpha": (0.25, 1.0), "blur": 25.0, "p_occlude": 0.0}),
 }
-
-_CHUNK = 50
-
 
 @dataclass
 class PatchSample:
@@ -99,10 +95,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
     marker = marker or Marker()
 
     def draw(key, default):
-        v = conf.get(key)
-        if v is None:
-            return default()
-        return float(rng.uniform(*v)) if isinstance(v, (tuple, list)) else v
+        return draw_value(rng, conf, key, default)
 
     W, H = FULL_SIZES[int(rng.integers(len(FULL_SIZES)))]
     f = rng.uniform(0.75, 1.5) * 2500 * W / 1280
@@ -148,22 +141,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
 
     alpha = draw("alpha", lambda: rng.uniform(0.25, 1.0) if rng.uniform() < 0.5 else _loguniform(rng, 0.03, 0.25))
     blur = draw("blur", lambda: 0.0 if rng.uniform() < 0.45 else rng.uniform(1, 30))
-    paper = rng.uniform(0.55, 0.95)
-    imaging = Imaging(
-        alpha=alpha,
-        exposure=rng.uniform(0.5, 1.0),
-        gradient=rng.uniform(0, 0.7),
-        gradient_angle=rng.uniform(0, 360),
-        vignetting=0.0,
-        psf_sigma=rng.uniform(0.3, 2.0),
-        motion_blur=blur,
-        motion_angle=rng.uniform(0, 180),
-        noise=False,
-        quantize=False,
-        supersample=8,
-        paper=paper,
-        ink=rng.uniform(0.02, 0.25) * paper / 0.85,
-    )
+    imaging = random_imaging(rng, alpha, blur, psf=(0.3, 2.0), vignetting=0.0)
     bg = clutter_background((cx1 - cx0, cy1 - cy0), rng, scale=1.0)
     dn, truth = render_view(crop_cam, T, marker, imaging, background=bg, seed=rng)
     if rng.uniform() < conf.get("p_occlude", 0.2):
@@ -171,7 +149,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
         near = truth.centers[int(rng.integers(3))]
         cover, refl = _occluders((h, w), rng, near, ring_px)
         dn = dn * (1 - cover) + refl * float(alpha * imaging.exposure * 255.0) * cover
-    img = sensor_readout(dn, Imaging(read_noise=rng.uniform(5, 20)), rng)
+    img = sensor_readout(dn, Imaging(full_well=imaging.full_well, read_noise=imaging.read_noise), rng)
     patch, frame = es.extract_patch(img, rough - [cx0, cy0], side)
     frame[:2] += [cx0, cy0]
     if rng.uniform() < conf.get("p_photometric", 0.5):
@@ -190,19 +168,7 @@ def _render_chunk(args):
 
 def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
     """Render ``n`` stage-2 samples into arrays (see :class:`PatchSample`)."""
-    jobs = [(seed, k, min(_CHUNK, n - k * _CHUNK), conf) for k in range(math.ceil(n / _CHUNK))]
-    out = []
-    with tqdm(total=n, desc=desc, unit="patch") as bar:
-        if workers > 1:
-            with mp.get_context("fork").Pool(workers) as pool:
-                for res in pool.imap(_render_chunk, jobs):
-                    out += res
-                    bar.update(len(res))
-        else:
-            for job in jobs:
-                res = _render_chunk(job)
-                out += res
-                bar.update(len(res))
+    out = render_many(_render_chunk, n, seed, conf, workers, desc, "patch")
     return {
         "image": np.stack([s.image for s in out]),
         "target": np.stack([np.rint(s.target * 255) for s in out]).astype(np.uint8),  # 1/255 steps
@@ -215,15 +181,8 @@ def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc
 
 def cached(path: Path, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
     """Load a rendered stage-2 set from ``path`` (.npz) or render and save it."""
-    key = json.dumps({"n": n, "seed": seed, "conf": conf, "kind": "ellipses"}, sort_keys=True, default=str)
-    if path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["key"]) == key:
-                return {k: z[k] for k in z.files if k != "key"}
-    data = generate(n, seed, conf, workers, desc)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, key=np.array(key), **data)
-    return data
+    key = {"n": n, "seed": seed, "conf": conf, "kind": "ellipses"}
+    return data_cache(path, key, lambda: generate(n, seed, conf, workers, desc))
 
 
 # --- evaluation --------------------------------------------------------------------------

@@ -13,17 +13,15 @@ are kept, and ``resume`` continues from the last.
 
 from __future__ import annotations
 
-import json
-import math
-import multiprocessing as mp
 import time
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .. import keypoints as kp
 from .augment import augment
+from .data import cached as data_cache
+from .data import render_many
 from .loop import export as export_checkpoint
 from .loop import fit
 from .scenes import sample
@@ -54,9 +52,6 @@ TEST_SETS = {
     "negatives": (1005, 600, {"negative": True}),
 }
 
-_CHUNK = 50
-
-
 def _render_chunk(args):
     seed, chunk, n, conf = args
     rng = np.random.default_rng([seed, chunk])
@@ -72,19 +67,7 @@ def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc
         dict of arrays: image (N, 240, 320) uint8, points (N, 3, 2), labels (N, 3), alpha,
         blur, ring_px (N,), scale (N, 2).
     """
-    jobs = [(seed, k, min(_CHUNK, n - k * _CHUNK), conf) for k in range(math.ceil(n / _CHUNK))]
-    out = []
-    with tqdm(total=n, desc=desc, unit="img") as bar:
-        if workers > 1:
-            with mp.get_context("fork").Pool(workers) as pool:
-                for res in pool.imap(_render_chunk, jobs):
-                    out += res
-                    bar.update(len(res))
-        else:
-            for job in jobs:
-                res = _render_chunk(job)
-                out += res
-                bar.update(len(res))
+    out = render_many(_render_chunk, n, seed, conf, workers, desc, "img")
     return {
         "image": np.stack([s.image for s in out]),
         "points": np.stack([s.points for s in out]).astype(np.float32),
@@ -97,16 +80,8 @@ def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc
 
 
 def cached(path: Path, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
-    """Load a rendered set from ``path`` (.npz) or render and save it."""
-    key = json.dumps({"n": n, "seed": seed, "conf": conf}, sort_keys=True, default=str)
-    if path.is_file():
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["key"]) == key:
-                return {k: z[k] for k in z.files if k != "key"}
-    data = generate(n, seed, conf, workers, desc)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(path, key=np.array(key), **data)
-    return data
+    """Load a rendered stage-1 set from ``path`` (.npz) or render and save it."""
+    return data_cache(path, {"n": n, "seed": seed, "conf": conf}, lambda: generate(n, seed, conf, workers, desc))
 
 
 # --- evaluation ------------------------------------------------------------------------

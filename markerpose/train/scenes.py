@@ -26,6 +26,7 @@ from ..camera import Camera
 from ..keypoints import INPUT_SIZE
 from ..marker import Marker
 from ..synth import Imaging, clutter_background, look_at_pose, render_view, sensor_readout
+from .data import draw as draw_value
 
 FULL_SIZES = ((1280, 1024), (1280, 1024), (1280, 1024), (1280, 960), (1920, 1080), (1600, 1200), (2048, 1536), (640, 480))
 
@@ -61,6 +62,38 @@ def scaled_camera(full_size, f: float, dist, size=INPUT_SIZE) -> tuple[Camera, f
     cx0, cy0 = (W0 - 1) / 2, (H0 - 1) / 2
     K = np.array([[f * sx, 0, sx * (cx0 + 0.5) - 0.5], [0, f * sy, sy * (cy0 + 0.5) - 0.5], [0, 0, 1.0]])
     return Camera(K, np.asarray(dist, np.float64), (w, h)), 1.0 / (sx * sy)
+
+
+def random_imaging(rng, alpha: float, blur: float, px_scale: float = 1.0, binning: float = 1.0,
+                   psf=(0.3, 2.5), vignetting: float = 0.5) -> Imaging:
+    """Random light, optics, print and sensor (noise-free expectation; add noise with
+    :func:`~markerpose.synth.sensor_readout` using its ``full_well`` and ``read_noise``).
+
+    Args:
+        alpha, blur: the darkness gain and the motion-blur length (full-resolution px).
+        px_scale: output px per full-resolution px (blur and PSF shrink with it).
+        binning: full-resolution pixels per output pixel (full well and read noise grow).
+        psf: range of the Gaussian PSF sigma, full-resolution px.
+        vignetting: largest vignetting.
+    """
+    paper = rng.uniform(0.55, 0.95)
+    return Imaging(
+        alpha=alpha,
+        exposure=rng.uniform(0.5, 1.0),
+        gradient=rng.uniform(0, 0.7),
+        gradient_angle=rng.uniform(0, 360),
+        vignetting=rng.uniform(0, vignetting),
+        psf_sigma=rng.uniform(*psf) * px_scale,
+        motion_blur=blur * px_scale,
+        motion_angle=rng.uniform(0, 180),
+        full_well=10_000.0 * binning,
+        read_noise=rng.uniform(5, 20) * np.sqrt(binning),
+        noise=False,
+        quantize=False,
+        supersample=8,
+        paper=paper,
+        ink=rng.uniform(0.02, 0.25) * paper / 0.85,  # printing contrast varies
+    )
 
 
 def _loguniform(rng, lo, hi):
@@ -129,11 +162,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, negative: boo
     marker = marker or Marker()
 
     def draw(key, default):
-        """A fixed value, a (lo, hi) range drawn uniformly, or the default draw."""
-        v = conf.get(key)
-        if v is None:
-            return default()
-        return float(rng.uniform(*v)) if isinstance(v, (tuple, list)) else v
+        return draw_value(rng, conf, key, default)
 
     full = FULL_SIZES[int(rng.integers(len(FULL_SIZES)))]
     f = rng.uniform(0.75, 1.5) * 2500 * full[0] / 1280  # 12 mm-ish lens on that sensor, varied
@@ -170,24 +199,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, negative: boo
 
     alpha = draw("alpha", default_alpha)
     blur = draw("blur", lambda: 0.0 if rng.uniform() < 0.45 else rng.uniform(1, 30))
-    paper = rng.uniform(0.55, 0.95)
-    imaging = Imaging(
-        alpha=alpha,
-        exposure=rng.uniform(0.5, 1.0),
-        gradient=rng.uniform(0, 0.7),
-        gradient_angle=rng.uniform(0, 360),
-        vignetting=rng.uniform(0, 0.5),
-        psf_sigma=rng.uniform(0.3, 2.5) * s_full,
-        motion_blur=blur * s_full,
-        motion_angle=rng.uniform(0, 180),
-        full_well=10_000.0 * binning,
-        read_noise=rng.uniform(5, 20) * np.sqrt(binning),
-        noise=False,
-        quantize=False,
-        supersample=8,
-        paper=paper,
-        ink=rng.uniform(0.02, 0.25) * paper / 0.85,
-    )
+    imaging = random_imaging(rng, alpha, blur, s_full, binning)
     dn, truth = render_view(cam, T, marker, imaging, background=bg, seed=rng)
 
     points = truth.centers.astype(np.float32)
@@ -225,4 +237,4 @@ def _conic_area(C: np.ndarray) -> float:
     return float(np.pi * abs(np.linalg.det(C)) / detA**1.5)
 
 
-__all__ = ["Sample", "sample", "scaled_camera", "FULL_SIZES"]
+__all__ = ["FULL_SIZES", "Sample", "random_imaging", "sample", "scaled_camera"]

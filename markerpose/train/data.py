@@ -1,0 +1,60 @@
+"""Rendered data sets: parallel generation seeded per chunk, and the ``.npz`` cache."""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+CHUNK = 50  # samples per job; job k draws from np.random.default_rng([seed, k])
+
+
+def render_many(render_chunk: Callable, n: int, seed: int, conf: dict | None, workers: int, desc: str, unit: str = "img") -> list:
+    """``n`` samples from ``render_chunk((seed, k, count, conf)) -> list``, in order.
+
+    Chunks are seeded by (seed, chunk index), so the result does not depend on ``workers``.
+    """
+    jobs = [(seed, k, min(CHUNK, n - k * CHUNK), conf) for k in range(math.ceil(n / CHUNK))]
+    out: list = []
+    with tqdm(total=n, desc=desc, unit=unit) as bar:
+        if workers > 1:
+            with mp.get_context("fork").Pool(workers) as pool:
+                for res in pool.imap(render_chunk, jobs):
+                    out += res
+                    bar.update(len(res))
+        else:
+            for job in jobs:
+                res = render_chunk(job)
+                out += res
+                bar.update(len(res))
+    return out
+
+
+def cached(path: Path, key: dict, make: Callable[[], dict]) -> dict:
+    """The arrays stored at ``path`` if they were made with the same ``key``; else ``make()``, saved."""
+    text = json.dumps(key, sort_keys=True, default=str)
+    path = Path(path)
+    if path.is_file():
+        with np.load(path, allow_pickle=False) as z:
+            if "key" in z.files and str(z["key"]) == text:
+                return {k: z[k] for k in z.files if k != "key"}
+    data = make()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(path, key=np.array(text), **data)
+    return data
+
+
+def draw(rng: np.random.Generator, conf: dict, key: str, default: Callable[[], float]):
+    """``conf[key]`` if it is a value, a uniform draw if it is a (lo, hi) range, else ``default()``."""
+    v = conf.get(key)
+    if v is None:
+        return default()
+    return float(rng.uniform(*v)) if isinstance(v, (tuple, list)) else v
+
+
+__all__ = ["CHUNK", "cached", "draw", "render_many"]
