@@ -186,6 +186,16 @@ def cmd_eval_keypoints(args):
             f"| {name} | {r['n_views'] or r['n_negatives']} | {r['detected']:.4f} | {r['id_accuracy']:.4f} | {r['median_px']:.2f} | "
             f"{r['p95_px']:.2f} | {r['false_positive']:.4f} | {r['seconds_per_image']:.3f} |"
         )
+    if args.speed:
+        from .keypoints import KeypointNet
+
+        shipped = KeypointNet(args.weights).conf["width"]
+        sp = tk.speed(tuple(sorted({1.0, shipped}, reverse=True)))
+        print("\n| network width | parameters | forward pass, stereo pair (2 x 320x240), ms |")
+        print("|---|---|---|")
+        for w, r in sp.items():
+            print(f"| {w:g}{' (paper)' if w == 1.0 else ''}{' (shipped)' if w == shipped else ''} | {r['params']:,} | {r['pair_ms']:.1f} |")
+        res["speed"] = {str(k): v for k, v in sp.items()}
     if args.json:
         Path(args.json).write_text(json.dumps(res, indent=1))
 
@@ -281,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     esub = ev.add_subparsers(dest="what", required=True)
     ek = esub.add_parser("keypoints", help="stage 1 on the held-out sets (standard, dark, blur, negatives)")
     _eval_args(ek, "stage-1")
+    ek.add_argument("--speed", action="store_true", help="also time the paper-width and the shipped network")
     ek.set_defaults(func=cmd_eval_keypoints)
     ee = esub.add_parser("ellipses", help="stage 2 on the held-out patch sets (standard, dark, blur)")
     _eval_args(ee, "EllipSegNet")

@@ -224,4 +224,24 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
     return res
 
 
-__all__ = ["TEST_SETS", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score"]
+def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
+    """Median seconds of one forward pass of a stereo pair (a batch of two 320x240 inputs)
+    per network width, and the parameter counts (speed does not depend on the weights)."""
+    import torch
+
+    out = {}
+    x = torch.rand(2, 1, kp.INPUT_SIZE[1], kp.INPUT_SIZE[0])
+    for w in widths:
+        net = kp.build_network(w).eval()
+        with torch.inference_mode():
+            net(x)
+            times = []
+            for _ in range(runs):
+                t0 = time.perf_counter()
+                net(x)
+                times.append(time.perf_counter() - t0)
+        out[w] = {"pair_ms": 1000 * float(np.median(times)), "params": int(sum(p.numel() for p in net.parameters()))}
+    return out
+
+
+__all__ = ["TEST_SETS", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed"]
