@@ -1,0 +1,83 @@
+"""The neural pipeline (stage 1 + EllipSegNet) on rendered pairs: accuracy and border cases.
+
+Border cases must give None or a correct estimate — never an exception, never a wrong pose.
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose.ellipses import EllipseNet
+from markerpose.keypoints import KeypointNet
+from markerpose.synth import Imaging, look_at_pose, render_stereo
+
+pytest.importorskip("torch")
+pytestmark = pytest.mark.skipif(
+    not (KeypointNet.default_weights.is_file() and EllipseNet.default_weights.is_file()), reason="no shipped weights"
+)
+
+
+@pytest.fixture(scope="module")
+def rig():
+    return mp.StereoRig.default()
+
+
+@pytest.fixture(scope="module")
+def tracker(rig):
+    return mp.MarkerPose(rig, detector="neural", refine="ellipsegnet")
+
+
+def _ok_or_none(est, frame, tol_mm=0.5):
+    """None, or a pose within tol_mm of the truth."""
+    return est is None or np.linalg.norm(est.t - frame.T_left_marker[:3, 3]) < tol_mm
+
+
+def test_neural_pose_is_accurate_and_agrees_with_classical(rig, tracker):
+    f = render_stereo(rig, look_at_pose([20, -15, 520], 30, 50, 70), imaging=Imaging(alpha=0.8), seed=31)
+    est = tracker.estimate(*f.images)
+    assert est is not None
+    assert np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05  # mm
+    for i in range(2):  # fitted centres vs the true imaged-ellipse centres
+        err = np.linalg.norm(est.detections[i].centers - f.views[i].outer_centers, axis=1)
+        assert err.max() < 0.3, err
+    classical = mp.MarkerPose(rig, detector="classical").estimate(*f.images)
+    assert np.linalg.norm(est.t - classical.t) < 0.05
+    assert set(tracker.timings) >= {"stage1", "refine", "geometry", "total"}
+
+
+@pytest.mark.parametrize("patch,fit", [("fixed", "ellipse"), ("adaptive", "moments")])
+def test_paper_configurations_run(rig, patch, fit):
+    f = render_stereo(rig, look_at_pose([0, 0, 600], 20, 0, 30), seed=32)
+    est = mp.MarkerPose(rig, detector="neural", refine="ellipsegnet", patch=patch, fit=fit, pose="paper", bias_correction=False).estimate(*f.images)
+    assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.5
+
+
+def test_marker_at_the_image_edge(rig, tracker):
+    # Slide the marker out of the left view: every step gives None or a right pose.
+    for x in (-75.0, -85.0, -95.0, -105.0):
+        f = render_stereo(rig, look_at_pose([x, 0, 450], 15, 0, 0), seed=33)
+        assert _ok_or_none(tracker.estimate(*f.images), f)
+
+
+def test_one_ring_occluded(rig, tracker):
+    f = render_stereo(rig, look_at_pose([10, 10, 550], 20, 30, 10), seed=34)
+    left = f.images[0].copy()
+    c = f.views[0].centers[1]
+    cv2.circle(left, (int(c[0]), int(c[1])), 40, 120, -1)  # a grey thumb over c1
+    assert _ok_or_none(tracker.estimate(left, f.images[1]), f)
+
+
+def test_marker_in_one_view_only(rig, tracker):
+    f = render_stereo(rig, look_at_pose([0, 0, 500], 10, 0, 0), seed=35)
+    g = render_stereo(rig, look_at_pose([5000, 0, 500], 0, 0, 0), seed=36)  # no marker in view
+    assert tracker.estimate(f.images[0], g.images[1]) is None
+    assert tracker.detect(g.images[0]) is None
+
+
+def test_bad_input_raises_with_the_neural_detector(rig, tracker):
+    img = np.zeros((1024, 1280), np.uint8)
+    with pytest.raises(ValueError, match="uint8"):
+        tracker.estimate(img.astype(np.float32), img)
+    with pytest.raises(ValueError, match="differ in size"):
+        tracker.estimate(img, img[:-1])
