@@ -111,3 +111,23 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     net = kp.KeypointNet(slim)
     assert net.conf["width"] == 0.125
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1
+
+
+def test_training_window_keeps_the_marker_and_shifts_its_points():
+    from markerpose.train.keypoints import crop
+
+    rng = np.random.default_rng(0)
+    img = np.zeros((240, 320), np.uint8)
+    pts = np.array([[100.0, 100.0], [130.0, 104.0], [96.0, 60.0]], np.float32)
+    for x, y in pts:
+        img[int(y), int(x)] = 255
+    for _ in range(20):
+        out, p, lab = crop(img, pts, np.ones(3, np.int8), rng)
+        assert out.shape == (144, 192)
+        ys, xs = np.nonzero(out)
+        lit = sorted(zip(xs.tolist(), ys.tolist()))
+        if (lab == 1).all():
+            assert lit == sorted((int(x), int(y)) for x, y in p)
+    # A point outside the window is absent, one on its edge ignored.
+    out, p, lab = crop(img, np.array([[1.0, 1.0], [319.0, 239.0], [160.0, 120.0]], np.float32), np.ones(3, np.int8), np.random.default_rng(1))
+    assert lab[2] in (1, -1) and (lab[:2] != 1).all()

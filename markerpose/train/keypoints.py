@@ -39,6 +39,7 @@ default_conf = {
     # training run settles on "background everywhere" (seen here: 500 steps, no centre
     # scored above 0.001). 0.01 gives the targets about a fifth of the loss.
     "background_weight": 0.01,
+    "window": (192, 144),  # train on windows of the 320x240 images (None: whole images)
     "train_size": 12000,  # cached rendered images, augmented afresh each epoch
     "val_size": 400,
     "seed": 0,
@@ -151,12 +152,46 @@ def score(preds: list, data: dict, tolerance_px: float = 8.0) -> dict:
 
 
 # --- training --------------------------------------------------------------------------
-def _batches(data: dict, idx: np.ndarray, rng, bs: int):
+def crop(image: np.ndarray, points: np.ndarray, labels: np.ndarray, rng, size=(192, 144)):
+    """A training window of ``size`` (multiples of 8): around the marker when it fits.
+
+    The network is fully convolutional, so it can learn from windows and still run on
+    the whole 320x240 image; most of a frame is background, so a window around the
+    marker gives ~3x more training steps for the same compute. Rings cut by the window
+    are ignored by the loss (centre within 3 px of its edge) or absent (outside).
+    """
+    h, w = image.shape
+    cw, ch = size
+    vis = labels != 0
+    x0, y0 = int(rng.integers(0, w - cw + 1)), int(rng.integers(0, h - ch + 1))
+    if vis.any() and rng.uniform() < 0.85:
+        p = points[vis]
+        lo = np.floor(p.min(0)).astype(int)
+        hi = np.ceil(p.max(0)).astype(int)
+        # Windows that hold all visible centres with a margin, if the marker is small enough.
+        xs = (max(0, hi[0] + 8 - cw), min(w - cw, lo[0] - 8))
+        ys = (max(0, hi[1] + 8 - ch), min(h - ch, lo[1] - 8))
+        if xs[0] <= xs[1]:
+            x0 = int(rng.integers(xs[0], xs[1] + 1))
+        if ys[0] <= ys[1]:
+            y0 = int(rng.integers(ys[0], ys[1] + 1))
+    out = image[y0 : y0 + ch, x0 : x0 + cw]
+    p = points - np.array([x0, y0], np.float32)
+    lab = labels.copy()
+    dist = np.minimum(np.minimum(p[:, 0], cw - 1 - p[:, 0]), np.minimum(p[:, 1], ch - 1 - p[:, 1]))
+    lab[(dist < 0) | ~np.isfinite(dist)] = 0
+    lab[(dist >= 0) & (dist < 3) & (lab == 1)] = -1
+    return out, p, lab
+
+
+def _batches(data: dict, idx: np.ndarray, rng, bs: int, window=None):
     for k in range(0, len(idx) - bs + 1, bs):
         imgs, dets, ids = [], [], []
         for j in idx[k : k + bs]:
             im, p, lab = augment(data["image"][j], data["points"][j], data["labels"][j], rng)
-            d, i = kp.make_targets(p, lab)
+            if window is not None:
+                im, p, lab = crop(im, p, lab, rng, window)
+            d, i = kp.make_targets(p, lab, size=(im.shape[1], im.shape[0]))
             imgs.append(im)
             dets.append(d)
             ids.append(i)
@@ -184,7 +219,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     ce_id = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0, 1.0, 1.0, w], device=dev), ignore_index=-100)
 
     def batches(rng):
-        return _batches(train, rng.permutation(len(train["image"])), rng, c["batch_size"])
+        return _batches(train, rng.permutation(len(train["image"])), rng, c["batch_size"], c["window"])
 
     def loss_fn(net, im, det, ids):
         d_logits, i_logits = net(torch.from_numpy(im.astype(np.float32) / 255.0)[:, None].to(dev))
