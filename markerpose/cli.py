@@ -115,13 +115,13 @@ def cmd_bench(args):
     print(bench.report(res))
 
 
-def _train(module, args, keys: tuple):
+def _train(module, args, keys: tuple, **export_kw):
     conf = {k: getattr(args, k) for k in keys}
     t0 = time.perf_counter()
     best = module.main(conf, args.out, resume=args.resume, data_dir=args.data)
     print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
     if args.export:
-        print(f"exported the weights to {module.export(best, args.export)}")
+        print(f"exported the weights to {module.export(best, args.export, **export_kw)}")
 
 
 _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")
@@ -130,7 +130,7 @@ _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size
 def cmd_train_keypoints(args):
     from .train import keypoints
 
-    _train(keypoints, args, ("width", "background_weight") + _TRAIN_KEYS)
+    _train(keypoints, args, ("width", "background_weight") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
 
 
 def cmd_train_ellipses(args):

@@ -247,7 +247,9 @@ class KeypointNet:
         for key in ("state_dict", "width"):
             if key not in ckpt:
                 raise ValueError(f"{path} is not a markerpose keypoint checkpoint: no {key!r}")
-        self.conf = {**default_conf, **(conf or {}), "width": float(ckpt["width"])}
+        # Decoding thresholds: the defaults, those tuned when the weights were exported,
+        # then the caller's.
+        self.conf = {**default_conf, **ckpt.get("decode", {}), **(conf or {}), "width": float(ckpt["width"])}
         self.net = build_network(self.conf["width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
         self.device = device

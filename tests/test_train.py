@@ -107,7 +107,7 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     tk.main({**conf, "epochs": 2}, tmp_path / "run", resume=True, data_dir=tmp_path / "data")
     hist = json.loads((tmp_path / "run" / "history.json").read_text())
     assert [h["epoch"] for h in hist] == [1, 2]
-    slim = tk.export(best, tmp_path / "w.pt")
+    slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8)
     net = kp.KeypointNet(slim)
     assert net.conf["width"] == 0.125
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1

@@ -91,19 +91,45 @@ def cached(path: Path, n: int, seed: int, conf: dict | None = None, workers: int
 
 
 # --- evaluation ------------------------------------------------------------------------
-def predict(net, images: np.ndarray, decode_conf: dict | None = None, batch: int = 32, device="cpu"):
-    """Decode every image of a (N, 240, 320) uint8 stack: list of (points (3, 2), score) or None."""
+def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.ndarray, np.ndarray]:
+    """Both heads' logits for a (N, 240, 320) uint8 stack: (N, 65, 30, 40), (N, 4, 30, 40)."""
     import torch
 
-    out = []
+    dets, ids = [], []
     net.eval()
     with torch.inference_mode():
         for k in range(0, len(images), batch):
             x = torch.from_numpy(images[k : k + batch].astype(np.float32) / 255.0)[:, None].to(device)
-            det, ids = net(x)
-            det, ids = det.float().cpu().numpy(), ids.float().cpu().numpy()
-            out += [kp.decode(det[j], ids[j], decode_conf) for j in range(len(det))]
-    return out
+            d, i = net(x)
+            dets.append(d.float().cpu().numpy())
+            ids.append(i.float().cpu().numpy())
+    return np.concatenate(dets), np.concatenate(ids)
+
+
+def predict(net, images: np.ndarray, decode_conf: dict | None = None, batch: int = 32, device="cpu"):
+    """Decode every image of a (N, 240, 320) uint8 stack: list of (points (3, 2), score) or None."""
+    det, ids = logits(net, images, batch, device)
+    return [kp.decode(det[j], ids[j], decode_conf) for j in range(len(det))]
+
+
+def tune_decoding(net, data: dict, max_false_positive: float = 0.005, device="cpu") -> tuple[dict, dict]:
+    """The decoding thresholds that detect the most views of ``data`` (the validation set)
+    with at most ``max_false_positive`` false detections on its marker-free views.
+
+    Returns:
+        (decode conf, its metrics on ``data``).
+    """
+    det, ids = logits(net, data["image"], device=device)
+    best = None
+    for threshold in (0.01, 0.02, 0.05):
+        for min_id_prob in (0.1, 0.2, 0.3):
+            for min_score in (0.02, 0.05, 0.1, 0.15, 0.2, 0.3):
+                dc = {"threshold": threshold, "min_id_prob": min_id_prob, "min_score": min_score}
+                m = score([kp.decode(det[j], ids[j], dc) for j in range(len(det))], data)
+                key = (np.nan_to_num(m["false_positive"]) <= max_false_positive, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
+                if best is None or key > best[0]:
+                    best = (key, dc, m)
+    return best[1], best[2]
 
 
 def score(preds: list, data: dict, tolerance_px: float = 8.0) -> dict:
@@ -248,9 +274,20 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     )
 
 
-def export(checkpoint: str | Path, dest: str | Path) -> Path:
-    """The inference part of a stage-1 checkpoint (weights, width, metrics)."""
-    return export_checkpoint(checkpoint, dest, keep=("width",))
+def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400) -> Path:
+    """The inference part of a stage-1 checkpoint (weights, width, metrics), with decoding
+    thresholds tuned on the validation set (:func:`tune_decoding`)."""
+    import torch
+
+    dest = export_checkpoint(checkpoint, dest, keep=("width",))
+    slim = torch.load(dest, weights_only=True)
+    net = kp.build_network(slim["width"])
+    net.load_state_dict(slim["state_dict"])
+    val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", val_size, 1)
+    slim["decode"], m = tune_decoding(net, val)
+    print(f"decoding tuned on the validation set: {slim['decode']} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+    torch.save(slim, dest)
+    return dest
 
 
 def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2) -> dict:
@@ -286,4 +323,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["TEST_SETS", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed"]
+__all__ = ["TEST_SETS", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding"]
