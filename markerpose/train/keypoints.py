@@ -123,7 +123,7 @@ def tune_decoding(net, data: dict, max_false_positive: float = 0.005, device="cp
     best = None
     for threshold in (0.01, 0.02, 0.05):
         for min_id_prob in (0.1, 0.2, 0.3):
-            for min_score in (0.02, 0.05, 0.1, 0.15, 0.2, 0.3):
+            for min_score in (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6):
                 dc = {"threshold": threshold, "min_id_prob": min_id_prob, "min_score": min_score}
                 m = score([kp.decode(det[j], ids[j], dc) for j in range(len(det))], data)
                 key = (np.nan_to_num(m["false_positive"]) <= max_false_positive, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
