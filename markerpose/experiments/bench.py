@@ -73,7 +73,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
                         stages[name].setdefault(k, []).append(v)
                 bar.update()
     ref = "neural (paper)" if "neural (paper)" in trackers else "classical (paper)"
-    res = {"conf": {k: v for k, v in c.items()}, "reference": ref, "configs": {}}
+    res = {"conf": dict(c), "reference": ref, "configs": {}}
     for name in trackers:
         med = float(np.median(times[name]))
         res["configs"][name] = {
