@@ -94,7 +94,7 @@ def _orthonormal(R: np.ndarray) -> np.ndarray:
     return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
-def _summary(rows: list[dict], tol: float) -> dict:
+def _summary(rows: list[dict]) -> dict:
     det = np.array([r["detected"] for r in rows])
     err = np.concatenate([r["err"] for r in rows])
     err3d = np.concatenate([r["err3d"] for r in rows])
@@ -138,8 +138,8 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
                 rows[name].append(_evaluate_one(tr, frame, c["tolerance_px"]))
         out_set = {}
         for name in trackers:
-            s = _summary(rows[name], c["tolerance_px"])
-            s["by_condition"] = _by_condition(rows[name], conds, c["tolerance_px"])
+            s = _summary(rows[name])
+            s["by_condition"] = _by_condition(rows[name], conds)
             out_set[name] = s
         res["sets"][set_name] = out_set
     if out:
@@ -147,14 +147,14 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     return res
 
 
-def _by_condition(rows, conds, tol) -> list[dict]:
+def _by_condition(rows, conds) -> list[dict]:
     out = []
     for key, edges in (("distance", (350, 500, 650, 801)), ("tilt", (0, 20, 40, 61))):
         v = np.array([cd[key] for cd in conds])
         for lo, hi in zip(edges[:-1], edges[1:]):
             sel = np.nonzero((v >= lo) & (v < hi))[0]
             if len(sel):
-                s = _summary([rows[i] for i in sel], tol)
+                s = _summary([rows[i] for i in sel])
                 out.append({"bin": f"{key} {lo}-{hi}", **{k: s[k] for k in ("pairs", "detected", "center_median_px", "center3d_median_px", "t_median_mm", "r_median_deg")}})
     return out
 
