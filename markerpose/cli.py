@@ -115,6 +115,18 @@ def cmd_bench(args):
     print(bench.report(res))
 
 
+def cmd_experiments(args):
+    from .experiments import reproduce
+
+    conf = dict(reproduce.QUICK) if args.quick else {}
+    for key in ("trials", "pairs", "seed"):
+        if getattr(args, key) is not None:
+            conf[key] = getattr(args, key)
+    if args.configs:
+        conf["configs"] = tuple(args.configs)
+    reproduce.main(conf, args.out, progress=not args.quiet)
+
+
 def _train(module, args, keys: tuple, **export_kw):
     conf = {k: getattr(args, k) for k in keys}
     t0 = time.perf_counter()
@@ -124,7 +136,7 @@ def _train(module, args, keys: tuple, **export_kw):
         print(f"exported the weights to {module.export(best, args.export, **export_kw)}")
 
 
-_TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device")
+_TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device", "init")
 
 
 def cmd_train_keypoints(args):
@@ -179,13 +191,16 @@ def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
     res = tk.evaluate(args.weights, args.data, args.sets, args.workers)
-    print("| test set | views | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
-    print("|---|---|---|---|---|---|---|---|")
-    for name, r in res.items():
-        print(
-            f"| {name} | {r['n_views'] or r['n_negatives']} | {r['detected']:.4f} | {r['id_accuracy']:.4f} | {r['median_px']:.2f} | "
-            f"{r['p95_px']:.2f} | {r['false_positive']:.4f} | {r['seconds_per_image']:.3f} |"
-        )
+    label = {"head": "ID head (paper)", "layout": "marker layout (ours)"}
+    print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name in next(iter(res.values())):
+        for mode, per_set in res.items():
+            r = per_set[name]
+            print(
+                f"| {name} | {r['n_views'] or r['n_negatives']} | {label[mode]} | {r['detected']:.4f} | {r['id_accuracy']:.4f} | "
+                f"{r['median_px']:.2f} | {r['p95_px']:.2f} | {r['false_positive']:.4f} | {r['seconds_per_image']:.3f} |"
+            )
     if args.speed:
         from .keypoints import KeypointNet
 
@@ -213,6 +228,7 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
     p.add_argument("--out", default=f"runs/{name}", help="checkpoints and history")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--init", help="start from the weights of this checkpoint (fine-tuning) instead of at random")
     p.add_argument("--export", help="also write the best weights, slimmed, to this path")
 
 
@@ -276,6 +292,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", help="also write the figures as JSON")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
+
+    x = sub.add_parser("experiments", help="the paper's Section 5 with confidence intervals: report, plots, JSON")
+    x.add_argument("--quick", action="store_true", help="2 trials and 8 pairs per level (a few minutes)")
+    x.add_argument("--trials", type=int, help="robot-path placements (default 8)")
+    x.add_argument("--pairs", type=int, help="random pairs per darkness / blur level (default 48)")
+    x.add_argument("--seed", type=int, help="base seed (default 0)")
+    x.add_argument("--configs", nargs="*", help="configuration names (default: the headline ones that can run)")
+    x.add_argument("--out", default="markerpose-experiments", help="output folder (default: markerpose-experiments)")
+    x.add_argument("--quiet", action="store_true")
+    x.set_defaults(func=cmd_experiments)
 
     t = sub.add_parser("train", help="train a network on rendered data")
     tsub = t.add_subparsers(dest="what", required=True)

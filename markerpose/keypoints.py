@@ -35,6 +35,17 @@ default_conf = {
     "max_candidates": 8,  # best candidates kept after NMS, per image
     "min_id_prob": 0.2,  # an assigned ID must have at least this probability at its point
     "min_score": 0.15,  # geometric mean of the three points' (score x ID probability)
+    # How IDs are assigned to a triple of candidates:
+    #   "head"   (paper): by the ID head, with the handedness check;
+    #   "layout" (ours): by the marker's shape. Of the three orders with the right
+    #            handedness, the one whose affine map from the marker's layout is closest
+    #            to a foreshortened similarity (largest singular-value ratio), the ID
+    #            head's probabilities entering with exponent ``id_weight``. The ID head
+    #            sees ~40 px of the 320x240 input, less than the marker spans, so on its
+    #            own it often cannot tell the rings apart.
+    "ids": "layout",
+    "min_ratio": 0.35,  # layout: minimum singular-value ratio (cos 60° = 0.5, less perspective)
+    "id_weight": 0.25,  # layout: exponent of the ID head's probabilities in the score
 }
 
 
@@ -159,13 +170,29 @@ def signed_area(p: np.ndarray) -> float:
     return 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
 
 
-def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None):
+def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
+    """How far the image triangle ``p`` (3, 2) is from a view of the marker triangle
+    ``layout`` (3, 2, mm), in the same ID order: the ratio of the singular values of the
+    affine map between the two (1 = a similarity; a plane tilted by θ seen from afar gives
+    cos θ). Orders that put a ring in the wrong place give small ratios."""
+    a = np.column_stack([p[1] - p[0], p[2] - p[0]])
+    b = np.column_stack([layout[1] - layout[0], layout[2] - layout[0]])
+    sv = np.linalg.svd(a @ np.linalg.inv(b), compute_uv=False)
+    return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+
+
+_LAYOUT = np.array([(0.0, 0.0), (25.0, 0.0), (0.0, 40.0)])  # the default Marker's centres, mm
+
+
+def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, layout: np.ndarray | None = None):
     """The three ring centres and their IDs from the two heads of one image.
 
     Args:
         det_logits: (65, Hc, Wc) detector-head logits.
         id_logits: (4, Hc, Wc) ID-head logits.
         conf: overrides of :data:`default_conf`.
+        layout: (3, 2) the marker's ring centres in mm (``Marker.centers2d``); used by
+            ``ids="layout"`` (default: the default marker's).
     Returns:
         (points (3, 2) in network-input pixels ordered by ID, score) or None when no
         consistent triple is found.
@@ -175,9 +202,13 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     probability) over the three points, subject to distinct IDs and the marker's
     handedness (c0 → c1 → c2 turns the same way in every real image). A collision (two
     points claiming the same ID) is thereby repaired by the second-best assignment, and
-    a triple that no assignment makes consistent is rejected.
+    a triple that no assignment makes consistent is rejected. With ``ids="layout"`` the
+    marker's shape chooses the order instead (see :data:`default_conf`).
     """
     c = {**default_conf, **(conf or {})}
+    if c["ids"] not in ("head", "layout"):
+        raise ValueError(f"ids must be 'head' or 'layout', got {c['ids']!r}")
+    layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
     scores = score_map(det_logits)
     cand = nms(scores, c["nms_radius"], c["threshold"], c["max_candidates"])
     if len(cand) < 3:
@@ -192,12 +223,18 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     for trio in itertools.combinations(range(len(cand)), 3):
         for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
             p_id = prob[list(perm), [0, 1, 2]]
-            if p_id.min() < c["min_id_prob"]:
-                continue
             p = pts[list(perm)]
             if signed_area(p) >= 0:  # wrong handedness or degenerate
                 continue
-            s = float(np.prod(cand[list(perm), 2] * p_id) ** (1 / 3))
+            if c["ids"] == "head":
+                if p_id.min() < c["min_id_prob"]:
+                    continue
+                s = float(np.prod(cand[list(perm), 2] * p_id) ** (1 / 3))
+            else:
+                r = layout_ratio(p, layout)
+                if r < c["min_ratio"]:
+                    continue
+                s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3) * r)
             if best is None or s > best[1]:
                 best = (p, s)
     if best is None or best[1] < c["min_score"]:
@@ -231,11 +268,13 @@ class KeypointNet:
         weights: a checkpoint path (``.pt``) or None for the shipped default.
         conf: decoding overrides of :data:`default_conf`; ``width`` comes from the checkpoint.
         device: torch device ("cpu" by default; "cuda" when wanted and present).
+        layout: (3, 2) ring centres of the marker in mm (``Marker.centers2d``), for
+            ``ids="layout"`` (default: the default marker's).
     """
 
     default_weights = WEIGHTS_DIR / "keypoints.pt"
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu"):
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", layout=None):
         import torch
 
         path = Path(weights) if weights is not None else self.default_weights
@@ -247,13 +286,20 @@ class KeypointNet:
         for key in ("state_dict", "width"):
             if key not in ckpt:
                 raise ValueError(f"{path} is not a markerpose keypoint checkpoint: no {key!r}")
-        # Decoding thresholds: the defaults, those tuned when the weights were exported,
-        # then the caller's.
-        self.conf = {**default_conf, **ckpt.get("decode", {}), **(conf or {}), "width": float(ckpt["width"])}
+        # Decoding thresholds: the defaults, those tuned for this ID mode when the weights
+        # were exported ({"head": {...}, "layout": {...}}), then the caller's.
+        mode = (conf or {}).get("ids", default_conf["ids"])
+        if mode not in ("head", "layout"):
+            raise ValueError(f"ids must be 'head' or 'layout', got {mode!r}")
+        tuned = ckpt.get("decode", {})
+        if not any(k in tuned for k in ("head", "layout")):  # older checkpoints: tuned for "head"
+            tuned = {"head": tuned}
+        self.conf = {**default_conf, **tuned.get(mode, {}), **(conf or {}), "width": float(ckpt["width"])}
         self.net = build_network(self.conf["width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
         self.device = device
         self.path = path
+        self.layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
 
     def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) float32 inputs → (det (B, 65, Hc, Wc), ids (B, 4, Hc, Wc)) logits."""
@@ -274,7 +320,7 @@ class KeypointNet:
         det, ids = self.logits(np.stack(inputs))
         out = []
         for k, s in enumerate(scales):
-            found = decode(det[k], ids[k], self.conf)
+            found = decode(det[k], ids[k], self.conf, self.layout)
             out.append(None if found is None else (to_full(found[0], s), found[1]))
         return out
 
@@ -285,6 +331,7 @@ __all__ = [
     "build_network",
     "decode",
     "default_conf",
+    "layout_ratio",
     "layer_widths",
     "make_targets",
     "nms",

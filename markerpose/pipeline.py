@@ -31,6 +31,7 @@ default_conf = {
     #                         classical ring fit near each stage-1 point) or "none" (stage-1 points)
     "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
     "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line fit (ours), "ellipse" (paper), "moments"
+    "ids": "layout",  # neural: ring IDs from the marker's shape (ours) or "head" (the ID head, paper)
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -102,6 +103,8 @@ class MarkerPose:
             raise ValueError(f"unknown detector {detector!r}; choose from {DETECTORS}")
         if self.conf["refine"] not in REFINERS:
             raise ValueError(f"unknown refine method {self.conf['refine']!r}; choose from {REFINERS}")
+        if self.conf["ids"] not in ("head", "layout"):
+            raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from ('head', 'layout')")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig
@@ -113,7 +116,7 @@ class MarkerPose:
                 from .keypoints import KeypointNet
             except ImportError as exc:  # torch missing
                 raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
-            self._keypoints = KeypointNet(self.conf["keypoint_weights"])
+            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": self.conf["ids"]}, layout=self.marker.centers2d)
         self._ellipses = None
         if detector == "neural" and self.conf["refine"] == "ellipsegnet":
             from .ellipses import EllipseNet

@@ -18,3 +18,42 @@ def test_end_to_end_counts_detections_and_errors():
     assert s["pairs"] == 2 and s["detected"] == 1.0
     assert s["center_median_px"] < 0.1 and s["t_median_mm"] < 0.05
     assert "standard" in endtoend.report(res)
+
+
+def test_confidence_intervals():
+    import math
+
+    from markerpose.experiments.reproduce import mean_ci, wilson
+
+    ci = mean_ci([1.0, 2.0, 3.0, float("inf")])  # failures (inf) are not averaged in
+    assert ci["n"] == 3 and ci["mean"] == 2.0
+    assert math.isclose(ci["hi"] - ci["mean"], 4.303 * 1.0 / math.sqrt(3), rel_tol=1e-6)  # t(0.975, 2)
+    assert math.isnan(mean_ci([5.0])["lo"]) and mean_ci([])["n"] == 0
+    w = wilson(50, 100)
+    assert w["p"] == 0.5 and math.isclose(w["lo"], 0.4038, abs_tol=1e-3) and math.isclose(w["hi"], 0.5962, abs_tol=1e-3)
+    w = wilson(10, 10)
+    assert w["hi"] == 1.0 and 0.69 < w["lo"] < 0.73  # never 0-width at 100 %
+
+
+def test_experiments_write_report_plots_and_json(tmp_path):
+    import json
+
+    import pytest
+
+    from markerpose.experiments import reproduce
+
+    conf = {"trials": 1, "pairs": 2, "alphas": (1.0,), "detection_alphas": (1.0, 0.0625), "blurs": (0.0, 25.0), "configs": ("classical (paper)", "classical + sub-pixel + bias + rigid")}
+    res = reproduce.main(conf, tmp_path, progress=False)
+    for f in ("report.md", "results.json", "displacement.png", "rotation.png", "detection.png", "accuracy.png"):
+        assert (tmp_path / f).stat().st_size > 0
+    t1 = res["tables"]["classical + sub-pixel + bias + rigid"]["table1"]
+    assert t1["failed"] == 0 and t1["mae"]["mean"] < 0.01  # mm: sub-pixel + bias on perfect synthetic data
+    paper_t1 = res["tables"]["classical (paper)"]["table1"]
+    assert paper_t1["mae"]["mean"] > t1["mae"]["mean"]
+    assert set(res["levels"]["alpha"]) == {"1.0", "0.0625"} and set(res["levels"]["blur"]) == {"0.0", "25.0"}
+    assert res["levels"]["alpha"]["1.0"]["classical (paper)"]["detection"]["n"] == 2
+    text = (tmp_path / "report.md").read_text()
+    assert "Table 1" in text and "Table 5" in text and "0.0461" in text  # the paper's number beside ours
+    assert json.loads((tmp_path / "results.json").read_text())["conf"]["trials"] == 1
+    with pytest.raises(ValueError, match="trials"):
+        reproduce.main({"trials": 0}, tmp_path, progress=False)

@@ -55,7 +55,7 @@ def test_targets_round_trip_through_decode():
     det, ids = kp.make_targets(MARKER_PTS, labels)
     assert det.shape == (30, 40) and ids.shape == (30, 40)
     assert (det != 64).sum() == 3 and (ids != 3).sum() == 3
-    pts, score = kp.decode(*_logits_from_targets(det, ids))
+    pts, score = kp.decode(*_logits_from_targets(det, ids), {"ids": "head"})
     # The targets keep the nearest pixel; decoding returns it.
     np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
     assert score > 0.9
@@ -74,8 +74,63 @@ def test_decode_repairs_colliding_ids():
     # The ID head calls both c1 and c2 "c1", but is unsure about the c2 point.
     cy, cx = int(MARKER_PTS[2, 1] + 0.5) // 8, int(MARKER_PTS[2, 0] + 0.5) // 8
     il[:, cy, cx] = [0.0, 2.0, 1.5, -5.0]
-    pts, _ = kp.decode(dl, il)
+    pts, _ = kp.decode(dl, il, {"ids": "head"})
     np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
+
+
+def _view(tilt_deg: float, tilt_axis_deg: float, roll_deg: float, dist: float = 600.0, f: float = 300.0):
+    """Ring centres of the default marker seen by a pinhole camera (y down), marker facing it."""
+    def rot(axis, a):
+        a = np.radians(a)
+        c, s = np.cos(a), np.sin(a)
+        k = np.asarray(axis, float) / np.linalg.norm(axis)
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        return np.eye(3) + s * K + (1 - c) * K @ K
+
+    ax = [np.cos(np.radians(tilt_axis_deg)), np.sin(np.radians(tilt_axis_deg)), 0]
+    R = rot([1, 0, 0], 180) @ rot(ax, tilt_deg) @ rot([0, 0, 1], roll_deg)  # face the camera (-z)
+    X = (R @ np.column_stack([mp.Marker().centers2d - [10, 20], np.zeros(3)]).T).T + [0, 0, dist]
+    return f * X[:, :2] / X[:, 2:] + [160, 120]
+
+
+def test_layout_ratio_tells_the_rings_apart():
+    """The marker's shape picks the right ID order among the three with the right
+    handedness, from frontal views to 55° of tilt about any axis, at any roll."""
+    layout = mp.Marker().centers2d
+    for tilt in (0, 30, 55):
+        for axis in (0, 45, 90, 135):
+            for roll in (0, 100, 230):
+                p = _view(tilt, axis, roll)
+                assert kp.signed_area(p) < 0
+                right = kp.layout_ratio(p, layout)
+                wrong = [kp.layout_ratio(p[np.roll([0, 1, 2], k)], layout) for k in (1, 2)]
+                assert right > 0.5  # cos 55° = 0.57, less perspective
+                assert max(wrong) < right, (tilt, axis, roll, right, wrong)
+    assert abs(kp.layout_ratio(_view(0, 0, 40), layout) - 1.0) < 1e-3
+
+
+def test_decode_by_layout_needs_no_id_head():
+    """With ids="layout" an uninformative ID head still gives the right order; with the
+    paper's ids="head" it gives nothing."""
+    p = _view(35, 60, 290)
+    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    dl, il = _logits_from_targets(det, ids)
+    il[:] = 0.0  # the ID head says nothing
+    pts, _ = kp.decode(dl, il, {"ids": "layout"})
+    np.testing.assert_allclose(pts, np.floor(p + 0.5), atol=1e-6)
+    assert kp.decode(dl, il, {"ids": "head", "min_id_prob": 0.3}) is None
+    with pytest.raises(ValueError, match="ids"):
+        kp.decode(dl, il, {"ids": "magic"})
+
+
+def test_decode_by_layout_rejects_wrong_shapes():
+    """Three ring-like points in a line or in the mirror image are not the marker."""
+    det, ids = kp.make_targets(np.array([[100.0, 100.0], [130.0, 100.0], [160.0, 101.0]]), np.ones(3, np.int8))
+    assert kp.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
+    mirrored = MARKER_PTS.copy()
+    mirrored[:, 0] = 319 - mirrored[:, 0]
+    det, ids = kp.make_targets(mirrored, np.ones(3, np.int8))
+    assert kp.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
 
 
 def test_decode_rejects_mirror_image_and_empty():
@@ -127,7 +182,7 @@ def test_shipped_network_output_is_none_or_right():
 
     rig = mp.StereoRig.default()
     net = kp.KeypointNet()
-    assert set(net.conf) >= {"threshold", "min_score", "min_id_prob", "width"}
+    assert set(net.conf) >= {"threshold", "min_score", "min_id_prob", "width", "ids"}
     views = [render_view(rig.left, look_at_pose([x, -10, 550], 35, 60, r), imaging=Imaging(alpha=0.5), seed=4) for x, r in ((20, 130), (0, 10), (-30, 250))]
     empty = np.full_like(views[0][0], 90)
     *found, nothing = net([v[0] for v in views] + [empty])

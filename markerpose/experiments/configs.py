@@ -28,9 +28,9 @@ CLASSICAL = {
 
 NEURAL = {
     # The paper's MarkerPose: stage 1, EllipSegNet on fixed 120 px patches, cv2.fitEllipse.
-    "neural (paper)": {"detector": "neural", "refine": "ellipsegnet", "patch": "fixed", "fit": "ellipse", **PAPER_POSE},
-    # + adaptive patches and the sub-pixel iso-line fit of the mask.
-    "neural + adaptive + sub-pixel": {"detector": "neural", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **PAPER_POSE},
+    "neural (paper)": {"detector": "neural", "ids": "head", "refine": "ellipsegnet", "patch": "fixed", "fit": "ellipse", **PAPER_POSE},
+    # + ring IDs from the marker's shape, adaptive patches and the sub-pixel iso-line fit of the mask.
+    "neural + adaptive + sub-pixel": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **PAPER_POSE},
     # + perspective-bias correction and the rigid fit (the package default).
     "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **OURS_POSE},
     # Stage 1 with the classical ring fit instead of EllipSegNet.

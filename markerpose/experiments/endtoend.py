@@ -47,7 +47,13 @@ def _draw(rng, v):
 
 def pairs(name: str, n: int, rig: StereoRig, marker: Marker):
     """Yield (frame, conditions) for ``n`` held-out pairs of a set (deterministic)."""
-    spec = SETS[name]
+    return random_pairs(SETS[name], n, rig, marker)
+
+
+def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
+    """Yield (frame, conditions) for ``n`` pairs with the marker anywhere in the working
+    volume: ``spec`` gives the ``seed`` (anything ``default_rng`` takes) and the ``alpha``
+    and ``blur`` (a value or a (lo, hi) range)."""
     rng = np.random.default_rng(spec["seed"])
     made = 0
     while made < n:
@@ -66,7 +72,10 @@ def pairs(name: str, n: int, rig: StereoRig, marker: Marker):
         yield frame, {"distance": float(T[2, 3]), "tilt": float(tilt), "alpha": alpha, "blur": blur}
 
 
-def _evaluate_one(tracker: MarkerPose, frame, tol: float) -> dict:
+def evaluate_pair(tracker: MarkerPose, frame, tol: float) -> dict:
+    """One tracker on one pair: detected (all six centres within ``tol`` px, right IDs),
+    centre errors (6,) against the imaged ellipse centres and the projected 3D centres,
+    translation (mm) and rotation (°) errors; a failure gives inf errors."""
     est = tracker.estimate(*frame.images)
     inf3 = np.full(6, np.inf)
     if est is None:
@@ -94,7 +103,8 @@ def _orthonormal(R: np.ndarray) -> np.ndarray:
     return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
-def _summary(rows: list[dict]) -> dict:
+def summarize(rows: list[dict]) -> dict:
+    """Detection rate, centre and pose error percentiles (failures count as inf) and recalls."""
     det = np.array([r["detected"] for r in rows])
     err = np.concatenate([r["err"] for r in rows])
     err3d = np.concatenate([r["err3d"] for r in rows])
@@ -119,6 +129,8 @@ def _summary(rows: list[dict]) -> dict:
         "r_p95_deg": pct(rot, 95),
         "recall_t_0.1mm": float(np.mean(t <= 0.1)),
         "recall_t_1mm": float(np.mean(t <= 1.0)),
+        "recall_r_0.1deg": float(np.mean(rot <= 0.1)),
+        "recall_r_1deg": float(np.mean(rot <= 1.0)),
     }
 
 
@@ -135,11 +147,11 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         for frame, cond in tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress):
             conds.append(cond)
             for name, tr in trackers.items():
-                rows[name].append(_evaluate_one(tr, frame, c["tolerance_px"]))
+                rows[name].append(evaluate_pair(tr, frame, c["tolerance_px"]))
         out_set = {}
         for name in trackers:
-            s = _summary(rows[name])
-            s["by_condition"] = _by_condition(rows[name], conds)
+            s = summarize(rows[name])
+            s["by_condition"] = by_condition(rows[name], conds)
             out_set[name] = s
         res["sets"][set_name] = out_set
     if out:
@@ -147,14 +159,15 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     return res
 
 
-def _by_condition(rows, conds) -> list[dict]:
+def by_condition(rows, conds) -> list[dict]:
+    """:func:`summarize` by distance and by tilt bins of the pairs' conditions."""
     out = []
     for key, edges in (("distance", (350, 500, 650, 801)), ("tilt", (0, 20, 40, 61))):
         v = np.array([cd[key] for cd in conds])
         for lo, hi in zip(edges[:-1], edges[1:]):
             sel = np.nonzero((v >= lo) & (v < hi))[0]
             if len(sel):
-                s = _summary([rows[i] for i in sel])
+                s = summarize([rows[i] for i in sel])
                 out.append({"bin": f"{key} {lo}-{hi}", **{k: s[k] for k in ("pairs", "detected", "center_median_px", "center3d_median_px", "t_median_mm", "r_median_deg")}})
     return out
 
@@ -179,4 +192,4 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["SETS", "default_conf", "main", "pairs", "report"]
+__all__ = ["SETS", "by_condition", "default_conf", "evaluate_pair", "main", "pairs", "random_pairs", "report", "summarize"]

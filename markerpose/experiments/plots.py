@@ -53,3 +53,52 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_detection(levels: dict, path: Path) -> Path:
+    """Detection rate with 95 % intervals versus darkness α and motion blur, per configuration (Fig. 10)."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
+    for ax, kind, label in ((axes[0], "alpha", "darkness α (log scale)"), (axes[1], "blur", "motion blur kernel (px)")):
+        xs = [float(v) for v in levels[kind]]
+        names = list(next(iter(levels[kind].values())))
+        for k, name in enumerate(names):
+            d = [levels[kind][v][name]["detection"] for v in levels[kind]]
+            p = np.array([x["p"] for x in d]) * 100
+            err = np.array([[x["p"] - x["lo"], x["hi"] - x["p"]] for x in d]).T * 100
+            ax.errorbar(xs, p, yerr=err, marker=_MARKERS[k % 5], ms=4, lw=1, capsize=3, label=name)
+        if kind == "alpha":
+            ax.set_xscale("log", base=2)
+            ax.invert_xaxis()
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("pairs detected (%), 95 % interval")
+    axes[0].set_ylim(-2, 102)
+    axes[1].legend(fontsize=7, loc="lower left")
+    fig.suptitle("Detection versus darkness and motion blur")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_accuracy(per_config: dict, path: Path) -> Path:
+    """Median translation and rotation error by distance and by tilt bin, per configuration."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    names = list(per_config)
+    bins = [b["bin"] for b in per_config[names[0]]["by_condition"]]
+    x = np.arange(len(bins))
+    width = 0.8 / len(names)
+    for ax, key, label in ((axes[0], "t_median_mm", "translation error, median (mm)"), (axes[1], "r_median_deg", "rotation error, median (°)")):
+        for k, name in enumerate(names):
+            v = np.array([b[key] for b in per_config[name]["by_condition"]], float)
+            ax.bar(x + (k - (len(names) - 1) / 2) * width, np.where(np.isfinite(v), v, np.nan), width, label=name)
+        ax.set_xticks(x, bins, rotation=30, ha="right", fontsize=8)
+        ax.set_yscale("log")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3, axis="y")
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Absolute pose error by distance (mm) and tilt (°), α = 1")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

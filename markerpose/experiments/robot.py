@@ -87,8 +87,10 @@ class Sequence:
     frames: list = field(default_factory=list)
 
 
-def render_sequences(rig: StereoRig, scene: RobotScene, marker: Marker, imaging: Imaging, seed: int = 0, progress: bool = True):
-    """Render the displacement and rotation sequences over one static cluttered lab background.
+def render_sequences(rig: StereoRig, scene: RobotScene, marker: Marker, imaging: Imaging, seed=0, progress: bool = True, which=("displacement", "rotation")):
+    """Render the displacement and rotation sequences (or those in ``which``) over one
+    static cluttered lab background. The background and the noise depend on ``seed``
+    only, so the same seed at another ``imaging`` gives the same scene, darker or blurred.
 
     Returns:
         (sequences, seconds): the sequences, and the render time of each stereo pair.
@@ -96,7 +98,8 @@ def render_sequences(rig: StereoRig, scene: RobotScene, marker: Marker, imaging:
     rng = np.random.default_rng(seed)
     size = rig.left.image_size
     backgrounds = (clutter_background(size, rng), clutter_background(size, rng))
-    seqs = [Sequence("displacement", scene.displacement_poses()), Sequence("rotation", scene.rotation_poses())]
+    poses = {"displacement": scene.displacement_poses, "rotation": scene.rotation_poses}
+    seqs = [Sequence(name, poses[name]()) for name in which]
     total = sum(len(s.poses) for s in seqs)
     seconds = []
     with tqdm(total=total, desc="render", unit="pair", disable=not progress) as bar:

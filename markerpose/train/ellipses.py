@@ -43,6 +43,7 @@ default_conf = {
     "seed": 0,
     "workers": 2,
     "device": None,
+    "init": None,  # checkpoint whose weights start the run (fine-tuning); None: random
 }
 
 TEST_SETS = {

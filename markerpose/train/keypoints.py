@@ -13,6 +13,7 @@ are kept, and ``resume`` continues from the last.
 
 from __future__ import annotations
 
+import itertools
 import time
 from pathlib import Path
 
@@ -45,6 +46,7 @@ default_conf = {
     "seed": 0,
     "workers": 2,  # processes rendering the cached sets
     "device": None,  # None: CUDA when present, else CPU
+    "init": None,  # checkpoint whose weights start the run (fine-tuning); None: random
     "tolerance_px": 8.0,  # a centre is found when within this many full-resolution px
 }
 
@@ -112,23 +114,34 @@ def predict(net, images: np.ndarray, decode_conf: dict | None = None, batch: int
     return [kp.decode(det[j], ids[j], decode_conf) for j in range(len(det))]
 
 
-def tune_decoding(net, data: dict, max_false_positive: float = 0.005, device="cpu") -> tuple[dict, dict]:
-    """The decoding thresholds that detect the most views of ``data`` (the validation set)
-    with at most ``max_false_positive`` false detections on its marker-free views.
+# Decoding thresholds searched by :func:`tune_decoding`, per ID mode.
+TUNING_GRID = {
+    "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
+    "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
+}
+
+
+def tune_decoding(net, data: dict, max_false_positive: float = 0.005, device="cpu", ids: str = "head") -> tuple[dict, dict]:
+    """The decoding thresholds (:data:`TUNING_GRID`) that detect the most views of ``data``
+    (the validation set, with its marker-free views) with at most ``max_false_positive``
+    false detections on its marker-free views.
 
     Returns:
         (decode conf, its metrics on ``data``).
     """
-    det, ids = logits(net, data["image"], device=device)
+    det, id_logits = logits(net, data["image"], device=device)
+    grid = dict(TUNING_GRID[ids])
+    min_scores = grid.pop("min_score")
     best = None
-    for threshold in (0.01, 0.02, 0.05):
-        for min_id_prob in (0.1, 0.2, 0.3):
-            for min_score in (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6):
-                dc = {"threshold": threshold, "min_id_prob": min_id_prob, "min_score": min_score}
-                m = score([kp.decode(det[j], ids[j], dc) for j in range(len(det))], data)
-                key = (np.nan_to_num(m["false_positive"]) <= max_false_positive, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
-                if best is None or key > best[0]:
-                    best = (key, dc, m)
+    for values in itertools.product(*grid.values()):
+        dc = {"ids": ids, **dict(zip(grid, values))}
+        # The best triple does not depend on min_score: decode once, then threshold.
+        found = [kp.decode(det[j], id_logits[j], {**dc, "min_score": 0.0}) for j in range(len(det))]
+        for ms in min_scores:
+            m = score([f if f is not None and f[1] >= ms else None for f in found], data)
+            key = (np.nan_to_num(m["false_positive"]) <= max_false_positive, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
+            if best is None or key > best[0]:
+                best = (key, {**dc, "min_score": ms}, m)
     return best[1], best[2]
 
 
@@ -274,32 +287,48 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     )
 
 
+def validation_sets(data_dir: str | Path = "runs/data", val_size: int = 400, negatives: int = 600, workers: int = 2) -> dict:
+    """The validation set (seed 1) joined with marker-free views (seed 2): what the
+    decoding thresholds are tuned on. Never the test sets."""
+    val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", val_size, 1, None, workers, "render val")
+    neg = cached(Path(data_dir) / f"kp_valneg_{negatives}.npz", negatives, 2, {"negative": True}, workers, "render val negatives")
+    return {k: np.concatenate([val[k], neg[k]]) for k in val}
+
+
 def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400) -> Path:
     """The inference part of a stage-1 checkpoint (weights, width, metrics), with decoding
-    thresholds tuned on the validation set (:func:`tune_decoding`)."""
+    thresholds tuned on the validation set (:func:`tune_decoding`) for both ID modes."""
     import torch
 
     dest = export_checkpoint(checkpoint, dest, keep=("width",))
     slim = torch.load(dest, weights_only=True)
     net = kp.build_network(slim["width"])
     net.load_state_dict(slim["state_dict"])
-    val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", val_size, 1)
-    slim["decode"], m = tune_decoding(net, val)
-    print(f"decoding tuned on the validation set: {slim['decode']} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+    val = validation_sets(data_dir, val_size)
+    slim["decode"] = {}
+    for ids in TUNING_GRID:
+        slim["decode"][ids], m = tune_decoding(net, val, ids=ids)
+        print(f"decoding tuned on the validation set ({ids}): {slim['decode'][ids]} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
     return dest
 
 
-def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2) -> dict:
-    """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached)."""
-    net = kp.KeypointNet(weights)
-    res = {}
+def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2, ids=("head", "layout")) -> dict:
+    """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached),
+    per ID mode: ``{mode: {set: metrics}}``. One forward pass serves both modes."""
+    nets = {mode: kp.KeypointNet(weights, {"ids": mode}) for mode in ids}
+    net = nets[ids[0]]
+    res: dict = {mode: {} for mode in ids}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
         data = cached(Path(data_dir) / f"kp_test_{name}.npz", n, seed, conf, workers, f"render {name}")
         t0 = time.perf_counter()
-        preds = predict(net.net, data["image"], net.conf)
-        res[name] = {**score(preds, data), "seconds_per_image": (time.perf_counter() - t0) / n}
+        det, id_logits = logits(net.net, data["image"])
+        t_net = time.perf_counter() - t0
+        for mode, m in nets.items():
+            t0 = time.perf_counter()
+            preds = [kp.decode(det[j], id_logits[j], m.conf) for j in range(n)]
+            res[mode][name] = {**score(preds, data), "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
     return res
 
 
@@ -323,4 +352,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["TEST_SETS", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding"]
+__all__ = ["TEST_SETS", "TUNING_GRID", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]

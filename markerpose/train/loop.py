@@ -39,7 +39,8 @@ def fit(
         loss_fn: (net, *batch) → (loss tensor, dict of named float terms).
         validate: net → metrics dict (run once per epoch, on a fixed set).
         goodness: metrics → the number to maximise for the best checkpoint.
-        conf: ``lr``, ``schedule``, ``epochs``, ``seed``, ``device``; saved in checkpoints.
+        conf: ``lr``, ``schedule``, ``epochs``, ``seed``, ``device``, ``init`` (a checkpoint
+            to start from, unless resuming); saved in checkpoints.
         out: folder for ``best.pt``, ``last.pt`` and ``history.json``.
         resume: continue from ``out/last.pt`` when it exists.
         describe: metrics → one line printed after each epoch.
@@ -62,6 +63,9 @@ def fit(
         sched.load_state_dict(ck["scheduler"])
         history, start, best = ck["history"], ck["epoch"], ck["best"]
         print(f"resumed from {out / 'last.pt'} after epoch {start}")
+    elif conf.get("init"):
+        net.load_state_dict(torch.load(conf["init"], map_location=conf["device"], weights_only=False)["state_dict"])
+        print(f"initialised from {conf['init']}")
 
     for epoch in range(start, conf["epochs"]):
         rng = np.random.default_rng([conf["seed"], 7, epoch])  # the same epoch sees the same batches
