@@ -194,6 +194,7 @@ def cmd_eval_keypoints(args):
     label = {"head": "ID head (paper)", "layout": "marker layout (ours)"}
     print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
     print("|---|---|---|---|---|---|---|---|---|")
+    diag = []
     for name in next(iter(res.values())):
         for mode, per_set in res.items():
             r = per_set[name]
@@ -201,6 +202,11 @@ def cmd_eval_keypoints(args):
                 f"| {name} | {r['n_views'] or r['n_negatives']} | {label[mode]} | {r['detected']:.4f} | {r['id_accuracy']:.4f} | "
                 f"{r['median_px']:.2f} | {r['p95_px']:.2f} | {r['false_positive']:.4f} | {r['seconds_per_image']:.3f} |"
             )
+        if r["n_views"]:
+            diag.append(f"| {name} | {r['candidates_found']:.4f} | {r['id_head_right']:.4f} |")
+    print("\n| test set | all 3 centres among the candidates | ID head right at all 3 (of those) |")
+    print("|---|---|---|")
+    print("\n".join(diag))
     if args.speed:
         from .keypoints import KeypointNet
 

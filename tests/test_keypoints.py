@@ -207,3 +207,19 @@ def test_neural_pipeline_is_none_or_right():
         assert est is None or np.linalg.norm(est.t - T[:3, 3]) < 10.0
         assert set(tracker.timings) >= {"stage1", "refine"}
     assert tracker.estimate(np.full_like(frame.images[0], 80), frame.images[1]) is None
+
+
+def test_candidate_recall_separates_finding_from_labelling():
+    from markerpose.train.keypoints import candidate_recall
+
+    p = _view(20, 0, 30)
+    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    dl, il = _logits_from_targets(det, ids)
+    data = {"points": p[None].astype(np.float32), "labels": np.ones((1, 3), np.int8), "scale": np.ones((1, 2), np.float32)}
+    r = candidate_recall(dl[None], il[None], data, {})
+    assert r == {"candidates_found": 1.0, "id_head_right": 1.0}
+    il[:] = 0.0  # found, but the ID head cannot tell the rings apart
+    assert candidate_recall(dl[None], il[None], data, {})["id_head_right"] == 0.0
+    dl[:] = 0.0  # nothing stands out: no candidate above the threshold
+    dl[64] = 10.0
+    assert candidate_recall(dl[None], il[None], data, {})["candidates_found"] == 0.0

@@ -325,11 +325,36 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         t0 = time.perf_counter()
         det, id_logits = logits(net.net, data["image"])
         t_net = time.perf_counter() - t0
+        diag = candidate_recall(det, id_logits, data, net.conf)
         for mode, m in nets.items():
             t0 = time.perf_counter()
             preds = [kp.decode(det[j], id_logits[j], m.conf) for j in range(n)]
-            res[mode][name] = {**score(preds, data), "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
+            res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
     return res
+
+
+def candidate_recall(det: np.ndarray, id_logits: np.ndarray, data: dict, conf: dict, tolerance_px: float = 8.0) -> dict:
+    """Where stage 1 loses a marker, before any ID decision: the share of views (all three
+    rings visible) whose three centres are all among the candidates (NMS at the
+    decoding threshold, best ``max_candidates``) within ``tolerance_px`` at full
+    resolution, and among those the share where the ID head's most likely label at each
+    true centre is its own ID."""
+    c = {**kp.default_conf, **conf}
+    full = np.nonzero(np.all(data["labels"] == 1, axis=1))[0]
+    found = head_right = 0
+    for j in full:
+        gt, sc = data["points"][j].astype(np.float64), data["scale"][j]
+        cand = kp.nms(kp.score_map(det[j]), c["nms_radius"], c["threshold"], c["max_candidates"])
+        if len(cand) == 0 or not np.all(np.linalg.norm((cand[:, None, :2] - gt[None]) * sc, axis=2).min(0) <= tolerance_px):
+            continue
+        found += 1
+        cy = np.clip((gt[:, 1] + 0.5).astype(int) // kp.CELL, 0, id_logits.shape[2] - 1)
+        cx = np.clip((gt[:, 0] + 0.5).astype(int) // kp.CELL, 0, id_logits.shape[3] - 1)
+        head_right += int(np.all(np.argmax(id_logits[j][:, cy, cx], axis=0) == np.arange(3)))
+    return {
+        "candidates_found": found / len(full) if len(full) else float("nan"),
+        "id_head_right": head_right / found if found else float("nan"),
+    }
 
 
 def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
@@ -352,4 +377,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["TEST_SETS", "TUNING_GRID", "cached", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
+__all__ = ["TEST_SETS", "TUNING_GRID", "cached", "candidate_recall", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
