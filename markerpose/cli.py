@@ -191,7 +191,12 @@ def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
     res = tk.evaluate(args.weights, args.data, args.sets, args.workers)
-    label = {"head": "ID head (paper)", "layout": "marker layout (ours)"}
+    label = {
+        "head": "ID head (paper)",
+        "layout": "marker layout (ours)",
+        "head_stereo": "ID head, stereo thresholds",
+        "layout_stereo": "marker layout, stereo thresholds",
+    }
     print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
     print("|---|---|---|---|---|---|---|---|---|")
     diag = []

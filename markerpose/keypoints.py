@@ -270,11 +270,14 @@ class KeypointNet:
         device: torch device ("cpu" by default; "cuda" when wanted and present).
         layout: (3, 2) ring centres of the marker in mm (``Marker.centers2d``), for
             ``ids="layout"`` (default: the default marker's).
+        stereo: use the thresholds tuned for views of a stereo pair (a looser
+            false-positive budget, as the pair's epipolar and shape checks reject false
+            triples) when the checkpoint has them; else those for single images.
     """
 
     default_weights = WEIGHTS_DIR / "keypoints.pt"
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", layout=None):
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", layout=None, stereo: bool = False):
         import torch
 
         path = Path(weights) if weights is not None else self.default_weights
@@ -294,7 +297,8 @@ class KeypointNet:
         tuned = ckpt.get("decode", {})
         if not any(k in tuned for k in ("head", "layout")):  # older checkpoints: tuned for "head"
             tuned = {"head": tuned}
-        self.conf = {**default_conf, **tuned.get(mode, {}), **(conf or {}), "width": float(ckpt["width"])}
+        chosen = tuned.get(mode + "_stereo", tuned.get(mode, {})) if stereo else tuned.get(mode, {})
+        self.conf = {**default_conf, **chosen, **(conf or {}), "width": float(ckpt["width"])}
         self.net = build_network(self.conf["width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
         self.device = device

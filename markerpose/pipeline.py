@@ -116,7 +116,7 @@ class MarkerPose:
                 from .keypoints import KeypointNet
             except ImportError as exc:  # torch missing
                 raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
-            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": self.conf["ids"]}, layout=self.marker.centers2d)
+            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": self.conf["ids"]}, layout=self.marker.centers2d, stereo=True)
         self._ellipses = None
         if detector == "neural" and self.conf["refine"] == "ellipsegnet":
             from .ellipses import EllipseNet

@@ -223,3 +223,16 @@ def test_candidate_recall_separates_finding_from_labelling():
     dl[:] = 0.0  # nothing stands out: no candidate above the threshold
     dl[64] = 10.0
     assert candidate_recall(dl[None], il[None], data, {})["candidates_found"] == 0.0
+
+
+def test_operating_points_from_the_checkpoint(tmp_path):
+    """Thresholds tuned at export: per ID mode, single-view or stereo; the caller's win."""
+    path = tmp_path / "kp.pt"
+    decode = {"layout": {"min_score": 0.5}, "layout_stereo": {"min_score": 0.2}, "head": {"min_score": 0.6}}
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    assert kp.KeypointNet(path).conf["min_score"] == 0.5
+    assert kp.KeypointNet(path, stereo=True).conf["min_score"] == 0.2
+    assert kp.KeypointNet(path, {"ids": "head"}, stereo=True).conf["min_score"] == 0.6  # no stereo point: single-view
+    assert kp.KeypointNet(path, {"min_score": 0.1}, stereo=True).conf["min_score"] == 0.1
+    with pytest.raises(ValueError, match="ids"):
+        kp.KeypointNet(path, {"ids": "nope"})
