@@ -57,3 +57,10 @@ def test_experiments_write_report_plots_and_json(tmp_path):
     assert json.loads((tmp_path / "results.json").read_text())["conf"]["trials"] == 1
     with pytest.raises(ValueError, match="trials"):
         reproduce.main({"trials": 0}, tmp_path, progress=False)
+
+
+def test_experiments_command_line():
+    from markerpose import cli
+
+    args = cli.build_parser().parse_args(["experiments", "--quick", "--trials", "3", "--out", "x"])
+    assert args.func is cli.cmd_experiments and args.quick and args.trials == 3 and args.pairs is None
