@@ -64,3 +64,13 @@ def test_experiments_command_line():
 
     args = cli.build_parser().parse_args(["experiments", "--quick", "--trials", "3", "--out", "x"])
     assert args.func is cli.cmd_experiments and args.quick and args.trials == 3 and args.pairs is None
+
+
+def test_detection_plot_at_zero_and_full_detection(tmp_path):
+    """Regression: a level where nothing was detected made the Wilson error bar negative by a rounding error."""
+    from markerpose.experiments.plots import plot_detection
+    from markerpose.experiments.reproduce import wilson
+
+    levels = {"alpha": {"1.0": {"a": {"detection": wilson(8, 8)}}, "0.039": {"a": {"detection": wilson(0, 8)}}},
+              "blur": {"0.0": {"a": {"detection": wilson(8, 8)}}, "25.0": {"a": {"detection": wilson(3, 8)}}}}
+    assert plot_detection(levels, tmp_path / "d.png").stat().st_size > 0

@@ -64,7 +64,8 @@ def plot_detection(levels: dict, path: Path) -> Path:
         for k, name in enumerate(names):
             d = [levels[kind][v][name]["detection"] for v in levels[kind]]
             p = np.array([x["p"] for x in d]) * 100
-            err = np.array([[x["p"] - x["lo"], x["hi"] - x["p"]] for x in d]).T * 100
+            # Wilson bounds can sit a rounding error beyond p at 0 % and 100 %: clip.
+            err = np.clip(np.array([[x["p"] - x["lo"], x["hi"] - x["p"]] for x in d]).T * 100, 0, None)
             ax.errorbar(xs, p, yerr=err, marker=_MARKERS[k % 5], ms=4, lw=1, capsize=3, label=name)
         if kind == "alpha":
             ax.set_xscale("log", base=2)
