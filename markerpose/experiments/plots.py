@@ -84,7 +84,7 @@ def plot_detection(levels: dict, path: Path) -> Path:
 
 def plot_accuracy(per_config: dict, path: Path) -> Path:
     """Median translation and rotation error by distance and by tilt bin, per configuration."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     names = list(per_config)
     bins = [b["bin"] for b in per_config[names[0]]["by_condition"]]
     x = np.arange(len(bins))
@@ -97,9 +97,10 @@ def plot_accuracy(per_config: dict, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
-    axes[0].legend(fontsize=7)
+    handles, labels = axes[0].get_legend_handles_labels()
     fig.suptitle("Absolute pose error by distance (mm) and tilt (°), α = 1")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)  # below the bars, hiding none
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

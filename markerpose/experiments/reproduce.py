@@ -240,7 +240,7 @@ def report(res: dict) -> str:
     ]
 
     def metric_table(title, key, paper_key, unit):
-        L.extend([f"**{title}**", "", f"| Method | MAE ({unit}) | RMS ({unit}) | max ({unit}) | failed frames |", "|---|---|---|---|---|"])
+        L.extend([f"**{title}**", "", f"| Method | MAE ({unit}) | RMS ({unit}) | max ({unit}) | failed measurements, all trials |", "|---|---|---|---|---|"])
         for who, v in PAPER[paper_key].items():
             L.append(f"| {who} — paper, real images | " + " | ".join(f"{x:.4f}" for x in v) + " | |")
         for name in names:
@@ -268,7 +268,7 @@ def report(res: dict) -> str:
     L.append("|---|---|" + "---|" * len(names))
     for a in T[names[0]]["table5"]:
         p = PAPER_LIGHTING.get(float(a))
-        cells = [_ci(T[nm]["table5"][a]["mae"]) + (f" ({T[nm]['table5'][a]['failed']} failed)" if T[nm]["table5"][a]["failed"] else "") for nm in names]
+        cells = [_ci(T[nm]["table5"][a]["mae"]) + (f" ({T[nm]['table5'][a]['failed']} of {57 * n} failed)" if T[nm]["table5"][a]["failed"] else "") for nm in names]
         L.append(f"| {float(a):g} | {' / '.join(f'{x:.4f}' for x in p) if p else '—'} | " + " | ".join(cells) + " |")
     L.append("")
 
