@@ -305,7 +305,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench)
 
     x = sub.add_parser("experiments", help="the paper's Section 5 with confidence intervals: report, plots, JSON")
-    x.add_argument("--quick", action="store_true", help="2 trials, 6 pairs per level, Table 5 at 3 darkness levels (~6 min)")
+    x.add_argument("--quick", action="store_true", help="2 trials, 6 pairs per level, Table 5 at 3 darkness levels (~5 min)")
     x.add_argument("--trials", type=int, help="robot-path placements (default 8)")
     x.add_argument("--pairs", type=int, help="random pairs per darkness / blur level (default 48)")
     x.add_argument("--seed", type=int, help="base seed (default 0)")
