@@ -23,6 +23,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .marker import Marker
+
+ID_MODES = ("head", "layout")  # how decoding assigns ring IDs (see default_conf["ids"])
 INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
 CELL = 8
 PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
@@ -181,7 +184,7 @@ def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
     return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
 
 
-_LAYOUT = np.array([(0.0, 0.0), (25.0, 0.0), (0.0, 40.0)])  # the default Marker's centres, mm
+_LAYOUT = Marker().centers2d  # the default marker's ring centres, mm
 
 
 def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, layout: np.ndarray | None = None):
@@ -206,8 +209,8 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     marker's shape chooses the order instead (see :data:`default_conf`).
     """
     c = {**default_conf, **(conf or {})}
-    if c["ids"] not in ("head", "layout"):
-        raise ValueError(f"ids must be 'head' or 'layout', got {c['ids']!r}")
+    if c["ids"] not in ID_MODES:
+        raise ValueError(f"ids must be one of {ID_MODES}, got {c['ids']!r}")
     layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
     scores = score_map(det_logits)
     cand = nms(scores, c["nms_radius"], c["threshold"], c["max_candidates"])
@@ -291,19 +294,26 @@ class KeypointNet:
                 raise ValueError(f"{path} is not a markerpose keypoint checkpoint: no {key!r}")
         # Decoding thresholds: the defaults, those tuned for this ID mode when the weights
         # were exported ({"head": {...}, "layout": {...}}), then the caller's.
-        mode = (conf or {}).get("ids", default_conf["ids"])
-        if mode not in ("head", "layout"):
-            raise ValueError(f"ids must be 'head' or 'layout', got {mode!r}")
-        tuned = ckpt.get("decode", {})
-        if not any(k in tuned for k in ("head", "layout")):  # older checkpoints: tuned for "head"
-            tuned = {"head": tuned}
-        chosen = tuned.get(mode + "_stereo", tuned.get(mode, {})) if stereo else tuned.get(mode, {})
-        self.conf = {**default_conf, **chosen, **(conf or {}), "width": float(ckpt["width"])}
+        self.tuned = ckpt.get("decode", {})
+        if not any(k in self.tuned for k in ID_MODES):  # older checkpoints: tuned for "head"
+            self.tuned = {"head": self.tuned}
+        self.conf = self.decode_conf(conf, stereo)
+        self.conf["width"] = float(ckpt["width"])
         self.net = build_network(self.conf["width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
         self.device = device
         self.path = path
         self.layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
+
+    def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
+        """Decoding settings: the defaults, the thresholds tuned at export for the ID mode
+        (``conf["ids"]``) and operating point (stereo or single view), then ``conf``."""
+        mode = (conf or {}).get("ids", default_conf["ids"])
+        if mode not in ID_MODES:
+            raise ValueError(f"ids must be one of {ID_MODES}, got {mode!r}")
+        single = self.tuned.get(mode, {})
+        chosen = self.tuned.get(mode + "_stereo", single) if stereo else single
+        return {**default_conf, **chosen, **(conf or {})}
 
     def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) float32 inputs → (det (B, 65, Hc, Wc), ids (B, 4, Hc, Wc)) logits."""
@@ -330,6 +340,7 @@ class KeypointNet:
 
 
 __all__ = [
+    "ID_MODES",
     "INPUT_SIZE",
     "KeypointNet",
     "build_network",

@@ -16,6 +16,7 @@ import numpy as np
 
 from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
+from .keypoints import ID_MODES
 from .marker import Marker
 from .results import Detection, Estimate
 
@@ -103,8 +104,8 @@ class MarkerPose:
             raise ValueError(f"unknown detector {detector!r}; choose from {DETECTORS}")
         if self.conf["refine"] not in REFINERS:
             raise ValueError(f"unknown refine method {self.conf['refine']!r}; choose from {REFINERS}")
-        if self.conf["ids"] not in ("head", "layout"):
-            raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from ('head', 'layout')")
+        if self.conf["ids"] not in ID_MODES:
+            raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from {ID_MODES}")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig

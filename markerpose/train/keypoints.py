@@ -115,7 +115,7 @@ def predict(net, images: np.ndarray, decode_conf: dict | None = None, batch: int
 
 
 # Decoding thresholds searched by :func:`tune_decoding`, per ID mode.
-TUNING_GRID = {
+TUNING_GRID = {  # keys: kp.ID_MODES
     "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
 }
@@ -327,16 +327,16 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     return dest
 
 
-def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2, ids=("head", "layout")) -> dict:
+def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2, ids=kp.ID_MODES) -> dict:
     """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached),
     per ID mode and operating point (single view; ``_stereo``: the looser thresholds
     MarkerPose uses on stereo pairs): ``{mode: {set: metrics}}``. One forward pass serves all."""
-    nets = {}
+    net = kp.KeypointNet(weights, {"ids": ids[0]})
+    confs = {}
     for mode in ids:
-        nets[mode] = kp.KeypointNet(weights, {"ids": mode})
-        nets[mode + "_stereo"] = kp.KeypointNet(weights, {"ids": mode}, stereo=True)
-    net = nets[ids[0]]
-    res: dict = {mode: {} for mode in nets}
+        confs[mode] = net.decode_conf({"ids": mode})
+        confs[mode + "_stereo"] = net.decode_conf({"ids": mode}, stereo=True)
+    res: dict = {mode: {} for mode in confs}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
         data = cached(Path(data_dir) / f"kp_test_{name}.npz", n, seed, conf, workers, f"render {name}")
@@ -344,9 +344,9 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         det, id_logits = logits(net.net, data["image"])
         t_net = time.perf_counter() - t0
         diag = candidate_recall(det, id_logits, data, net.conf)
-        for mode, m in nets.items():
+        for mode, dc in confs.items():
             t0 = time.perf_counter()
-            preds = [kp.decode(det[j], id_logits[j], m.conf) for j in range(n)]
+            preds = [kp.decode(det[j], id_logits[j], dc) for j in range(n)]
             res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
     return res
 
