@@ -1064,6 +1064,45 @@ def refine_points(
     return centers, found, [None if r is None else r.outer for r in rings]
 
 
+def refine_ellipses(
+    image: np.ndarray,
+    ellipses: list,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    camera: Camera | None = None,
+) -> tuple[np.ndarray, np.ndarray, list]:
+    """Sub-pixel outer ellipses of rings whose approximate outer ellipses are known (e.g.
+    fitted to EllipSegNet's masks): the image's edges are sampled along rays of each
+    ellipse and fitted again (:func:`refine_ring`).
+
+    Args:
+        image: uint8 gray (H, W) or BGR.
+        ellipses: per ring, an approximate outer ellipse (RotatedRect) or None.
+        marker, conf, camera: as in :func:`detect`.
+    Returns:
+        (centers (N, 2), refined (N,) bool, ellipses): where the edges could not be fitted
+        (None given, too few edge points) the given ellipse's centre is kept (NaN for
+        None) and ``refined`` is False.
+    """
+    c = _merge_conf(conf)
+    gray = to_gray(image)
+    noise = noise_sigma(gray)
+    rho = marker.inner_diameter / marker.outer_diameter
+    rings = []
+    for rect in ellipses:
+        if rect is None:
+            rings.append(None)
+            continue
+        (cx, cy), (w, h), ang = rect
+        inner = ((cx, cy), (w * rho, h * rho), ang)
+        rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=_rect_to_cq(rect), _inner_cq=_rect_to_cq(inner)))
+    present = [r for r in rings if r is not None]
+    out = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
+    centers = np.array([[np.nan, np.nan] if r is None else r.center for r in out], np.float64).reshape(-1, 2)
+    ok = np.array([r is not None and r.refined for r in out], bool)
+    return centers, ok, [None if r is None else r.outer for r in out]
+
+
 def detect_stereo(
     left: np.ndarray,
     right: np.ndarray,
@@ -1127,5 +1166,6 @@ __all__ = [
     "find_triples",
     "detect",
     "detect_stereo",
+    "refine_ellipses",
     "refine_points",
 ]

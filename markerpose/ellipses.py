@@ -243,16 +243,19 @@ class EllipseNet:
             x = torch.from_numpy(patches.astype(np.float32) / 255.0)[:, None].to(self.device)
             return torch.sigmoid(self.net(x))[:, 0].float().cpu().numpy()
 
-    def __call__(self, grays: list[np.ndarray], points: list[np.ndarray], marker) -> list[tuple[np.ndarray, np.ndarray]]:
+    def __call__(self, grays: list[np.ndarray], points: list[np.ndarray], marker, with_ellipses: bool = False) -> list[tuple]:
         """Sub-pixel centres for rough centres in several images, all patches in one batch.
 
         Args:
             grays: uint8 (H, W) images.
             points: per image, (3, 2) rough centres by ID.
             marker: the marker (judges the window size).
+            with_ellipses: also return the fitted ellipses (``fit`` "subpixel" or
+                "ellipse"), in full-resolution pixels.
         Returns:
-            per image, (centers (3, 2), refined (3,) bool); where no ellipse is found the
-            rough centre is kept and ``refined`` is False.
+            per image, (centers (3, 2), refined (3,) bool) [+ ellipses: per ring a
+            RotatedRect or None]; where no ellipse is found the rough centre is kept and
+            ``refined`` is False.
         """
         patches, frames = [], []
         for gray, pts in zip(grays, points):
@@ -264,14 +267,17 @@ class EllipseNet:
         probs = self.probabilities(np.stack(patches)) if patches else []
         out, k = [], 0
         for pts in points:
-            centers, ok = np.array(pts, np.float64), np.zeros(len(pts), bool)
+            centers, ok, rects = np.array(pts, np.float64), np.zeros(len(pts), bool), [None] * len(pts)
             for i in range(len(pts)):
                 found = mask_center(probs[k], self.conf["fit"], self.conf["threshold"], self.conf["min_area_frac"])
                 if found is not None:
                     centers[i] = patch_to_image(found[0], frames[k])
                     ok[i] = True
+                    if found[1] is not None:  # the patch is a scaled copy: axes / scale
+                        (_, _), (w, h), ang = found[1]
+                        rects[i] = (tuple(centers[i]), (w / frames[k][2], h / frames[k][2]), ang)
                 k += 1
-            out.append((centers, ok))
+            out.append((centers, ok, rects) if with_ellipses else (centers, ok))
         return out
 
 

@@ -167,6 +167,24 @@ def _refine(scores: np.ndarray, x: float, y: float) -> tuple[float, float]:
     return float((s * xs).sum() / s.sum()), float((s * ys).sum() / s.sum())
 
 
+def candidates(det_logits: np.ndarray, id_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4):
+    """The best ``k`` local maxima of the location score of one image, above ``threshold``.
+
+    Returns:
+        (cand (N, 3) rows (x, y, score), x and y refined to a fraction of a network-input
+        pixel; prob (N, 3) the ID head's P(c0), P(c1), P(c2) at each candidate), N <= k.
+    """
+    scores = score_map(det_logits)
+    cand = nms(scores, nms_radius, threshold, k)
+    pid = _softmax(id_logits.astype(np.float64), 0)  # (4, Hc, Wc)
+    rows = np.clip((cand[:, 1] // CELL).astype(int), 0, pid.shape[1] - 1)
+    cols = np.clip((cand[:, 0] // CELL).astype(int), 0, pid.shape[2] - 1)
+    prob = pid[:3, rows, cols].T  # (N, 3): P(ID = j) at candidate n
+    if len(cand):
+        cand[:, :2] = [_refine(scores, x, y) for x, y, _ in cand]
+    return cand, prob
+
+
 def signed_area(p: np.ndarray) -> float:
     """Signed area of the triangle p0 p1 p2 ((3, 2), y down): negative for the real marker."""
     (x0, y0), (x1, y1), (x2, y2) = p
@@ -212,16 +230,10 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     if c["ids"] not in ID_MODES:
         raise ValueError(f"ids must be one of {ID_MODES}, got {c['ids']!r}")
     layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
-    scores = score_map(det_logits)
-    cand = nms(scores, c["nms_radius"], c["threshold"], c["max_candidates"])
+    cand, prob = candidates(det_logits, id_logits, c["threshold"], c["max_candidates"], c["nms_radius"])
     if len(cand) < 3:
         return None
-    pid = _softmax(id_logits.astype(np.float64), 0)  # (4, Hc, Wc)
-    cells = np.clip((cand[:, 1] // CELL).astype(int), 0, pid.shape[1] - 1), np.clip(
-        (cand[:, 0] // CELL).astype(int), 0, pid.shape[2] - 1
-    )
-    prob = pid[:3, cells[0], cells[1]].T  # (N, 3): P(ID = j) at candidate n
-    pts = np.array([_refine(scores, x, y) for x, y, _ in cand])
+    pts = cand[:, :2]
     best = None
     for trio in itertools.combinations(range(len(cand)), 3):
         for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
@@ -324,6 +336,18 @@ class KeypointNet:
             det, ids = self.net(x)
         return det.float().cpu().numpy(), ids.float().cpu().numpy()
 
+    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16) -> list[np.ndarray]:
+        """Every view's ``k`` best centre candidates, whatever their ID (one forward pass):
+        per image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
+        inputs, scales = zip(*(to_input(g) for g in images))
+        det, ids = self.logits(np.stack(inputs))
+        out = []
+        for k_, s in enumerate(scales):
+            cand, _ = candidates(det[k_], ids[k_], threshold, k, self.conf["nms_radius"])
+            cand[:, :2] = to_full(cand[:, :2], s)
+            out.append(cand)
+        return out
+
     def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:
         """Centres in full-resolution pixels for a batch of uint8 gray images (one forward pass).
 
@@ -344,6 +368,7 @@ __all__ = [
     "INPUT_SIZE",
     "KeypointNet",
     "build_network",
+    "candidates",
     "decode",
     "default_conf",
     "layout_ratio",

@@ -18,9 +18,11 @@ from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .keypoints import ID_MODES
 from .marker import Marker
+from .matching import stereo_triples
 from .results import Detection, Estimate
 
 DETECTORS = ("classical", "neural")
+IDS = ("stereo", *ID_MODES)  # how the neural detector names the rings (see default_conf["ids"])
 REFINERS = ("ellipsegnet", "classical", "none")
 
 default_conf = {
@@ -32,7 +34,17 @@ default_conf = {
     #                         classical ring fit near each stage-1 point) or "none" (stage-1 points)
     "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
     "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line fit (ours), "ellipse" (paper), "moments"
-    "ids": "layout",  # neural: ring IDs from the marker's shape (ours) or "head" (the ID head, paper)
+    "edge_refit": True,  # ellipsegnet: fit the ring's outer edge in the image to sub-pixel,
+    #                      starting from the mask's ellipse (ours); False: the mask's centre (paper)
+    "ids": "stereo",  # neural: how the rings are found and named:
+    #   "stereo" (ours): each view's stage-1 candidates, matched across the views by the
+    #            marker's 3D shape (matching.stereo_triples); single views use "layout";
+    #   "layout" (ours): one triple per view, named by the marker's 2D layout;
+    #   "head"   (paper): one triple per view, named by the ID head.
+    "candidates": 16,  # stereo: stage-1 candidates per view
+    "candidate_threshold": 0.01,  # stereo: their minimum location score
+    "shape_tol": 0.3,  # stereo: relative error allowed in each triangulated ring distance
+    "max_triples": 3,  # stereo: matched triples refined and checked, best first, until one passes
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -88,8 +100,14 @@ class MarkerPose:
         refine: neural detector's sub-pixel stage: "ellipsegnet" (stage 2: EllipSegNet on a
             patch around each stage-1 point), "classical" (the classical ring fit near each
             stage-1 point) or "none" (stage-1 points, ~1 px).
+        ids: how the neural detector finds and names the rings: "stereo" (ours, default:
+            stage-1 candidates of both views matched by the marker's 3D shape, see
+            :mod:`markerpose.matching`), "layout" (one triple per view, named by the
+            marker's 2D layout) or "head" (the paper: named by the ID head).
         patch, fit: EllipSegNet's window ("adaptive" or the paper's "fixed" 120 px) and how
             the centre comes from its mask ("subpixel", the paper's "ellipse", "moments").
+        edge_refit: with EllipSegNet, fit the ring's outer edge in the image to sub-pixel,
+            starting from the ellipse of the mask (ours); False: the mask's centre (paper).
         keypoint_weights, ellipse_weights: checkpoints of the two networks (None: shipped).
     """
 
@@ -104,8 +122,8 @@ class MarkerPose:
             raise ValueError(f"unknown detector {detector!r}; choose from {DETECTORS}")
         if self.conf["refine"] not in REFINERS:
             raise ValueError(f"unknown refine method {self.conf['refine']!r}; choose from {REFINERS}")
-        if self.conf["ids"] not in ID_MODES:
-            raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from {ID_MODES}")
+        if self.conf["ids"] not in IDS:
+            raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from {IDS}")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig
@@ -117,7 +135,8 @@ class MarkerPose:
                 from .keypoints import KeypointNet
             except ImportError as exc:  # torch missing
                 raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
-            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": self.conf["ids"]}, layout=self.marker.centers2d, stereo=True)
+            ids = "layout" if self.conf["ids"] == "stereo" else self.conf["ids"]  # single views
+            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": ids}, layout=self.marker.centers2d, stereo=True)
         self._ellipses = None
         if detector == "neural" and self.conf["refine"] == "ellipsegnet":
             from .ellipses import EllipseNet
@@ -134,14 +153,22 @@ class MarkerPose:
         return out
 
     def _refine(self, grays: list, cameras: list, stage1: list) -> list:
+        from . import classical
+
         if self._ellipses is not None:  # all patches of all views in one batch
             seen = [k for k, f in enumerate(stage1) if f is not None]
-            refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker)
+            edges = self.conf["edge_refit"] and self.conf["fit"] != "moments"
+            refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker, with_ellipses=edges)
             out = [None] * len(grays)
-            for k, (centers, ok) in zip(seen, refined):
-                out[k] = Detection(centers=centers, score=stage1[k][1], refined=ok)
+            for k, found in zip(seen, refined):
+                centers, ok = found[0], found[1]
+                ellipses = None
+                if edges:  # the image's edges, from the mask's ellipses; the mask's centre where they fail
+                    c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, camera=cameras[k])
+                    centers = np.where(ok2[:, None], c2, centers)
+                    ellipses = [e if o else r for e, o, r in zip(ellipses, ok2, found[2])]
+                out[k] = Detection(centers=centers, ellipses=ellipses, score=stage1[k][1], refined=ok)
             return out
-        from . import classical
 
         out = []
         for gray, cam, found in zip(grays, cameras, stage1):
@@ -193,31 +220,58 @@ class MarkerPose:
         self.timings = {}
         t0 = time.perf_counter()
         if self._keypoints is not None:
-            found = self._neural([gl, gr], list(self.rig.cameras))
-            if found[0] is None or found[1] is None:
-                return None
-            # The IDs give the correspondences; the epipolar constraint checks them.
-            d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
-            both = found[0].refined & found[1].refined
-            if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
-                return None
-        else:
-            from . import classical
+            return self._estimate_neural(gl, gr, t0)
+        from . import classical
 
-            found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
-            if found is None:
-                return None
+        found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
         t1 = time.perf_counter()
-        if self._keypoints is None:
-            self.timings["detect"] = t1 - t0
+        self.timings["detect"] = t1 - t0
+        return None if found is None else self._checked_estimate(found, t0, t1)
+
+    def _checked_estimate(self, found, t0: float, t1: float) -> Estimate | None:
+        """Triangulate and fit the pose; None when the points do not have the marker's shape."""
         est = self.estimate_from_detections(*found)
         t2 = time.perf_counter()
-        self.timings.update(geometry=t2 - t1, total=t2 - t0)
+        self.timings.update(geometry=self.timings.get("geometry", 0.0) + t2 - t1, total=t2 - t0)
         # A wrong triple (a decoy, an occluded ring replaced by something else) triangulates
         # to points that do not have the marker's shape: reject rather than return a wrong pose.
         if shape_error(est.points3d, self.marker.points3d) > self.conf["max_shape_error"]:
             return None
         return est
+
+    def _estimate_neural(self, gl: np.ndarray, gr: np.ndarray, t0: float) -> Estimate | None:
+        """Stage 1 on both views, then each hypothesis (matched triples, best first) is
+        refined and checked (epipolar distances, shape) until one passes."""
+        cameras = list(self.rig.cameras)
+        if self.conf["ids"] == "stereo":
+            cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"])
+            triples = stereo_triples(
+                self.rig, cand[0], cand[1], self.marker.points3d, self.conf["epipolar_tol_coarse"],
+                self.conf["shape_tol"], self.conf["max_triples"],
+            )
+            hypotheses = [[(pl, s), (pr, s)] for pl, pr, s in triples]
+        else:
+            found = self._keypoints([gl, gr])
+            hypotheses = [found] if found[0] is not None and found[1] is not None else []
+        t1 = time.perf_counter()
+        self.timings.update(stage1=t1 - t0, refine=0.0)
+        for stage1 in hypotheses:
+            t = time.perf_counter()
+            found = self._refine([gl, gr], cameras, stage1)
+            t1 = time.perf_counter()
+            self.timings["refine"] += t1 - t
+            if found[0] is None or found[1] is None:
+                continue
+            # The IDs give the correspondences; the epipolar constraint checks them.
+            d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
+            both = found[0].refined & found[1].refined
+            if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
+                continue
+            est = self._checked_estimate(found, t0, t1)
+            if est is not None:
+                return est
+        self.timings["total"] = time.perf_counter() - t0
+        return None
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:
         """Triangulate matched centres (ordered by ID) and compute the pose.

@@ -468,3 +468,20 @@ def test_refine_points_keeps_a_point_with_no_ring():
     centers, found, _ = C.refine_points(img, rough, camera=rig.left)
     assert found.tolist() == [True, True, False]
     np.testing.assert_array_equal(centers[2], rough[2])
+
+
+@pytest.mark.parametrize("shift,grow", [(0.0, 1.0), (1.5, 1.06), (-1.5, 0.94)])
+def test_refine_ellipses_from_rough_ellipses(shift, grow):
+    """Ellipses ~1.5 px and ~6 % off (as fitted to a network's mask) are refitted on the
+    image's edges to the true centres; None and hopeless seeds are reported, not guessed."""
+    A = POSES[1]
+    img, truth = draw_marker(A=A)
+    exact = C.detect(img)
+    assert exact is not None
+    rough = [((cx + shift, cy - shift), (w * grow, h * grow), ang) for (cx, cy), (w, h), ang in exact.ellipses]
+    centers, ok, ellipses = C.refine_ellipses(img, rough)
+    assert ok.all() and len(ellipses) == 3
+    assert np.abs(centers - truth).max() < 0.05, centers - truth
+    centers, ok, _ = C.refine_ellipses(img, [rough[0], None, ((20.0, 20.0), (30.0, 30.0), 0.0)])
+    assert ok.tolist() == [True, False, False]
+    assert np.isnan(centers[1]).all() and np.abs(centers[0] - truth[0]).max() < 0.05

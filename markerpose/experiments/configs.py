@@ -28,18 +28,22 @@ CLASSICAL = {
 
 NEURAL = {
     # The paper's MarkerPose: stage 1, EllipSegNet on fixed 120 px patches, cv2.fitEllipse.
-    "neural (paper)": {"detector": "neural", "ids": "head", "refine": "ellipsegnet", "patch": "fixed", "fit": "ellipse", **PAPER_POSE},
+    "neural (paper)": {"detector": "neural", "ids": "head", "refine": "ellipsegnet", "patch": "fixed", "fit": "ellipse", "edge_refit": False, **PAPER_POSE},
     # + ring IDs from the marker's shape, adaptive patches and the sub-pixel iso-line fit of the mask.
-    "neural + adaptive + sub-pixel": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **PAPER_POSE},
-    # + perspective-bias correction and the rigid fit (the package default).
-    "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", **OURS_POSE},
-    # Stage 1 with the classical ring fit instead of EllipSegNet.
-    "neural stage 1 + classical refine + bias + rigid": {"detector": "neural", "refine": "classical", "subpixel": True, **OURS_POSE},
+    "neural + adaptive + sub-pixel": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **PAPER_POSE},
+    # + perspective-bias correction and the rigid fit.
+    "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
+    # + stage-1 candidates of both views matched by the marker's 3D shape.
+    "neural + stereo match + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
+    # + the ring's outer edge fitted in the image from EllipSegNet's ellipse (the package default).
+    "neural + stereo match + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
+    # Stage 1 (stereo match) with the classical ring fit instead of EllipSegNet.
+    "neural stereo match + classical refine + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "classical", "subpixel": True, **OURS_POSE},
 }
 
 
 # The package's default configuration (what MarkerPose(rig) runs).
-DEFAULT = "neural + adaptive + sub-pixel + bias + rigid"
+DEFAULT = "neural + stereo match + EllipSegNet + edge refit + bias + rigid"
 
 
 def available(names=None) -> dict:

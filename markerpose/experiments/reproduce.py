@@ -44,7 +44,8 @@ from .robot import PAPER, RobotScene, evaluate, render_sequences
 HEADLINE = (
     "neural (paper)",
     "neural + adaptive + sub-pixel + bias + rigid",
-    "neural stage 1 + classical refine + bias + rigid",
+    "neural + stereo match + EllipSegNet + edge refit + bias + rigid",
+    "neural stereo match + classical refine + bias + rigid",
     "classical (paper)",
     "classical + sub-pixel + bias + rigid",
 )
