@@ -30,8 +30,8 @@ default_conf = {
     "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
     "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
     "bias_correction": True,  # remove the perspective bias of ellipse centres (False = paper)
-    "refine": "classical",  # neural: "ellipsegnet" (stage 2, the paper), "classical" (the
-    #                         classical ring fit near each stage-1 point) or "none" (stage-1 points)
+    "refine": "ellipsegnet",  # neural: "ellipsegnet" (stage 2, the paper), "classical" (the
+    #                           classical ring fit near each stage-1 point) or "none" (stage-1 points)
     "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
     "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line fit (ours), "ellipse" (paper), "moments"
     "edge_refit": True,  # ellipsegnet: fit the ring's outer edge in the image to sub-pixel,
@@ -43,7 +43,9 @@ default_conf = {
     #   "head"   (paper): one triple per view, named by the ID head.
     "candidates": 16,  # stereo: stage-1 candidates per view
     "candidate_threshold": 0.01,  # stereo: their minimum location score
-    "shape_tol": 0.3,  # stereo: relative error allowed in each triangulated ring distance
+    "match_epipolar_tol": 20.0,  # stereo: largest epipolar distance of two matched candidates, px
+    #                              (stage 1 misplaces steeply tilted rings by 10-20 px)
+    "shape_tol": 0.35,  # stereo: relative error allowed in each triangulated ring distance
     "max_triples": 3,  # stereo: matched triples refined and checked, best first, until one passes
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
@@ -246,7 +248,7 @@ class MarkerPose:
         if self.conf["ids"] == "stereo":
             cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"])
             triples = stereo_triples(
-                self.rig, cand[0], cand[1], self.marker.points3d, self.conf["epipolar_tol_coarse"],
+                self.rig, cand[0], cand[1], self.marker.points3d, self.conf["match_epipolar_tol"],
                 self.conf["shape_tol"], self.conf["max_triples"],
             )
             hypotheses = [[(pl, s), (pr, s)] for pl, pr, s in triples]

@@ -35,14 +35,14 @@ NEURAL = {
     "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
     # + stage-1 candidates of both views matched by the marker's 3D shape.
     "neural + stereo match + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
-    # + the ring's outer edge fitted in the image from EllipSegNet's ellipse (the package default).
+    # + the ring's outer edge fitted in the image from EllipSegNet's ellipse (the neural default).
     "neural + stereo match + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
     # Stage 1 (stereo match) with the classical ring fit instead of EllipSegNet.
     "neural stereo match + classical refine + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "classical", "subpixel": True, **OURS_POSE},
 }
 
 
-# The package's default configuration (what MarkerPose(rig) runs).
+# Our best neural configuration, every switch on (the demo draws its estimates on the frames).
 DEFAULT = "neural + stereo match + EllipSegNet + edge refit + bias + rigid"
 
 
