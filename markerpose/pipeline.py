@@ -140,6 +140,8 @@ class MarkerPose:
             ids = "layout" if self.conf["ids"] == "stereo" else self.conf["ids"]  # single views
             self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": ids}, layout=self.marker.centers2d, stereo=True)
         self._ellipses = None
+        # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
+        self._edge_refit = detector == "neural" and self.conf["refine"] == "ellipsegnet" and self.conf["edge_refit"] and self.conf["fit"] != "moments"
         if detector == "neural" and self.conf["refine"] == "ellipsegnet":
             from .ellipses import EllipseNet
 
@@ -159,16 +161,22 @@ class MarkerPose:
 
         if self._ellipses is not None:  # all patches of all views in one batch
             seen = [k for k, f in enumerate(stage1) if f is not None]
-            edges = self.conf["edge_refit"] and self.conf["fit"] != "moments"
+            edges = self._edge_refit
             refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker, with_ellipses=edges)
             out = [None] * len(grays)
             for k, found in zip(seen, refined):
                 centers, ok = found[0], found[1]
                 ellipses = None
-                if edges:  # the image's edges, from the mask's ellipses; the mask's centre where they fail
+                if edges:  # the image's edges, from the mask's ellipses
                     c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, camera=cameras[k])
-                    centers = np.where(ok2[:, None], c2, centers)
-                    ellipses = [e if o else r for e, o, r in zip(ellipses, ok2, found[2])]
+                    if not ok2.all():  # a poor mask: the classical ring fit near the point instead
+                        c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, camera=cameras[k])
+                        c2 = np.where(ok2[:, None], c2, c3)
+                        ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
+                        ok2 = ok2 | ok3
+                    # Only edge-fitted centres count as refined: a mask's centre can be
+                    # pixels off, and a pose from it is wrong by a millimetre.
+                    centers, ok = np.where(ok2[:, None], c2, centers), ok2
                 out[k] = Detection(centers=centers, ellipses=ellipses, score=stage1[k][1], refined=ok)
             return out
 
@@ -264,6 +272,8 @@ class MarkerPose:
             self.timings["refine"] += t1 - t
             if found[0] is None or found[1] is None:
                 continue
+            if self._edge_refit and not (found[0].refined.all() and found[1].refined.all()):
+                continue  # with edge refit, a pose only from six edge-fitted centres
             # The IDs give the correspondences; the epipolar constraint checks them.
             d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
             both = found[0].refined & found[1].refined

@@ -107,3 +107,24 @@ def test_every_id_mode_on_a_clean_marker(rig, ids):
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05
     with pytest.raises(ValueError, match="ids"):
         mp.MarkerPose(rig, detector="neural", ids="magic")
+
+
+def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
+    """Where the mask's ellipse cannot seed the edge fit, the classical ring fit near the
+    point takes over; where that fails too, no pose (not one from a mask's centre)."""
+    f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
+    tr = mp.MarkerPose(rig, detector="neural")
+    real = tr._ellipses
+
+    def poor(grays, points, marker, with_ellipses=False):  # masks 5 px off, no ellipse
+        return [(c + [4.0, -3.0], ok, [None] * 3) for c, ok, _ in real(grays, points, marker, True)]
+
+    tr._ellipses = poor
+    est = tr.estimate(*f.images)
+    assert est is not None
+    err = np.concatenate([np.linalg.norm(est.detections[i].centers - f.views[i].outer_centers, axis=1) for i in range(2)])
+    assert err.max() < 0.05, err
+    from markerpose import classical
+
+    monkeypatch.setattr(classical, "refine_points", lambda img, pts, *a, **k: (np.asarray(pts, float), np.zeros(3, bool), [None] * 3))
+    assert tr.estimate(*f.images) is None
