@@ -63,7 +63,7 @@ default_conf = {
     "seed": 0,
     "tolerance_px": 3.0,
 }
-QUICK = {"trials": 2, "pairs": 6, "alphas": (1.0, 0.25, 0.0625)}  # 5.2 min here
+QUICK = {"trials": 2, "pairs": 6, "alphas": (1.0, 0.25, 0.0625)}  # 6.0 min here
 
 # Two-sided 95 % quantiles of Student's t, df = 1..30 (beyond: the normal's 1.96).
 _T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
