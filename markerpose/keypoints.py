@@ -336,11 +336,15 @@ class KeypointNet:
             det, ids = self.net(x)
         return det.float().cpu().numpy(), ids.float().cpu().numpy()
 
+    def _forward(self, images: list[np.ndarray]):
+        """Full-resolution gray images → (det logits, ID logits, per-image scales back)."""
+        inputs, scales = zip(*(to_input(g) for g in images))
+        return (*self.logits(np.stack(inputs)), scales)
+
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass):
         per image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
-        inputs, scales = zip(*(to_input(g) for g in images))
-        det, ids = self.logits(np.stack(inputs))
+        det, ids, scales = self._forward(images)
         out = []
         for k_, s in enumerate(scales):
             cand, _ = candidates(det[k_], ids[k_], threshold, k, self.conf["nms_radius"])
@@ -354,8 +358,7 @@ class KeypointNet:
         Returns:
             per image, (centers (3, 2) by ID, score) or None.
         """
-        inputs, scales = zip(*(to_input(g) for g in images))
-        det, ids = self.logits(np.stack(inputs))
+        det, ids, scales = self._forward(images)
         out = []
         for k, s in enumerate(scales):
             found = decode(det[k], ids[k], self.conf, self.layout)

@@ -161,13 +161,12 @@ class MarkerPose:
 
         if self._ellipses is not None:  # all patches of all views in one batch
             seen = [k for k, f in enumerate(stage1) if f is not None]
-            edges = self._edge_refit
-            refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker, with_ellipses=edges)
+            refined = self._ellipses([grays[k] for k in seen], [stage1[k][0] for k in seen], self.marker, with_ellipses=self._edge_refit)
             out = [None] * len(grays)
             for k, found in zip(seen, refined):
                 centers, ok = found[0], found[1]
                 ellipses = None
-                if edges:  # the image's edges, from the mask's ellipses
+                if self._edge_refit:  # the image's edges, from the mask's ellipses
                     c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, camera=cameras[k])
                     if not ok2.all():  # a poor mask: the classical ring fit near the point instead
                         c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, camera=cameras[k])
