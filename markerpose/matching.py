@@ -7,15 +7,24 @@ calibrated views measure it: each left/right pair of candidates close to each ot
 epipolar lines is triangulated, and three such points are the marker only if their
 distances are the marker's (c0-c1, c0-c2, c1-c2, in mm) and they turn the marker's way.
 The distances also name the rings, so no ID is needed from the network.
+
+When no matched triple passes, one view may still hold the marker well while the other's
+candidates are off (a steeply tilted marker, which the other camera sees steeper still):
+triples matched with looser tolerances are refined, and :func:`transfer` carries a view's
+refined centres into the other view through the poses that explain them (P3P), where
+they are refined and checked like any other hypothesis.
 """
 
 from __future__ import annotations
 
+import itertools
+
+import cv2
 import numpy as np
 
 from .camera import StereoRig
-from .geometry import epipolar_distance, triangulate
-from .keypoints import signed_area
+from .geometry import ellipse_to_conic, epipolar_distance, triangulate
+from .keypoints import layout_ratio, signed_area
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -80,4 +89,85 @@ def stereo_triples(
     return found[:max_triples]
 
 
-__all__ = ["side_lengths", "stereo_triples"]
+def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
+    """Triples of one view's candidates named by the marker's 2D layout, best first.
+
+    Args:
+        cand: (N, 3) candidates (x, y, score), best first; the ``top`` first are used.
+        layout: (3, 2) the marker's ring centres in mm (``Marker.centers2d``).
+        min_ratio: smallest singular-value ratio of the affine map from the layout
+            (:func:`~markerpose.keypoints.layout_ratio`; cos 60° = 0.5).
+        max_triples: how many to return (distinct sets of candidates).
+    Returns:
+        up to ``max_triples`` of (points (3, 2) ordered c0, c1, c2, score); the score is the
+        geometric mean of the three candidates' scores times the layout ratio.
+    """
+    cand = np.asarray(cand, np.float64).reshape(-1, 3)[:top]
+    best: dict = {}
+    for trio in itertools.combinations(range(len(cand)), 3):
+        for perm in itertools.permutations(trio):  # perm[j] = the candidate named c_j
+            p = cand[list(perm), :2]
+            if signed_area(p) >= 0:  # mirror image or degenerate
+                continue
+            r = layout_ratio(p, layout)
+            if r < min_ratio:
+                continue
+            s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * r)
+            if s > best.get(trio, (None, -1.0))[1]:
+                best[trio] = (p, s)
+    return sorted(best.values(), key=lambda f: -f[1])[:max_triples]
+
+
+def transfer(
+    rig: StereoRig, view: int, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float, max_poses: int = 2
+) -> list[np.ndarray]:
+    """Where the marker's rings lie in the other view, from three centres in ``view``.
+
+    The poses that put the marker's centres on the three centres' rays (P3P, up to four)
+    are ranked by how well the projected outer circles agree with the fitted ellipses
+    (the ellipses' shapes tell the plate's tilt, which three points leave ambiguous).
+
+    Args:
+        rig: the calibrated stereo rig.
+        view: 0 (left) or 1 (right): the view the centres are in.
+        centers: (3, 2) ring centres c0, c1, c2 in that view's (distorted) pixels.
+        ellipses: the rings' outer ellipses there (OpenCV RotatedRects), or None (then
+            the poses keep P3P's order).
+        model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
+        radius: the rings' outer radius, mm.
+        max_poses: how many poses to use.
+    Returns:
+        up to ``max_poses`` arrays (3, 2): c0, c1, c2 predicted in the other view, best first.
+    """
+    cams = rig.cameras
+    xn = cams[view].undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
+    n, rvecs, tvecs = cv2.solveP3P(np.asarray(model, np.float64), xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
+    to_left = np.eye(4) if view == 0 else np.linalg.inv(rig.T_right_left)
+    t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
+    poses = []
+    for rv, tv in zip(rvecs[:n], tvecs[:n]):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
+        X = np.asarray(model, np.float64) @ T[:3, :3].T + T[:3, 3]
+        if np.any(X[:, 2] <= 0):
+            continue
+        cost = 0.0
+        if ellipses is not None:
+            for k, e in enumerate(ellipses):
+                if e is None:
+                    continue
+                edge = cams[view].project((model[k] + circle) @ T[:3, :3].T + T[:3, 3])
+                C = ellipse_to_conic(*e)
+                h = np.column_stack([edge, np.ones(len(edge))])
+                lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (d^T A d) = lambda^2
+                cost += float(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
+        Xl = X @ to_left[:3, :3].T + to_left[:3, 3]
+        if np.any(rig.to_right(Xl)[:, 2] <= 0):
+            continue
+        poses.append((cost, rig.project(Xl)[1 - view]))
+    poses.sort(key=lambda p: p[0])
+    return [p for _, p in poses[:max_poses]]
+
+
+__all__ = ["side_lengths", "stereo_triples", "transfer", "view_triples"]

@@ -18,7 +18,7 @@ from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .keypoints import ID_MODES
 from .marker import Marker
-from .matching import stereo_triples
+from .matching import stereo_triples, transfer, view_triples
 from .results import Detection, Estimate
 
 DETECTORS = ("classical", "neural")
@@ -47,6 +47,13 @@ default_conf = {
     #                              (stage 1 misplaces steeply tilted rings by 10-20 px)
     "shape_tol": 0.35,  # stereo: relative error allowed in each triangulated ring distance
     "max_triples": 3,  # stereo: matched triples refined and checked, best first, until one passes
+    "transfer": True,  # stereo: when no matched triple passes but some match loosely, one view's
+    #                    triple (a side of a loose triple, or the view's best by the 2D layout)
+    #                    is refined and, if its rings refine, carried into the other view by
+    #                    its pose (matching.transfer) and refined there; False: give up
+    "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
+    "transfer_shape_tol": 0.6,
+    "transfer_attempts": 2,  # ... and how many loose triples are tried
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -269,19 +276,66 @@ class MarkerPose:
             found = self._refine([gl, gr], cameras, stage1)
             t1 = time.perf_counter()
             self.timings["refine"] += t1 - t
-            if found[0] is None or found[1] is None:
-                continue
-            if self._edge_refit and not (found[0].refined.all() and found[1].refined.all()):
-                continue  # with edge refit, a pose only from six edge-fitted centres
-            # The IDs give the correspondences; the epipolar constraint checks them.
-            d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
-            both = found[0].refined & found[1].refined
-            if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
-                continue
-            est = self._checked_estimate(found, t0, t1)
+            est = self._accepted(found, t0, t1)
+            if est is not None:
+                return est
+        if self.conf["ids"] == "stereo" and self.conf["transfer"]:
+            est = self._transferred([gl, gr], cameras, cand, t0)
             if est is not None:
                 return est
         self.timings["total"] = time.perf_counter() - t0
+        return None
+
+    def _accepted(self, found: list, t0: float, t1: float) -> Estimate | None:
+        """The estimate from refined detections of both views if they pass the checks."""
+        if found[0] is None or found[1] is None:
+            return None
+        if self._edge_refit and not (found[0].refined.all() and found[1].refined.all()):
+            return None  # with edge refit, a pose only from six edge-fitted centres
+        # The IDs give the correspondences; the epipolar constraint checks them.
+        d = np.diag(epipolar_distance(self.rig, found[0].centers, found[1].centers))
+        both = found[0].refined & found[1].refined
+        if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
+            return None
+        return self._checked_estimate(found, t0, t1)
+
+    def _transferred(self, grays: list, cameras: list, cand: list, t0: float) -> Estimate | None:
+        """Recover a marker one camera sees too steeply for stage 1 to place its rings within
+        the matching tolerances. Only when triples match loosely (marker-free pairs almost
+        never have one, so they cost nothing here): one view's triple — a side of a loosely
+        matched triple, or the view's best triple by the marker's 2D layout — is refined;
+        if its three rings refine, its pose (:func:`~markerpose.matching.transfer`) says
+        where the rings are in the other view, where they are refined and checked like any
+        matched triple."""
+        m = self.marker
+        loose = stereo_triples(
+            self.rig, cand[0], cand[1], m.points3d, self.conf["transfer_epipolar_tol"],
+            self.conf["transfer_shape_tol"], self.conf["transfer_attempts"],
+        )
+        if not loose:  # no sign of the marker in both views (the common case without it): stop
+            return None
+        sources = [(a, p, s) for pl, pr, s in loose for a, p in ((0, pl), (1, pr))]
+        for a in (0, 1):
+            sources += [(a, p, s) for p, s in view_triples(cand[a], m.centers2d)]
+        seen = []
+        for a, pts, s in sources:
+            if any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2 in seen):
+                continue
+            seen.append((a, pts))
+            b = 1 - a
+            t = time.perf_counter()
+            det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]
+            self.timings["refine"] += time.perf_counter() - t
+            if det_a is None or not det_a.refined.all():
+                continue
+            for pred in transfer(self.rig, a, det_a.centers, det_a.ellipses, m.points3d, m.outer_radius):
+                t = time.perf_counter()
+                det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
+                t1 = time.perf_counter()
+                self.timings["refine"] += t1 - t
+                est = self._accepted([det_a, det_b] if a == 0 else [det_b, det_a], t0, t1)
+                if est is not None:
+                    return est
         return None
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:

@@ -64,12 +64,13 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
         T[:3, 3] = [rng.uniform(-0.1, 0.1) * z - 0.12 * (z - 560), rng.uniform(-0.15, 0.15) * z, z]
         T[:3, 3] -= T[:3, :3] @ marker.points3d.mean(0)
         alpha, blur = _draw(rng, spec["alpha"]), _draw(rng, spec["blur"])
-        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=rng.uniform(0, 180))
+        angle = rng.uniform(0, 180)
+        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle)
         frame = render_stereo(rig, T, marker, im, seed=rng)
         if not all(v.in_image.all() for v in frame.views):
             continue
         made += 1
-        yield frame, {"distance": float(T[2, 3]), "tilt": float(tilt), "alpha": alpha, "blur": blur}
+        yield frame, {"distance": float(T[2, 3]), "tilt": float(tilt), "alpha": alpha, "blur": blur, "blur_angle": float(angle)}
 
 
 def evaluate_pair(tracker: MarkerPose, frame, tol: float) -> dict:
