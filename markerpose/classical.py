@@ -1035,6 +1035,8 @@ def refine_points(
     gray = to_gray(image)
     h, w = gray.shape
     pts = np.asarray(points, np.float64).reshape(3, 2)
+    if not np.isfinite(pts).all():
+        raise ValueError(f"points must be finite, got {pts.tolist()}")
     d01, d02 = np.linalg.norm(pts[1] - pts[0]), np.linalg.norm(pts[2] - pts[0])
     r_est = max(d01 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[1]), 1e-9),
                 d02 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[2]), 1e-9), 4.0)

@@ -289,9 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("left")
     e.add_argument("right")
     e.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
-    e.add_argument("--detector", default="classical", choices=["neural", "classical"])
+    e.add_argument("--detector", default="neural", choices=["neural", "classical"])
     e.add_argument("--refine", default="ellipsegnet", choices=["ellipsegnet", "classical", "none"], help="neural: sub-pixel stage")
-    e.add_argument("--pose", default="paper", choices=["paper", "rigid"])
+    e.add_argument("--pose", default="rigid", choices=["paper", "rigid"])
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
 

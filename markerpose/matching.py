@@ -165,7 +165,10 @@ def transfer(
         Xl = X @ to_left[:3, :3].T + to_left[:3, 3]
         if np.any(rig.to_right(Xl)[:, 2] <= 0):
             continue
-        poses.append((cost, rig.project(Xl)[1 - view]))
+        pred = rig.project(Xl)[1 - view]
+        if not (np.isfinite(pred).all() and np.isfinite(cost)):  # a degenerate P3P solution
+            continue
+        poses.append((cost, pred))
     poses.sort(key=lambda p: p[0])
     return [p for _, p in poses[:max_poses]]
 

@@ -2,7 +2,7 @@
 
 The public entry point (DESIGN §3)::
 
-    tracker = MarkerPose(rig, marker=Marker(), detector="classical")
+    tracker = MarkerPose(rig, marker=Marker(), detector="neural")  # or "classical"
     est = tracker.estimate(left, right)   # Estimate or None
     det = tracker.detect(image)           # Detection or None
 """
@@ -26,8 +26,8 @@ IDS = ("stereo", *ID_MODES)  # how the neural detector names the rings (see defa
 REFINERS = ("ellipsegnet", "classical", "none")
 
 default_conf = {
-    "detector": "classical",  # "classical" (paper §3.4) or "neural" (stage 1 network + refinement)
-    "pose": "paper",  # "paper": R = [x y x×y], t = X0 (reference); "rigid": least-squares SO(3) fit
+    "detector": "neural",  # "neural" (stage 1 network + refinement) or "classical" (paper §3.4)
+    "pose": "rigid",  # "rigid": least-squares SO(3) fit (ours); "paper": R = [x y x×y], t = X0 (reference)
     "subpixel": True,  # classical: refine the outer edge to sub-pixel (False = paper's contour fit)
     "bias_correction": True,  # remove the perspective bias of ellipse centres (False = paper)
     "refine": "ellipsegnet",  # neural: "ellipsegnet" (stage 2, the paper), "classical" (the
@@ -99,9 +99,10 @@ class MarkerPose:
     Args:
         rig: the calibrated stereo rig.
         marker: marker geometry (default: the paper's robot target).
-        detector: "classical" (paper §3.4) or "neural": stage 1 (the SuperPoint-like network,
-            both views in one batch) finds the rough centres and IDs, then ``refine``.
-        pose: "paper" (reference) or "rigid" (orthonormal least-squares fit).
+        detector: "neural" (default): stage 1 (the SuperPoint-like network, both views in
+            one batch) finds the rough centres, then ``refine``; or "classical" (paper §3.4,
+            no PyTorch needed).
+        pose: "rigid" (default: orthonormal least-squares fit) or "paper" (reference).
         subpixel: classical detector's sub-pixel edge refinement (False = the paper's contour fit).
         bias_correction: an ellipse's centre is not the image of the circle's centre; with
             the first pose, predict that offset in each view, subtract it and triangulate
@@ -120,7 +121,7 @@ class MarkerPose:
         keypoint_weights, ellipse_weights: checkpoints of the two networks (None: shipped).
     """
 
-    def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "classical", **conf):
+    def __init__(self, rig: StereoRig, marker: Marker | None = None, detector: str = "neural", **conf):
         if not isinstance(rig, StereoRig):
             raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
         unknown = set(conf) - set(default_conf)

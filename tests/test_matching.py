@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import markerpose as mp
-from markerpose.matching import side_lengths, stereo_triples
+from markerpose.matching import side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
 
 
@@ -73,3 +73,62 @@ def test_needs_three_matched_candidates(rig):
     assert stereo_triples(rig, np.zeros((0, 3)), np.zeros((0, 3)), m.points3d) == []
     # Right-view points off their epipolar lines (shifted 40 px vertically): no match.
     assert stereo_triples(rig, _cands(p[0], np.ones(3)), _cands(p[1] + [0, 40], np.ones(3)), m.points3d) == []
+
+
+def _ellipses(rig, T, m, view):
+    """The rings' outer ellipses in one view (RotatedRects fitted to the projected rims)."""
+    import cv2
+
+    Tv = T if view == 0 else rig.T_right_left @ T
+    t = np.linspace(0, 2 * np.pi, 90, endpoint=False)
+    out = []
+    for c in m.points3d:
+        rim = c + m.outer_radius * np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+        pix = rig.cameras[view].project(rim @ Tv[:3, :3].T + Tv[:3, 3])
+        out.append(cv2.fitEllipse(pix.astype(np.float32)))
+    return out
+
+
+@pytest.mark.parametrize("view", [0, 1])
+@pytest.mark.parametrize("seed", range(3))
+def test_transfer_puts_the_rings_where_the_other_view_sees_them(rig, view, seed):
+    rng = np.random.default_rng(seed)
+    m = mp.Marker()
+    # Steep, as where transfer is needed: 45-60° to the look-at axis.
+    T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(400, 700)], rng.uniform(45, 60), rng.uniform(0, 360), rng.uniform(0, 360))
+    true = _project(rig, T, m.points3d)
+    preds = transfer(rig, view, true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius)
+    assert 1 <= len(preds) <= 2
+    # The ellipses' shapes pick the right one of P3P's poses: it comes first.
+    np.testing.assert_allclose(preds[0], true[1 - view], atol=0.05)
+    # Without ellipses the right pose is still among P3P's solutions.
+    preds = transfer(rig, view, true[view], None, m.points3d, m.outer_radius, max_poses=4)
+    assert min(np.abs(p - true[1 - view]).max() for p in preds) < 0.05
+
+
+def test_view_triples_names_the_marker_by_its_layout(rig):
+    m = mp.Marker()
+    T = look_at_pose([0, 0, 500], 30, 40, 25)
+    p = _project(rig, T, m.points3d)[0]
+    rng = np.random.default_rng(1)
+    decoys = rng.uniform(0, 1000, (4, 2))
+    cand = _cands(np.vstack([decoys[:2], p[::-1], decoys[2:]]), np.full(7, 0.5))
+    found = view_triples(cand, m.centers2d, max_triples=3)
+    assert len(found) == 3
+    np.testing.assert_allclose(found[0][0], p)  # c0, c1, c2 in order, whatever the input order
+    assert all(f[1] <= found[0][1] for f in found)
+    # The mirror image of the marker is never named.
+    mirror = p * [-1, 1] + [1280, 0]
+    assert all(np.abs(f[0] - mirror).max() > 1 for f in view_triples(_cands(mirror, np.ones(3)), m.centers2d, max_triples=5))
+    assert view_triples(_cands(p[:2], np.ones(2)), m.centers2d) == []
+
+
+def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):
+    # Regression: a degenerate P3P solution once gave NaN points, which crashed the refinement.
+    m = mp.Marker()
+    for pts in ([[100, 100], [200, 200], [300, 300]], [[100, 100]] * 3, [[600, 500], [601, 500], [600, 501]]):
+        for view in (0, 1):
+            for p in transfer(rig, view, np.array(pts, float), None, m.points3d, m.outer_radius, max_poses=4):
+                assert p.shape == (3, 2) and np.isfinite(p).all()
+    with pytest.raises(ValueError, match="finite"):
+        mp.classical.refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)

@@ -14,6 +14,14 @@ def rig():
     return mp.StereoRig.default()
 
 
+@pytest.fixture(scope="module", params=["neural", "classical"])
+def detector(request):
+    """The contract holds for both detectors (neural is the default)."""
+    if request.param == "neural":
+        pytest.importorskip("torch")
+    return request.param
+
+
 @pytest.fixture(scope="module")
 def frame(rig):
     return render_stereo(rig, look_at_pose([15, -10, 560], 30, 40, 25), seed=11)
@@ -34,42 +42,47 @@ def test_estimate_contract_and_accuracy(rig, frame):
     assert px.max() < 1.0
 
 
-def test_detect_one_view_orders_by_id(rig, frame):
-    det = mp.MarkerPose(rig).detect(frame.images[0])
+def test_default_detector_is_neural(rig):
+    pytest.importorskip("torch")
+    assert mp.MarkerPose(rig).conf["detector"] == "neural"
+
+
+def test_detect_one_view_orders_by_id(rig, frame, detector):
+    det = mp.MarkerPose(rig, detector=detector).detect(frame.images[0])
     assert det is not None and det.centers.shape == (3, 2)
     assert np.linalg.norm(det.centers - frame.views[0].centers, axis=1).max() < 1.0
 
 
-def test_bgr_input_equals_gray(rig, frame):
-    tracker = mp.MarkerPose(rig)
+def test_bgr_input_equals_gray(rig, frame, detector):
+    tracker = mp.MarkerPose(rig, detector=detector)
     a = tracker.estimate(*frame.images)
     b = tracker.estimate(*(cv2.cvtColor(im, cv2.COLOR_GRAY2BGR) for im in frame.images))
     np.testing.assert_allclose(a.T, b.T, atol=1e-9)
 
 
-def test_rigid_pose_is_orthonormal_and_agrees_with_paper(rig, frame):
-    paper = mp.MarkerPose(rig, pose="paper").estimate(*frame.images)
-    rigid = mp.MarkerPose(rig, pose="rigid").estimate(*frame.images)
+def test_rigid_pose_is_orthonormal_and_agrees_with_paper(rig, frame, detector):
+    paper = mp.MarkerPose(rig, detector=detector, pose="paper").estimate(*frame.images)
+    rigid = mp.MarkerPose(rig, detector=detector, pose="rigid").estimate(*frame.images)
     np.testing.assert_allclose(rigid.R @ rigid.R.T, np.eye(3), atol=1e-12)
     assert np.rad2deg(rotation_angle(paper.R, rigid.R)) < 0.5
     np.testing.assert_allclose(paper.points3d, rigid.points3d)
 
 
-def test_marker_free_pair_is_none(rig):
+def test_marker_free_pair_is_none(rig, detector):
     rng = np.random.default_rng(5)
     imgs = [(clutter_background((1280, 1024), rng) * 200).astype(np.uint8) for _ in range(2)]
-    assert mp.MarkerPose(rig).estimate(*imgs) is None
+    assert mp.MarkerPose(rig, detector=detector).estimate(*imgs) is None
 
 
-def test_marker_in_one_view_only_is_none(rig, frame):
+def test_marker_in_one_view_only_is_none(rig, frame, detector):
     rng = np.random.default_rng(6)
     empty = (clutter_background((1280, 1024), rng) * 200).astype(np.uint8)
-    assert mp.MarkerPose(rig).estimate(frame.images[0], empty) is None
+    assert mp.MarkerPose(rig, detector=detector).estimate(frame.images[0], empty) is None
 
 
-def test_dark_pair_still_tracked(rig):
+def test_dark_pair_still_tracked(rig, detector):
     f = render_stereo(rig, look_at_pose([0, 0, 500], 20, 0, 0), imaging=Imaging(alpha=0.25), seed=2)
-    est = mp.MarkerPose(rig).estimate(*f.images)
+    est = mp.MarkerPose(rig, detector=detector).estimate(*f.images)
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 1.0
 
 
@@ -84,17 +97,17 @@ def test_dark_pair_still_tracked(rig):
         ([[0]], "ok", "numpy array"),
     ],
 )
-def test_bad_input_raises(rig, frame, left, right, match):
+def test_bad_input_raises(rig, frame, detector, left, right, match):
     left = frame.images[0] if isinstance(left, str) else left
     right = frame.images[1] if isinstance(right, str) else right
     with pytest.raises(ValueError, match=match):
-        mp.MarkerPose(rig).estimate(left, right)
+        mp.MarkerPose(rig, detector=detector).estimate(left, right)
 
 
-def test_image_size_must_match_the_calibration(rig):
+def test_image_size_must_match_the_calibration(rig, detector):
     small = np.zeros((480, 640), np.uint8)
     with pytest.raises(ValueError, match="calibrated for 1280x1024"):
-        mp.MarkerPose(rig).estimate(small, small)
+        mp.MarkerPose(rig, detector=detector).estimate(small, small)
 
 
 def test_bad_configuration(rig):

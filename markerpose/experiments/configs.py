@@ -35,7 +35,10 @@ NEURAL = {
     "neural + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "layout", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
     # + stage-1 candidates of both views matched by the marker's 3D shape.
     "neural + stereo match + adaptive + sub-pixel + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": False, **OURS_POSE},
-    # + the ring's outer edge fitted in the image from EllipSegNet's ellipse (the neural default).
+    # + the ring's outer edge fitted in the image from EllipSegNet's ellipse, without the
+    # transfer fallback (matching.transfer) for markers one camera sees at 70-80°.
+    "neural + stereo match (no transfer) + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "transfer": False, "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
+    # ... with the transfer fallback: the default, MarkerPose(rig).
     "neural + stereo match + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
     # Stage 1 (stereo match) with the classical ring fit instead of EllipSegNet.
     "neural stereo match + classical refine + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "classical", "subpixel": True, **OURS_POSE},
@@ -51,8 +54,12 @@ def available(names=None) -> dict:
     torch = importlib.util.find_spec("torch") is not None
     have_kp = torch and KeypointNet.default_weights.is_file()
     have_es = EllipseNet.default_weights.is_file()
+    every = {**NEURAL, **CLASSICAL}
+    unknown = [n for n in (names or ()) if n not in every]
+    if unknown:
+        raise ValueError(f"unknown configuration(s) {unknown}; known: {list(every)}")
     out = {}
-    for name, c in {**NEURAL, **CLASSICAL}.items():
+    for name, c in every.items():
         if names is not None and name not in names:
             continue
         if c["detector"] == "neural" and (not have_kp or (c.get("refine") == "ellipsegnet" and not have_es)):
