@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose.classical import refine_points
 from markerpose.matching import side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
 
@@ -131,4 +132,4 @@ def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):
             for p in transfer(rig, view, np.array(pts, float), None, m.points3d, m.outer_radius, max_poses=4):
                 assert p.shape == (3, 2) and np.isfinite(p).all()
     with pytest.raises(ValueError, match="finite"):
-        mp.classical.refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)
+        refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)
