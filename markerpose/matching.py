@@ -118,59 +118,79 @@ def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, 
     return sorted(best.values(), key=lambda f: -f[1])[:max_triples]
 
 
-def transfer(
-    rig: StereoRig, view: int, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float, max_poses: int = 2
-) -> list[np.ndarray]:
-    """Where the marker's rings lie in the other view, from three centres in ``view``.
+def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float) -> list[tuple[float, np.ndarray]]:
+    """The marker's poses in one view from three ring centres, best explained first.
 
-    The poses that put the marker's centres on the three centres' rays (P3P, up to four)
-    are ranked by how well the projected outer circles agree with the fitted ellipses
-    (the ellipses' shapes tell the plate's tilt, which three points leave ambiguous).
+    P3P gives up to four poses that put the marker's centres on the three centres' rays;
+    each is scored by how well its projected outer circles fit the rings' fitted ellipses
+    (the ellipses' shapes tell the plate's tilt, which three points leave ambiguous). The
+    score tells the marker from three ring-like things that merely lie in a
+    marker-like triangle: their ellipses do not fit one plate.
 
     Args:
-        rig: the calibrated stereo rig.
-        view: 0 (left) or 1 (right): the view the centres are in.
-        centers: (3, 2) ring centres c0, c1, c2 in that view's (distorted) pixels.
-        ellipses: the rings' outer ellipses there (OpenCV RotatedRects), or None (then
-            the poses keep P3P's order).
+        camera: the view's :class:`~markerpose.camera.Camera`.
+        centers: (3, 2) ring centres c0, c1, c2 in its (distorted) pixels.
+        ellipses: the rings' outer ellipses (OpenCV RotatedRects, None for a missing one),
+            or None: every pose then scores 0, in P3P's order.
         model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
         radius: the rings' outer radius, mm.
-        max_poses: how many poses to use.
     Returns:
-        up to ``max_poses`` arrays (3, 2): c0, c1, c2 predicted in the other view, best first.
+        list of (misfit, T_cam_marker (4, 4)), smallest misfit first; the misfit is the mean
+        relative radial distance of the projected circles from the ellipses (0 = exact).
     """
-    cams = rig.cameras
-    xn = cams[view].undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
-    n, rvecs, tvecs = cv2.solveP3P(np.asarray(model, np.float64), xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
-    to_left = np.eye(4) if view == 0 else np.linalg.inv(rig.T_right_left)
+    model = np.asarray(model, np.float64)
+    xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
+    n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
     t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
+    conics = [None if e is None else ellipse_to_conic(*e) for e in (ellipses or [])]
     poses = []
     for rv, tv in zip(rvecs[:n], tvecs[:n]):
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
-        X = np.asarray(model, np.float64) @ T[:3, :3].T + T[:3, 3]
-        if np.any(X[:, 2] <= 0):
-            continue
-        cost = 0.0
-        if ellipses is not None:
-            for k, e in enumerate(ellipses):
-                if e is None:
-                    continue
-                edge = cams[view].project((model[k] + circle) @ T[:3, :3].T + T[:3, 3])
-                C = ellipse_to_conic(*e)
-                h = np.column_stack([edge, np.ones(len(edge))])
-                lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (d^T A d) = lambda^2
-                cost += float(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
-        Xl = X @ to_left[:3, :3].T + to_left[:3, 3]
+        if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
+            continue  # degenerate, or behind the camera
+        misfit = []
+        for k, C in enumerate(conics):
+            if C is None:
+                continue
+            edge = camera.project((model[k] + circle) @ T[:3, :3].T + T[:3, 3])
+            h = np.column_stack([edge, np.ones(len(edge))])
+            lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
+            misfit.append(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
+        m = float(np.mean(misfit)) if misfit else 0.0
+        if np.isfinite(m):
+            poses.append((m, T))
+    poses.sort(key=lambda p: p[0])
+    return poses
+
+
+def transfer(
+    rig: StereoRig, view: int, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float, max_poses: int = 2
+) -> list[np.ndarray]:
+    """Where the marker's rings lie in the other view, from three centres in ``view``:
+    the projections of the best poses of :func:`view_poses`.
+
+    Args:
+        rig: the calibrated stereo rig.
+        view: 0 (left) or 1 (right): the view the centres are in.
+        centers, ellipses, model, radius: as in :func:`view_poses`.
+        max_poses: how many poses to use.
+    Returns:
+        up to ``max_poses`` arrays (3, 2): c0, c1, c2 predicted in the other view, best first.
+    """
+    to_left = np.eye(4) if view == 0 else np.linalg.inv(rig.T_right_left)
+    out = []
+    for _, T in view_poses(rig.cameras[view], centers, ellipses, model, radius):
+        Xl = (np.asarray(model, np.float64) @ T[:3, :3].T + T[:3, 3]) @ to_left[:3, :3].T + to_left[:3, 3]
         if np.any(rig.to_right(Xl)[:, 2] <= 0):
             continue
         pred = rig.project(Xl)[1 - view]
-        if not (np.isfinite(pred).all() and np.isfinite(cost)):  # a degenerate P3P solution
-            continue
-        poses.append((cost, pred))
-    poses.sort(key=lambda p: p[0])
-    return [p for _, p in poses[:max_poses]]
+        if np.isfinite(pred).all():
+            out.append(pred)
+        if len(out) == max_poses:
+            break
+    return out
 
 
-__all__ = ["side_lengths", "stereo_triples", "transfer", "view_triples"]
+__all__ = ["side_lengths", "stereo_triples", "transfer", "view_poses", "view_triples"]

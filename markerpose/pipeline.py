@@ -18,7 +18,7 @@ from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .keypoints import ID_MODES
 from .marker import Marker
-from .matching import stereo_triples, transfer, view_triples
+from .matching import stereo_triples, transfer, view_poses, view_triples
 from .results import Detection, Estimate
 
 DETECTORS = ("classical", "neural")
@@ -54,6 +54,10 @@ default_conf = {
     "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
     "transfer_shape_tol": 0.6,
     "transfer_attempts": 2,  # ... and how many loose triples are tried
+    "view_triples": 4,  # single view (detect) and transfer: layout triples tried per view
+    "plate_tol": 0.05,  # single view (detect) and transfer: largest misfit of the refined rings'
+    #                     ellipses to one pose of the marker (relative radius; true markers
+    #                     ~0.001-0.015, decoy triples > 0.2 on held-out views)
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -211,15 +215,48 @@ class MarkerPose:
                 f"{name} is {image.shape[1]}x{image.shape[0]} but the rig was calibrated for {w}x{h}"
             )
 
-    def detect(self, image) -> Detection | None:
-        """Ring centres c0, c1, c2 in one view, or None if the marker is not found."""
-        gray = as_gray(image)
-        self.timings = {}
-        if self._keypoints is not None:
-            return self._neural([gray], [None])[0]
-        from . import classical
+    def detect(self, image, view: int = 0) -> Detection | None:
+        """Ring centres c0, c1, c2 in one view, or None if the marker is not found.
 
-        return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"])
+        Args:
+            image: uint8 gray (H, W) or BGR (H, W, 3).
+            view: which of the rig's cameras took it (0 left, 1 right): the neural detector
+                checks with its intrinsics that the three rings lie on one plate.
+        """
+        gray = as_gray(image)
+        if view not in (0, 1):
+            raise ValueError(f"view must be 0 (left) or 1 (right), got {view!r}")
+        self.timings = {}
+        if self._keypoints is None:
+            from . import classical
+
+            return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"])
+        if self.conf["ids"] == "head" or self.conf["refine"] == "none":
+            return self._neural([gray], [None])[0]  # the paper's decoding
+        # Ours: each triple the marker's 2D layout allows, best first, refined, until one
+        # whose rings fit one plate pose (matching.view_poses) — decoys in a marker-like
+        # triangle do not.
+        t0 = time.perf_counter()
+        cand = self._keypoints.candidates([gray], self.conf["candidate_threshold"], self.conf["candidates"])[0]
+        t1 = time.perf_counter()
+        self.timings.update(stage1=t1 - t0, refine=0.0)
+        cam = self.rig.cameras[view]
+        for pts, s in view_triples(cand, self.marker.centers2d, max_triples=self.conf["view_triples"]):
+            t = time.perf_counter()
+            det = self._refine([gray], [cam], [(pts, s)])[0]
+            self.timings["refine"] += time.perf_counter() - t
+            if self._on_one_plate(det, cam):
+                self.timings["total"] = time.perf_counter() - t0
+                return det
+        self.timings["total"] = time.perf_counter() - t0
+        return None
+
+    def _on_one_plate(self, det: Detection | None, camera) -> bool:
+        """Three refined rings whose ellipses one pose of the marker explains."""
+        if det is None or not det.refined.all() or det.ellipses is None:
+            return False
+        poses = view_poses(camera, det.centers, det.ellipses, self.marker.points3d, self.marker.outer_radius)
+        return bool(poses) and poses[0][0] <= self.conf["plate_tol"]
 
     def estimate(self, left, right) -> Estimate | None:
         """Pose of the marker from a stereo pair, or None if it is not found in both views.
@@ -317,7 +354,7 @@ class MarkerPose:
             return None
         sources = [(a, p, s) for pl, pr, s in loose for a, p in ((0, pl), (1, pr))]
         for a in (0, 1):
-            sources += [(a, p, s) for p, s in view_triples(cand[a], m.centers2d)]
+            sources += [(a, p, s) for p, s in view_triples(cand[a], m.centers2d, max_triples=self.conf["view_triples"])]
         seen = []
         for a, pts, s in sources:
             if any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2 in seen):
@@ -327,7 +364,7 @@ class MarkerPose:
             t = time.perf_counter()
             det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
-            if det_a is None or not det_a.refined.all():
+            if not self._on_one_plate(det_a, cameras[a]):
                 continue
             for pred in transfer(self.rig, a, det_a.centers, det_a.ellipses, m.points3d, m.outer_radius):
                 t = time.perf_counter()

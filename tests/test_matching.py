@@ -5,7 +5,8 @@ import pytest
 
 import markerpose as mp
 from markerpose.classical import refine_points
-from markerpose.matching import side_lengths, stereo_triples, transfer, view_triples
+from markerpose.geometry import rotation_angle
+from markerpose.matching import side_lengths, stereo_triples, transfer, view_poses, view_triples
 from markerpose.synth import look_at_pose
 
 
@@ -133,3 +134,17 @@ def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):
                 assert p.shape == (3, 2) and np.isfinite(p).all()
     with pytest.raises(ValueError, match="finite"):
         refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)
+
+
+def test_view_poses_tell_one_plate_from_rings_that_do_not_share_one(rig):
+    m = mp.Marker()
+    T = look_at_pose([10, -20, 550], 40, 70, 10)
+    true = _project(rig, T, m.points3d)[0]
+    ells = _ellipses(rig, T, m, 0)
+    poses = view_poses(rig.left, true, ells, m.points3d, m.outer_radius)
+    assert poses and poses[0][0] < 0.005
+    np.testing.assert_allclose(poses[0][1][:3, 3], T[:3, 3], atol=0.05)  # mm
+    assert rotation_angle(poses[0][1][:3, :3], T[:3, :3]) < np.deg2rad(0.05)
+    # The same centres with ellipses turned 60°: three rings that no plate pose explains.
+    turned = [(c, ax, a + 60.0) for c, ax, a in ells]
+    assert view_poses(rig.left, true, turned, m.points3d, m.outer_radius)[0][0] > 0.1

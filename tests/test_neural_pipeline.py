@@ -144,3 +144,16 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.02  # mm
     assert np.rad2deg(mp.geometry.rotation_angle(est.R, T[:3, :3])) < 0.05
+
+
+def test_single_view_detect_checks_the_rings_share_one_plate(rig, tracker):
+    f = render_stereo(rig, look_at_pose([0, 10, 600], 35, 120, 40), imaging=Imaging(alpha=0.7), seed=8)
+    for view in (0, 1):
+        det = tracker.detect(f.images[view], view=view)
+        assert det is not None and det.refined.all()
+        assert np.abs(det.centers - f.views[view].outer_centers).max() < 0.3
+    rng = np.random.default_rng(9)
+    empty = (mp.synth.clutter_background((1280, 1024), rng) * 200).astype(np.uint8)
+    assert tracker.detect(empty) is None
+    with pytest.raises(ValueError, match="view must be 0"):
+        tracker.detect(f.images[0], view=2)
