@@ -233,6 +233,8 @@ class EllipseNet:
                 raise ValueError(f"unknown {key} {self.conf[key]!r}; choose from {allowed}")
         self.net = build_network().to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])
+        # Channels-last convolutions are ~20 % faster on CPU here (markerpose bench); same results.
+        self.net = self.net.to(memory_format=torch.channels_last)
         self.device = device
 
     def probabilities(self, patches: np.ndarray) -> np.ndarray:
