@@ -76,3 +76,24 @@ def test_detection_plot_at_zero_and_full_detection(tmp_path):
     levels = {"alpha": {"1.0": {"a": {"detection": wilson(8, 8)}}, "0.039": {"a": {"detection": wilson(0, 8)}}},
               "blur": {"0.0": {"a": {"detection": wilson(8, 8)}}, "25.0": {"a": {"detection": wilson(3, 8)}}}}
     assert plot_detection(levels, tmp_path / "d.png").stat().st_size > 0
+
+
+def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
+    import json
+
+    import numpy as np
+    import pytest
+
+    from markerpose import cli
+
+    pytest.importorskip("torch")
+    assert cli.main(["render", "--out", str(tmp_path), "--tilt", "25", "--seed", "3"]) == 0
+    capsys.readouterr()
+    assert cli.main(["estimate", str(tmp_path / "left.png"), str(tmp_path / "right.png")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    T, T_true = np.array(out["T_left_marker"]), np.array(truth["T_left_marker"])
+    assert out["found"] and np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.05  # mm
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)  # the rigid fit by default
+    with pytest.raises(SystemExit, match="cannot read image"):
+        cli.main(["estimate", str(tmp_path / "missing.png"), str(tmp_path / "right.png")])
