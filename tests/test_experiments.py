@@ -19,7 +19,7 @@ def test_end_to_end_counts_detections_and_errors():
     s = res["sets"]["standard"]["classical + sub-pixel + bias + rigid"]
     assert s["pairs"] == 2 and s["detected"] == 1.0
     assert s["center_median_px"] < 0.1 and s["t_median_mm"] < 0.05
-    assert "standard" in endtoend.report(res)
+    assert "standard" in endtoend.report(res) and "| tilt " in endtoend.report(res)
 
 
 def test_confidence_intervals():

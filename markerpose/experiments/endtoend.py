@@ -190,6 +190,22 @@ def report(res: dict) -> str:
                 f"{s['r_median_deg']:.4f} / {s['r_p95_deg']:.4f} |"
             )
         lines.append("")
+        # By distance and tilt: detection; centre median vs the ellipse centre / vs the
+        # projected 3D centre (they differ by the perspective bias, which grows with tilt).
+        bins = [b["bin"] for b in next(iter(per.values()))["by_condition"]]
+        lines += [
+            f"*{set_name} by distance (mm) and tilt (°)*: detected; centre median px vs ellipse centre / vs projected 3D centre",
+            "",
+            "| bin | pairs | " + " | ".join(per) + " |",
+            "|---|---|" + "---|" * len(per),
+        ]
+        for k, b in enumerate(bins):
+            cells = []
+            for s in per.values():
+                c = s["by_condition"][k]
+                cells.append(f"{100 * c['detected']:.1f} %; {c['center_median_px']:.3f} / {c['center3d_median_px']:.3f}")
+            lines.append(f"| {b} | {next(iter(per.values()))['by_condition'][k]['pairs']} | " + " | ".join(cells) + " |")
+        lines.append("")
     return "\n".join(lines)
 
 
