@@ -80,7 +80,10 @@ default_conf: dict = {
     "min_rays": 24,
     "max_rays": 360,
     "edge_step": 0.5,  # sample step along a ray, px
-    "area_window": (0.5, 0.5),  # area method: half-window = a * (10-90 % edge width) + b, px
+    "area_window": (0.5, 0.5),
+    "edge_weights": True,  # weigh edge points by (contrast / 10-90 % width)^2 in the fit (ours;
+    #                        False: equal weights): under motion blur the edges along the motion
+    #                        are smeared and their positions noisy  # area method: half-window = a * (10-90 % edge width) + b, px
     "level_samples": 0.2,  # fraction of a profile at each end used for the plateau levels
     "level_smooth": 1 / 16,  # levels are averaged over this fraction of the ellipse (fallback)
     "level_tol": 0.25,  # drop rays whose two ends depart from the ring's levels unequally (x contrast)
@@ -205,11 +208,12 @@ def _cq_to_conic(c: np.ndarray, Q: np.ndarray) -> np.ndarray:
     return C
 
 
-def fit_ellipse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def fit_ellipse(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Direct least-squares ellipse fit (Fitzgibbon; Halir-Flusser's stable form).
 
     Args:
         points: (N, 2) points, N >= 6.
+        weights: optional (N,) non-negative weights of the points' algebraic residuals.
     Returns:
         (centre (2,), Q (2, 2)) with (x - c)^T Q (x - c) = 1, or None if degenerate.
     """
@@ -223,6 +227,9 @@ def fit_ellipse(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     x, y = ((p - m) / s).T  # normalised: well-conditioned scatter matrices
     D1 = np.column_stack([x * x, x * y, y * y])
     D2 = np.column_stack([x, y, np.ones_like(x)])
+    if weights is not None:
+        sw = np.sqrt(np.asarray(weights, np.float64).reshape(-1, 1))
+        D1, D2 = D1 * sw, D2 * sw
     S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
     try:
         T = -np.linalg.solve(S3, S2.T)
@@ -685,7 +692,15 @@ def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
     lo, hi = lam[0] + 0.15 * (lam[-1] - lam[0]), lam[-1] - 0.15 * (lam[-1] - lam[0])
     ok &= (e > lo) & (e < hi)
     P = cen[None, :] + (u * e[None, :]).T
-    return P[ok], n_use
+    # Edge position noise ~ noise x transition width / contrast: under motion blur the rays
+    # along the motion are smeared and uncertain, those across it sharp.
+    if c["edge_weights"]:
+        wid = np.maximum(w1090, 1.0)
+        W = (np.abs(contrast) / wid) ** 2
+        W = W / max(np.median(W[ok]), 1e-12) if ok.any() else W
+    else:
+        W = np.ones(n)
+    return P[ok], n_use, W[ok]
 
 
 def _integral(f: np.ndarray, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -735,9 +750,10 @@ def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
     return res[best] <= max(2.5 * sigma, c["outlier_min_px"])
 
 
-def _fit_robust(P, c, frame=None):
+def _fit_robust(P, c, frame=None, weights=None):
     """Ellipse fit with iterative rejection of points far from the fitted curve
-    (after a least-median-of-squares screen around ``frame`` if given)."""
+    (after a least-median-of-squares screen around ``frame`` if given); ``weights``
+    (K,) weigh the points in the fit."""
     keep = np.ones(len(P), bool)
     if frame is not None and len(P) >= 12:
         keep = _lmeds_inliers(P, frame, c)
@@ -745,7 +761,7 @@ def _fit_robust(P, c, frame=None):
     for _ in range(3):
         if keep.sum() < 6:
             return None, keep
-        fit = fit_ellipse(P[keep])
+        fit = fit_ellipse(P[keep], None if weights is None else weights[keep])
         if fit is None:
             return None, keep
         cen, Q = fit
@@ -779,18 +795,18 @@ def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
     """
     found = None
     for it in range(max(1, c["refine_iters"])):
-        P, n = _edge_points(gray, cq, half, dark_inside, c, floor, others)
+        P, n, W = _edge_points(gray, cq, half, dark_inside, c, floor, others)
         need = max(6, c["min_valid_frac"] * n)
         if len(P) < need:
             break
-        fit, keep = _fit_robust(P, c, cq)
+        fit, keep = _fit_robust(P, c, cq, W)
         if fit is None or keep.sum() < need:
             break
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
         move = np.linalg.norm(fit[0] - cq[0]) + np.abs(
             np.sqrt(1 / np.linalg.eigvalsh(fit[1])) - np.sqrt(1 / np.linalg.eigvalsh(cq[1]))
         ).max()
-        cq, found = fit, P[keep]
+        cq, found, found_w = fit, P[keep], W[keep]
         if it >= 1 and move < c["refine_tol"]:
             break
     if found is None:
@@ -799,7 +815,7 @@ def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
     if camera is not None:
         # The imaged circle is an ellipse in ideal (undistorted) pixels, not in the raw
         # image: fit there (the centre is mapped back by the caller).
-        ideal = fit_ellipse(camera.undistort_points(found))
+        ideal = fit_ellipse(camera.undistort_points(found), found_w)
     return cq, ideal
 
 
