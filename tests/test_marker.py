@@ -154,3 +154,13 @@ class TestValidation:
     def test_valid_custom_marker(self):
         m = Marker(outer_diameter=12.0, inner_diameter=5.0, c1=(20.0, 0.0), c2=(3.0, 30.0), margin=0.0)
         assert m.reflectance(np.array([3.0, 30.0])) == WHITE
+
+
+def test_package_version_matches_pyproject():
+    import re
+    from pathlib import Path
+
+    import markerpose
+
+    text = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
+    assert re.search(r'^version = "([^"]+)"', text, re.M).group(1) == markerpose.__version__
