@@ -80,10 +80,10 @@ default_conf: dict = {
     "min_rays": 24,
     "max_rays": 360,
     "edge_step": 0.5,  # sample step along a ray, px
-    "area_window": (0.5, 0.5),
+    "area_window": (0.5, 0.5),  # area method: half-window = a * (10-90 % edge width) + b, px
     "edge_weights": True,  # weigh edge points by (contrast / 10-90 % width)^2 in the fit (ours;
     #                        False: equal weights): under motion blur the edges along the motion
-    #                        are smeared and their positions noisy  # area method: half-window = a * (10-90 % edge width) + b, px
+    #                        are smeared and their positions noisy
     "level_samples": 0.2,  # fraction of a profile at each end used for the plateau levels
     "level_smooth": 1 / 16,  # levels are averaged over this fraction of the ellipse (fallback)
     "level_tol": 0.25,  # drop rays whose two ends depart from the ring's levels unequally (x contrast)
@@ -694,12 +694,8 @@ def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
     P = cen[None, :] + (u * e[None, :]).T
     # Edge position noise ~ noise x transition width / contrast: under motion blur the rays
     # along the motion are smeared and uncertain, those across it sharp.
-    if c["edge_weights"]:
-        wid = np.maximum(w1090, 1.0)
-        W = (np.abs(contrast) / wid) ** 2
-        W = W / max(np.median(W[ok]), 1e-12) if ok.any() else W
-    else:
-        W = np.ones(n)
+    # (The ellipse fit does not depend on the weights' overall scale.)
+    W = (np.abs(contrast) / np.maximum(w1090, 1.0)) ** 2 if c["edge_weights"] else np.ones(n)
     return P[ok], n_use, W[ok]
 
 

@@ -11,8 +11,9 @@ The distances also name the rings, so no ID is needed from the network.
 When no matched triple passes, one view may still hold the marker well while the other's
 candidates are off (a steeply tilted marker, which the other camera sees steeper still):
 triples matched with looser tolerances are refined, and :func:`transfer` carries a view's
-refined centres into the other view through the poses that explain them (P3P), where
-they are refined and checked like any other hypothesis.
+refined centres into the other view through the poses that explain them
+(:func:`view_poses`: P3P ranked by the ellipses), where they are refined and checked
+like any other hypothesis.
 """
 
 from __future__ import annotations
@@ -165,23 +166,21 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
     return poses
 
 
-def transfer(
-    rig: StereoRig, view: int, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float, max_poses: int = 2
-) -> list[np.ndarray]:
-    """Where the marker's rings lie in the other view, from three centres in ``view``:
-    the projections of the best poses of :func:`view_poses`.
+def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_poses: int = 2) -> list[np.ndarray]:
+    """Where the marker's rings lie in the other view, from its poses in ``view``.
 
     Args:
         rig: the calibrated stereo rig.
-        view: 0 (left) or 1 (right): the view the centres are in.
-        centers, ellipses, model, radius: as in :func:`view_poses`.
+        view: 0 (left) or 1 (right): the view the poses are in.
+        poses: (misfit, T_cam_marker) best first, as :func:`view_poses` returns them.
+        model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
         max_poses: how many poses to use.
     Returns:
         up to ``max_poses`` arrays (3, 2): c0, c1, c2 predicted in the other view, best first.
     """
     to_left = np.eye(4) if view == 0 else np.linalg.inv(rig.T_right_left)
     out = []
-    for _, T in view_poses(rig.cameras[view], centers, ellipses, model, radius):
+    for _, T in poses:
         Xl = (np.asarray(model, np.float64) @ T[:3, :3].T + T[:3, 3]) @ to_left[:3, :3].T + to_left[:3, 3]
         if np.any(rig.to_right(Xl)[:, 2] <= 0):
             continue

@@ -245,18 +245,19 @@ class MarkerPose:
             t = time.perf_counter()
             det = self._refine([gray], [cam], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
-            if self._on_one_plate(det, cam):
+            if self._plate_poses(det, cam):
                 self.timings["total"] = time.perf_counter() - t0
                 return det
         self.timings["total"] = time.perf_counter() - t0
         return None
 
-    def _on_one_plate(self, det: Detection | None, camera) -> bool:
-        """Three refined rings whose ellipses one pose of the marker explains."""
+    def _plate_poses(self, det: Detection | None, camera) -> list:
+        """The marker's poses (:func:`~markerpose.matching.view_poses`) if one of them
+        explains the three refined rings' ellipses within ``plate_tol``, else []."""
         if det is None or not det.refined.all() or det.ellipses is None:
-            return False
+            return []
         poses = view_poses(camera, det.centers, det.ellipses, self.marker.points3d, self.marker.outer_radius)
-        return bool(poses) and poses[0][0] <= self.conf["plate_tol"]
+        return poses if poses and poses[0][0] <= self.conf["plate_tol"] else []
 
     def estimate(self, left, right) -> Estimate | None:
         """Pose of the marker from a stereo pair, or None if it is not found in both views.
@@ -364,9 +365,8 @@ class MarkerPose:
             t = time.perf_counter()
             det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
-            if not self._on_one_plate(det_a, cameras[a]):
-                continue
-            for pred in transfer(self.rig, a, det_a.centers, det_a.ellipses, m.points3d, m.outer_radius):
+            poses = self._plate_poses(det_a, cameras[a])
+            for pred in transfer(self.rig, a, poses, m.points3d):
                 t = time.perf_counter()
                 det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
                 t1 = time.perf_counter()

@@ -99,12 +99,12 @@ def test_transfer_puts_the_rings_where_the_other_view_sees_them(rig, view, seed)
     # Steep, as where transfer is needed: 45-60° to the look-at axis.
     T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(400, 700)], rng.uniform(45, 60), rng.uniform(0, 360), rng.uniform(0, 360))
     true = _project(rig, T, m.points3d)
-    preds = transfer(rig, view, true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius)
+    preds = transfer(rig, view, view_poses(rig.cameras[view], true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius), m.points3d)
     assert 1 <= len(preds) <= 2
     # The ellipses' shapes pick the right one of P3P's poses: it comes first.
     np.testing.assert_allclose(preds[0], true[1 - view], atol=0.05)
     # Without ellipses the right pose is still among P3P's solutions.
-    preds = transfer(rig, view, true[view], None, m.points3d, m.outer_radius, max_poses=4)
+    preds = transfer(rig, view, view_poses(rig.cameras[view], true[view], None, m.points3d, m.outer_radius), m.points3d, max_poses=4)
     assert min(np.abs(p - true[1 - view]).max() for p in preds) < 0.05
 
 
@@ -130,7 +130,8 @@ def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):
     m = mp.Marker()
     for pts in ([[100, 100], [200, 200], [300, 300]], [[100, 100]] * 3, [[600, 500], [601, 500], [600, 501]]):
         for view in (0, 1):
-            for p in transfer(rig, view, np.array(pts, float), None, m.points3d, m.outer_radius, max_poses=4):
+            poses = view_poses(rig.cameras[view], np.array(pts, float), None, m.points3d, m.outer_radius)
+            for p in transfer(rig, view, poses, m.points3d, max_poses=4):
                 assert p.shape == (3, 2) and np.isfinite(p).all()
     with pytest.raises(ValueError, match="finite"):
         refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)

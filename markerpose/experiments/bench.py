@@ -73,8 +73,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     false_poses = {name: 0 for name in trackers}
     with tqdm(total=c["repeats"] * (len(frames) + len(empty)), desc="bench", unit="pair", disable=not progress) as bar:
         for rep in range(c["repeats"]):
-            for f in frames + empty:
-                with_marker = not any(f is e for e in empty)
+            for f, with_marker in [(f, True) for f in frames] + [(f, False) for f in empty]:
                 for name, tr in trackers.items():
                     t0 = time.perf_counter()
                     est = tr.estimate(*f.images)
