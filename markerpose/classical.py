@@ -87,6 +87,10 @@ default_conf: dict = {
     "level_samples": 0.2,  # fraction of a profile at each end used for the plateau levels
     "level_smooth": 1 / 16,  # levels are averaged over this fraction of the ellipse (fallback)
     "level_tol": 0.25,  # drop rays whose two ends depart from the ring's levels unequally (x contrast)
+    "blur_fit": True,  # refit wide-edged (motion-blurred) rings with a blurred-image model (ours)
+    "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
+    #                         fraction of the smallest outer minor semi-axis
+    "blur_fit_max_move": 3.0,  # ... keeping the edge fit if a centre would move farther, px
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
@@ -130,6 +134,7 @@ class Ring:
     # Internal: the ellipses as centre + quadratic form, (x - c)^T Q (x - c) = 1.
     _outer_cq: tuple = field(default=None, repr=False)
     _inner_cq: tuple = field(default=None, repr=False)
+    _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
 
 
 # --- input handling ------------------------------------------------------------------------
@@ -602,7 +607,8 @@ def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
         others: (centre, Q) outer ellipses of neighbouring rings: rays whose window ends
             within a blur width of them are dropped (their light bleeds into the profile).
     Returns:
-        (P (K, 2) valid edge points, number of rays not dropped for a neighbour).
+        (P (K, 2) valid edge points, number of rays not dropped for a neighbour, their fit
+        weights (K,), the 75th percentile of their 10-90 % edge widths in px).
     """
     cen, Q = cq
     L = _sqrtm_spd(Q, -0.5)
@@ -696,7 +702,8 @@ def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
     # along the motion are smeared and uncertain, those across it sharp.
     # (The ellipse fit does not depend on the weights' overall scale.)
     W = (np.abs(contrast) / np.maximum(w1090, 1.0)) ** 2 if c["edge_weights"] else np.ones(n)
-    return P[ok], n_use, W[ok]
+    width = float(np.percentile(w1090[ok], 75)) if ok.any() else 0.0
+    return P[ok], n_use, W[ok], width
 
 
 def _integral(f: np.ndarray, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -784,14 +791,15 @@ def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
 
 
 def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
-    """Iterated edge sampling + robust fit; (ellipse in image px, ellipse in ideal px | None) or None.
+    """Iterated edge sampling + robust fit; (ellipse in image px, ellipse in ideal px | None,
+    edge width px (see :func:`_edge_points`)) or None.
 
     Iterates until the ellipse moves less than conf["refine_tol"] px: under heavy blur the
     plateau levels are only reached near the true edge, so each pass halves the error at best.
     """
     found = None
     for it in range(max(1, c["refine_iters"])):
-        P, n, W = _edge_points(gray, cq, half, dark_inside, c, floor, others)
+        P, n, W, width = _edge_points(gray, cq, half, dark_inside, c, floor, others)
         need = max(6, c["min_valid_frac"] * n)
         if len(P) < need:
             break
@@ -802,7 +810,7 @@ def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
         move = np.linalg.norm(fit[0] - cq[0]) + np.abs(
             np.sqrt(1 / np.linalg.eigvalsh(fit[1])) - np.sqrt(1 / np.linalg.eigvalsh(cq[1]))
         ).max()
-        cq, found, found_w = fit, P[keep], W[keep]
+        cq, found, found_w, found_width = fit, P[keep], W[keep], width
         if it >= 1 and move < c["refine_tol"]:
             break
     if found is None:
@@ -812,7 +820,7 @@ def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
         # The imaged circle is an ellipse in ideal (undistorted) pixels, not in the raw
         # image: fit there (the centre is mapped back by the caller).
         ideal = fit_ellipse(camera.undistort_points(found), found_w)
-    return cq, ideal
+    return cq, ideal, found_width
 
 
 def refine_ring(
@@ -857,7 +865,7 @@ def refine_ring(
     out = _refine_edge(gray, ring._outer_cq, w_out, True, c, floor, others, camera)
     if out is None:
         return ring
-    outer_cq, outer_ideal = out
+    outer_cq, outer_ideal, width = out
     # The inner ellipse: start from the hole's, or from the outer one scaled by rho.
     inner_cq = ring._inner_cq
     if inner_cq is None or ring.from_hole:
@@ -867,7 +875,7 @@ def refine_ring(
         inn = _refine_edge(gray, inner_cq, w_in, False, c, floor, (), camera)
     inner_ideal = None
     if inn is not None:
-        inner_cq, inner_ideal = inn
+        inner_cq, inner_ideal, _ = inn
     use_ideal = camera is not None and outer_ideal is not None
     center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
     if c["center"] == "concentric" and inn is not None:
@@ -887,7 +895,47 @@ def refine_ring(
         refined=True,
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
+        _edge_width=width,
     )
+
+
+def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None) -> list:
+    """The marker's edge-refined rings, fitted again together under a motion-blur model
+    when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
+
+    Under linear motion blur longer than the black band the edge fit of
+    :func:`refine_ring` is noisy and biased along the motion (up to ~1.5 px with 25 px of
+    blur); the model fit uses every pixel around the three rings. It runs when every
+    ring has an ellipse and either the widest edge-refined outer edge (75th percentile
+    of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
+    semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
+    a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too; a centre that moves farther than
+    conf["blur_fit_max_move"] px keeps the edge fit (all or none). With a camera the
+    edge fit's distortion correction (the shift from the distorted-image ellipse's
+    centre to the undistorted one's) carries over.
+
+    Returns the rings, refitted or unchanged.
+    """
+    c = _merge_conf(conf)
+    if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
+        return rings
+    minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
+    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
+        return rings
+    from . import blurfit
+
+    noise = noise_sigma(gray) if noise is None else noise
+    rho = marker.inner_diameter / marker.outer_diameter
+    fit = blurfit.fit_blurred_rings(gray, [r._outer_cq for r in rings], rho, noise)
+    if fit is None:
+        return rings
+    out = []
+    for r, (cen, Q) in zip(rings, fit["cqs"]):
+        if not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"]):
+            return rings
+        shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
+        out.append(replace(r, center=cen + shift, outer=_cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q)))
+    return out
 
 
 # --- IDs from the layout -------------------------------------------------------------------
@@ -972,6 +1020,7 @@ def _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera) -> De
     chosen = [rings[k] for k in tri]
     if subpixel:
         chosen = [refine_ring(gray, r, marker, c, noise, others=chosen, camera=camera) for r in chosen]
+        chosen = refine_blurred(gray, chosen, marker, c, noise)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)))
 
@@ -1074,6 +1123,7 @@ def refine_points(
     present = [r for r in rings if r is not None]
     if subpixel:
         rings = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
+        rings = refine_blurred(gray, rings, marker, c, noise)
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     return centers, found, [None if r is None else r.outer for r in rings]
 
@@ -1112,6 +1162,7 @@ def refine_ellipses(
         rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=_rect_to_cq(rect), _inner_cq=_rect_to_cq(inner)))
     present = [r for r in rings if r is not None]
     out = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
+    out = refine_blurred(gray, out, marker, c, noise)
     centers = np.array([[np.nan, np.nan] if r is None else r.center for r in out], np.float64).reshape(-1, 2)
     ok = np.array([r is not None and r.refined for r in out], bool)
     return centers, ok, [None if r is None else r.outer for r in out]
@@ -1182,4 +1233,5 @@ __all__ = [
     "detect_stereo",
     "refine_ellipses",
     "refine_points",
+    "refine_blurred",
 ]

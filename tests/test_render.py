@@ -175,6 +175,16 @@ def test_motion_kernel():
     assert 20 <= np.hypot(xs.max() - xs.min(), ys.max() - ys.min()) <= 28
 
 
+@pytest.mark.parametrize("length, angle", [(25, 0), (25, 130.5), (9, 77), (4.3, 12)])
+def test_motion_kernel_does_not_shift_the_image(length, angle):
+    k = motion_kernel(length, angle).astype(np.float64)
+    n = k.shape[0]
+    yy, xx = np.mgrid[:n, :n]
+    # Centroid at the anchor (the middle pixel), so blur moves no edge on average.
+    assert (k * xx).sum() == pytest.approx((n - 1) / 2, abs=1e-6)
+    assert (k * yy).sum() == pytest.approx((n - 1) / 2, abs=1e-6)
+
+
 def test_motion_blur_spreads_the_edges(rig):
     T = look_at_pose([0, 0, 500], 0, 0, 0)
     sharp, _ = render_view(rig.left, T, imaging=Imaging(noise=False), seed=0)

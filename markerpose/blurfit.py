@@ -1,0 +1,376 @@
+"""Sub-pixel ring ellipses under motion blur: a fit of a blurred-ring image model.
+
+Why: under linear motion blur longer than the ring's black band, edge profiles along
+the motion never reach the ink or paper level inside the band, so edge-based fits
+(:func:`markerpose.classical.refine_ring`) locate the edges across the motion well but
+those along it poorly; a neighbouring ring's blur reaches into the profile as well.
+Here every pixel around the ring is used instead: the image is modelled as
+
+    I(x) = (p0 + g . x) + (a + b . x) * (R(x) + sum of the neighbours' R(x)),
+
+where R is the ring (outer ellipse minus the white disk inside it) convolved with a
+box of length L along the motion direction theta and a Gaussian of sigma px (optics and
+pixel area), the two planes are the paper level and the ring's contrast (solved
+linearly for any geometry), and the neighbouring rings keep their current ellipses.
+The outer ellipse (centre and shape), the inner disk's offset, theta, L and sigma are
+fitted by robust non-linear least squares, started from the edge fit and from the best
+(theta, L) on a coarse grid.
+
+The box-blurred indicator of an ellipse is exact and cheap: along the line through a
+pixel in the motion direction the ellipse occupies a chord [s1, s2] (a quadratic's
+roots), and the blurred value is the chord's overlap with [-L/2, L/2] over L, smoothed
+by sigma in closed form. Across the motion, sigma is applied by a three-point
+Gauss-Hermite rule.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ndtr
+
+_SQ2PI = np.sqrt(2 * np.pi)
+# Gauss-Hermite rule for a unit normal: nodes and weights.
+_GH_T = np.array([-np.sqrt(3.0), 0.0, np.sqrt(3.0)])
+_GH_W = np.array([1 / 6, 2 / 3, 1 / 6])
+
+default_conf: dict = {
+    "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
+    "grid_angles": 8,  # coarse search: motion directions over 180° ...
+    "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
+    "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
+    "stride": 2,  # the fit uses every stride-th pixel in x and y
+    "max_iter": 30,  # Levenberg-Marquardt iterations at most
+    "xtol": 1e-4,  # convergence: relative parameter change ...
+    "ftol": 1e-4,  # ... or relative cost change
+    "loss_scale": 3.0,  # robust loss: residuals beyond this many noise sigmas count less
+}
+
+
+def _G(t):
+    """Antiderivative of the normal CDF, t Phi(t) + phi(t) (= max(t, 0) beyond |t| > 5)."""
+    out = np.maximum(t, 0.0)
+    m = np.abs(t) < 5.0
+    tm = t[m]
+    out[m] = tm * ndtr(tm) + np.exp(-0.5 * tm * tm) / _SQ2PI
+    return out
+
+
+def _Phi(t):
+    out = (t > 0).astype(np.float64)
+    m = np.abs(t) < 5.0
+    out[m] = ndtr(t[m])
+    return out
+
+
+def _phi(t):
+    out = np.zeros_like(t)
+    m = np.abs(t) < 5.0
+    tm = t[m]
+    out[m] = np.exp(-0.5 * tm * tm) / _SQ2PI
+    return out
+
+
+def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
+    """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
+    ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
+    a three-point rule across), at the points (x, y).
+
+    Returns the values (N,), and with ``jac`` also their derivatives: a dict with ``c``
+    (N, 2), ``Q`` (N, 3) for (Q11, Q12, Q22), ``theta``, ``L`` and ``sigma`` (N,).
+    A chord end p on the ellipse moves with any parameter as ds = -dq / (2 u^T Q p),
+    q(s) = (d + s u)^T Q (d + s u) - 1 being the quadratic whose roots are the ends.
+    """
+    u = np.array([np.cos(theta), np.sin(theta)])
+    n = np.array([-u[1], u[0]])
+    L = max(float(L), 0.05)
+    Lh = 0.5 * L
+    Qu = Q @ u
+    A = u @ Qu
+    N = len(x)
+    val = np.zeros(N)
+    J = {"c": np.zeros((N, 2)), "Q": np.zeros((N, 3)), "theta": np.zeros(N), "L": np.zeros(N), "sigma": np.zeros(N)} if jac else None
+    # Only points within the blurred ellipse's bounding box can be non-zero.
+    Qi = np.linalg.inv(Q)
+    ext = np.sqrt(np.diag(Qi)) + np.abs(u) * Lh + 6.0 * sigma
+    near = np.nonzero((np.abs(x - c[0]) < ext[0]) & (np.abs(y - c[1]) < ext[1]))[0]
+    if len(near) == 0:
+        return (val, J) if jac else val
+    full = None
+    if len(near) < N:
+        full = (val, J)
+        x, y = x[near], y[near]
+        val = np.zeros(len(near))
+        J = {k: np.zeros((len(near),) + v.shape[1:]) for k, v in J.items()} if jac else None
+    for tau, w in zip(_GH_T, _GH_W):
+        off = tau * sigma
+        dx = x + off * n[0] - c[0]
+        dy = y + off * n[1] - c[1]
+        B = dx * Qu[0] + dy * Qu[1]
+        C = Q[0, 0] * dx * dx + 2 * Q[0, 1] * dx * dy + Q[1, 1] * dy * dy - 1.0
+        disc = B * B - A * C
+        idx = np.nonzero(disc > 0)[0]
+        if len(idx) == 0:
+            continue
+        B, dx, dy = B[idx], dx[idx], dy[idx]
+        r = np.sqrt(disc[idx])
+        s1, s2 = (-B - r) / A, (-B + r) / A
+        a1, b1, a2, b2 = (Lh - s1) / sigma, (-Lh - s1) / sigma, (Lh - s2) / sigma, (-Lh - s2) / sigma
+        v = (_G(a1) - _G(b1) - _G(a2) + _G(b2)) * (sigma / L)
+        val[idx] += w * v
+        if not jac:
+            continue
+        Pa1, Pb1, Pa2, Pb2 = _Phi(a1), _Phi(b1), _Phi(a2), _Phi(b2)
+        dv_s = (-(Pa1 - Pb1) / L, (Pa2 - Pb2) / L)
+        J["L"][idx] += w * (-v / L + (Pa1 + Pb1 - Pa2 - Pb2) / (2 * L))
+        dsig = (_phi(a1) - _phi(b1) - _phi(a2) + _phi(b2)) / L
+        rc = np.maximum(r, 0.25 * A)  # tangent chords: the derivative is clipped
+        for s, den, dvs in ((s1, -rc, dv_s[0]), (s2, rc, dv_s[1])):
+            px, py = dx + s * u[0], dy + s * u[1]
+            gx, gy = Q[0, 0] * px + Q[0, 1] * py, Q[0, 1] * px + Q[1, 1] * py
+            k = w * dvs / den
+            J["c"][idx, 0] += k * gx
+            J["c"][idx, 1] += k * gy
+            J["Q"][idx, 0] += -0.5 * k * px * px
+            J["Q"][idx, 1] += -k * px * py
+            J["Q"][idx, 2] += -0.5 * k * py * py
+            ng = n[0] * gx + n[1] * gy
+            J["theta"][idx] += w * dvs * off - k * s * ng
+            dsig = dsig - (dvs / den) * tau * ng
+        J["sigma"][idx] += w * dsig
+    if full is not None:
+        full[0][near] = val
+        if jac:
+            for k in J:
+                full[1][k][near] = J[k]
+        val, J = full
+    return (val, J) if jac else val
+
+
+def _ring(x, y, c, Q, d, rho, theta, L, sigma, jac=False):
+    """Outer disk minus the white disk (centre offset ``d``, form Q / rho^2), blurred."""
+    if not jac:
+        return blurred_disk(x, y, c, Q, theta, L, sigma) - blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma)
+    vo, Jo = blurred_disk(x, y, c, Q, theta, L, sigma, True)
+    vi, Ji = blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma, True)
+    J = {
+        "c": Jo["c"] - Ji["c"],
+        "d": -Ji["c"],
+        "Q": Jo["Q"] - Ji["Q"] / rho**2,
+        "theta": Jo["theta"] - Ji["theta"],
+        "L": Jo["L"] - Ji["L"],
+        "sigma": Jo["sigma"] - Ji["sigma"],
+    }
+    return vo - vi, J
+
+
+class _Problem:
+    """The pixels around the rings, the model's residuals and its Jacobian.
+
+    Parameters p: per ring, centre (2), Q11, Q12, Q22 times scale^2 (3) and the inner
+    disk's offset (2); then theta, log L, log sigma shared by all rings.
+    """
+
+    def __init__(self, gray, cqs, rho, noise):
+        self.cqs = [(np.asarray(c, float), np.asarray(Q, float)) for c, Q in cqs]
+        self.rho, self.gray = rho, gray
+        self.noise = max(float(noise), 0.5)
+        self.scale = float(np.mean([np.sqrt(1 / np.sqrt(np.linalg.det(Q))) for _, Q in self.cqs]))  # ~ sqrt(radius)
+        self.k = len(self.cqs)
+        self._cache = None
+
+    def pixels(self, reach, stride=1, motion=None):
+        """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
+        ``motion`` = (theta, L), only those a blurred ring can reach: within ``reach`` of
+        an outer ellipse moved by up to L / 2 along the motion."""
+        h, w = self.gray.shape
+        boxes, forms = [], []
+        for c, Q in self.cqs:
+            lam, V = np.linalg.eigh(Q)
+            a = 1 / np.sqrt(lam)
+            forms.append((c, (V / (a + reach) ** 2) @ V.T))
+            R = a[0] + reach
+            boxes.append((c[0] - R, c[1] - R, c[0] + R, c[1] + R))
+        b = np.array(boxes)
+        x0, y0 = int(max(np.floor(b[:, 0].min()), 0)), int(max(np.floor(b[:, 1].min()), 0))
+        x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
+        if x1 - x0 < 8 or y1 - y0 < 8:
+            return False
+        yy, xx = np.mgrid[y0 : y1 + 1 : stride, x0 : x1 + 1 : stride]
+        inside = np.zeros(xx.shape, bool)
+        for c, Qx in forms:
+            dx, dy = xx - c[0], yy - c[1]
+            C = Qx[0, 0] * dx * dx + 2 * Qx[0, 1] * dx * dy + Qx[1, 1] * dy * dy - 1
+            if motion is None:
+                inside |= C <= 0
+                continue
+            # The chord along the motion through the pixel meets the ellipse within L / 2.
+            u = np.array([np.cos(motion[0]), np.sin(motion[0])])
+            Qu = Qx @ u
+            A = u @ Qu
+            B = dx * Qu[0] + dy * Qu[1]
+            disc = B * B - A * C
+            r = np.sqrt(np.maximum(disc, 0))
+            s1, s2 = (-B - r) / A, (-B + r) / A
+            inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
+        self.x = xx[inside].astype(np.float64)
+        self.y = yy[inside].astype(np.float64)
+        self.v = self.gray[yy[inside], xx[inside]].astype(np.float64)
+        ctr = np.mean([c for c, _ in self.cqs], axis=0)
+        span = max(x1 - x0, y1 - y0) / 2
+        self.xs, self.ys = (self.x - ctr[0]) / span, (self.y - ctr[1]) / span
+        self.w = np.ones(len(self.v))
+        self._cache = None
+        return len(self.v) >= 50 * self.k
+
+    def start(self):
+        p = []
+        for c, Q in self.cqs:
+            q = Q * self.scale**2
+            p += [*c, q[0, 0], q[0, 1], q[1, 1], 0.0, 0.0]
+        return np.array(p + [0.0, 0.0, np.log(0.8)])
+
+    def unpack(self, p):
+        rings = []
+        for j in range(self.k):
+            q = p[7 * j : 7 * j + 7]
+            rings.append((q[0:2], np.array([[q[2], q[3]], [q[3], q[4]]]) / self.scale**2, q[5:7]))
+        return rings, p[-3], np.exp(p[-2]), np.exp(p[-1])
+
+    def evaluate(self, p, jac=False):
+        key = p.tobytes()
+        if self._cache is not None and self._cache[0] == key and (self._cache[1][2] is not None or not jac):
+            return self._cache[1]
+        rings, theta, L, sigma = self.unpack(p)
+        R = np.zeros(len(self.v))
+        cols = []
+        shared = np.zeros((len(self.v), 3))
+        for c, Q, d in rings:
+            if np.linalg.eigvalsh(Q)[0] <= 0:
+                raise ValueError("ellipse form not positive definite")
+            out = _ring(self.x, self.y, c, Q, d, self.rho, theta, L, sigma, jac)
+            if not jac:
+                R += out
+                continue
+            R += out[0]
+            J = out[1]
+            cols += [J["c"], J["Q"] / self.scale**2, J["d"]]
+            shared += np.column_stack([J["theta"], J["L"] * L, J["sigma"] * sigma])
+        xs, ys = self.xs, self.ys
+        M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
+        Mw = M * self.w[:, None]  # the levels are a weighted fit (robust weights)
+        MtM = Mw.T @ M + 1e-9 * np.eye(6)
+        beta = np.linalg.solve(MtM, Mw.T @ self.v)
+        res = (M @ beta - self.v) / self.noise
+        Jr = None
+        if jac:
+            wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
+            Jm = np.column_stack(cols + [shared]) * wgt[:, None]
+            Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
+        out = (res, beta, Jr)
+        self._cache = (key, out)
+        return out
+
+    def residual(self, p):
+        return self.evaluate(p)[0]
+
+    def jacobian(self, p):
+        return self.evaluate(p, True)[2]
+
+
+def _robust_lm(prob, p, conf):
+    """Robust Levenberg-Marquardt: iteratively reweighted least squares with Cauchy
+    weights 1 / (1 + (r / f)^2) (f = conf["loss_scale"] noise sigmas), so that pixels the
+    model cannot explain (the plate's edge, clutter, an occluder) stop counting; the
+    weights also enter the levels' linear fit. Each iteration takes one damped
+    Gauss-Newton step on the weighted cost by the normal equations (few parameters, many
+    pixels). Returns (parameters, number of model evaluations)."""
+    f2 = conf["loss_scale"] ** 2
+    r = prob.residual(p)
+    lam, nfev = 1e-3, 1
+    for _ in range(conf["max_iter"]):
+        prob.w = 1 / (1 + r * r / f2)
+        prob._cache = None
+        r = prob.residual(p)
+        E = float(prob.w @ (r * r))
+        J = prob.jacobian(p)
+        Jw = J * prob.w[:, None]
+        H = J.T @ Jw
+        g = Jw.T @ r
+        D = np.diag(H).copy()
+        D[D <= 0] = 1.0
+        nfev += 1
+        while True:
+            step = np.linalg.solve(H + lam * np.diag(D), -g)
+            trial = p + step
+            try:
+                rt = prob.residual(trial)
+                Et = float(prob.w @ (rt * rt))
+            except ValueError:  # the step left the valid ellipses
+                Et = np.inf
+            nfev += 1
+            if Et < E:
+                break
+            lam *= 10
+            if lam > 1e8:
+                return p, nfev
+        small = E - Et <= conf["ftol"] * E or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
+        p, r = trial, rt
+        lam = max(lam / 10, 1e-7)
+        if small:
+            break
+    return p, nfev
+
+
+def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
+    """Outer ellipses of motion-blurred rings by one image-model fit of all of them.
+
+    Args:
+        gray: (H, W) float32 grey image.
+        cqs: per ring, (centre (2,), Q (2, 2)) of a starting outer ellipse (e.g. the
+            edge fit's); all rings of one marker, so that their blur is modelled.
+        rho: inner/outer diameter ratio of the marker's rings.
+        noise: the image's noise sigma, grey levels.
+        conf: overrides of :data:`default_conf`.
+    Returns:
+        dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
+        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas), ``nfev``; or None when
+        too few pixels are usable or the fit fails.
+    """
+    c = dict(default_conf)
+    if conf:
+        c.update(conf)
+    prob = _Problem(gray, cqs, rho, noise)
+    base = prob.start()
+    # Coarse search over the motion (direction, length) with the start ellipses, on a
+    # sparse pixel grid.
+    if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=c["grid_stride"]):
+        return None
+    best = None
+    for th in np.arange(c["grid_angles"]) * np.pi / c["grid_angles"]:
+        for L in c["grid_lengths"]:
+            p = base.copy()
+            p[-3], p[-2] = th, np.log(L)
+            r = prob.residual(p)
+            cost = float(r @ r)
+            if best is None or cost < best[0]:
+                best = (cost, p)
+    p0 = best[1]
+    if not prob.pixels(c["margin"], stride=c["stride"], motion=(p0[-3], 1.3 * np.exp(p0[-2]))):
+        return None
+    try:
+        p, nfev = _robust_lm(prob, p0, c)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not np.all(np.isfinite(p)):
+        return None
+    r, beta, _ = prob.evaluate(p)
+    rings, theta, L, sigma = prob.unpack(p)
+    return {
+        "cqs": [(cen.copy(), Q) for cen, Q, _ in rings],
+        "theta": float(theta % np.pi),
+        "length": float(L),
+        "sigma": float(sigma),
+        "rms": float(np.sqrt(np.mean(r * r))),
+        "contrast": float(beta[3]),
+        "nfev": nfev,
+    }
