@@ -290,9 +290,8 @@ def _robust_lm(prob, p, conf):
     for _ in range(conf["max_iter"]):
         prob.w = 1 / (1 + r * r / f2)
         prob._cache = None
-        r = prob.residual(p)
+        r, _, J = prob.evaluate(p, jac=True)
         E = float(prob.w @ (r * r))
-        J = prob.jacobian(p)
         Jw = J * prob.w[:, None]
         H = J.T @ Jw
         g = Jw.T @ r
