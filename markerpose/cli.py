@@ -110,7 +110,7 @@ def cmd_estimate(args):
 def cmd_bench(args):
     from .experiments import bench
 
-    conf = {"pairs": args.pairs, "empty_pairs": args.empty_pairs, "repeats": args.repeats, "threads": args.threads, "configs": args.configs}
+    conf = {"pairs": args.pairs, "blurred_pairs": args.blurred_pairs, "empty_pairs": args.empty_pairs, "repeats": args.repeats, "threads": args.threads, "configs": args.configs}
     res = bench.main(conf, args.json, progress=not args.quiet)
     print(bench.report(res))
 
@@ -297,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="speed of the stereo pipeline per configuration (interleaved, same frames)")
     b.add_argument("--pairs", type=int, default=8, help="rendered stereo pairs")
+    b.add_argument("--blurred-pairs", type=int, default=4, help="pairs with 25 px motion blur (timed apart)")
     b.add_argument("--empty-pairs", type=int, default=4, help="marker-free pairs (time while the marker is out of view)")
     b.add_argument("--repeats", type=int, default=3, help="passes over the pairs (the first warms up)")
     b.add_argument("--threads", type=int, help="torch threads (default: all cores)")

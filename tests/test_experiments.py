@@ -4,12 +4,13 @@ from markerpose.experiments import bench, endtoend
 
 
 def test_bench_runs_and_reports_every_configuration():
-    res = bench.main({"pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["classical (paper)", "classical + sub-pixel"]}, progress=False)
+    res = bench.main({"pairs": 1, "blurred_pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["classical (paper)", "classical + sub-pixel"]}, progress=False)
     assert set(res["configs"]) == {"classical (paper)", "classical + sub-pixel"}
     assert res["reference"] == "classical (paper)"
     assert res["configs"]["classical (paper)"]["speed_vs_reference"] == 1.0
     assert res["configs"]["classical + sub-pixel"]["found"] == 1.0
     assert res["configs"]["classical + sub-pixel"]["marker_free_ms"] > 0
+    assert res["configs"]["classical + sub-pixel"]["blur_25_ms"] > 0
     assert res["configs"]["classical + sub-pixel"]["false_poses"] == 0
     assert "classical + sub-pixel" in bench.report(res)
 

@@ -5,8 +5,10 @@ every configuration on the same pairs, interleaved (pair 1 with every configurat
 then pair 2, ...) so that the machine's state affects them alike. Reports the median
 time per pair, frames per second, the ratio to the reference configuration (the
 paper-faithful neural one when its weights exist, else the paper's classical one),
-the median time of each stage, the median time on marker-free pairs (what a tracker
-spends while the marker is out of view) and the process's peak memory.
+the median time of each stage, the median time on pairs with 25 px of motion blur
+(where the rings are refitted under a blur model), the median time on marker-free
+pairs (what a tracker spends while the marker is out of view) and the process's peak
+memory.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from .configs import available
 
 default_conf = {
     "pairs": 8,
+    "blurred_pairs": 4,  # pairs with 25 px of motion blur (timed apart)
     "empty_pairs": 4,  # marker-free pairs (the marker out of both views, clutter only)
     "repeats": 3,  # passes over the pairs (the first pass also warms up)
     "seed": 0,
@@ -35,13 +38,14 @@ default_conf = {
 }
 
 
-def _pairs(n: int, seed: int):
+def _pairs(n: int, seed: int, blur: float = 0.0):
     rng = np.random.default_rng(seed)
     rig, marker = StereoRig.default(), Marker()
     frames = []
     while len(frames) < n:
         T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(400, 750)], rng.uniform(0, 45), rng.uniform(0, 360), rng.uniform(0, 360))
-        f = render_stereo(rig, T, marker, Imaging(alpha=rng.uniform(0.5, 1.0)), seed=rng)
+        im = Imaging(alpha=rng.uniform(0.5, 1.0), motion_blur=blur, motion_angle=rng.uniform(0, 180))
+        f = render_stereo(rig, T, marker, im, seed=rng)
         if all(v.in_image.all() for v in f.views):
             frames.append(f)
     return rig, marker, frames
@@ -63,6 +67,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
 
         torch.set_num_threads(int(c["threads"]))
     rig, marker, frames = _pairs(c["pairs"], c["seed"])
+    blurred = _pairs(c["blurred_pairs"], c["seed"] + 2, blur=25.0)[2]
     empty = _empty_pairs(c["empty_pairs"], c["seed"], rig, marker)
     configs = available(c["configs"])
     trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
@@ -70,19 +75,25 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     stages = {name: {} for name in trackers}
     found = {name: 0 for name in trackers}
     times_empty = {name: [] for name in trackers}
+    times_blur = {name: [] for name in trackers}
+    found_blur = {name: 0 for name in trackers}
     false_poses = {name: 0 for name in trackers}
-    with tqdm(total=c["repeats"] * (len(frames) + len(empty)), desc="bench", unit="pair", disable=not progress) as bar:
+    with tqdm(total=c["repeats"] * (len(frames) + len(blurred) + len(empty)), desc="bench", unit="pair", disable=not progress) as bar:
         for rep in range(c["repeats"]):
-            for f, with_marker in [(f, True) for f in frames] + [(f, False) for f in empty]:
+            for f, kind in [(f, "marker") for f in frames] + [(f, "blur") for f in blurred] + [(f, "empty") for f in empty]:
                 for name, tr in trackers.items():
                     t0 = time.perf_counter()
                     est = tr.estimate(*f.images)
                     dt = time.perf_counter() - t0
                     if rep == 0:
                         continue  # warm-up pass: caches, lazy initialisation
-                    if not with_marker:
+                    if kind == "empty":
                         times_empty[name].append(dt)
                         false_poses[name] += est is not None
+                        continue
+                    if kind == "blur":
+                        times_blur[name].append(dt)
+                        found_blur[name] += est is not None
                         continue
                     times[name].append(dt)
                     found[name] += est is not None
@@ -99,6 +110,8 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
             "speed_vs_reference": float(np.median(times[ref]) / med),
             "stages_ms": {k: 1000 * float(np.median(v)) for k, v in stages[name].items()},
             "found": found[name] / len(times[name]),
+            "blur_25_ms": 1000 * float(np.median(times_blur[name])) if times_blur[name] else float("nan"),
+            "blur_25_found": found_blur[name] / len(times_blur[name]) if times_blur[name] else float("nan"),
             "marker_free_ms": 1000 * float(np.median(times_empty[name])) if times_empty[name] else float("nan"),
             "false_poses": false_poses[name],
         }
@@ -114,13 +127,14 @@ def report(res: dict) -> str:
         f"Stereo 1280x1024 pairs, median over {res['conf']['pairs'] * (res['conf']['repeats'] - 1)} runs per configuration "
         f"(interleaved); speed relative to **{res['reference']}**; peak memory of the process {res['peak_rss_mb']:.0f} MB.",
         "",
-        "| configuration | ms / pair | FPS | speed vs reference | stages (ms) | found | marker-free ms / pair |",
-        "|---|---|---|---|---|---|---|",
+        "| configuration | ms / pair | FPS | speed vs reference | stages (ms) | found | 25 px blur: ms / pair (found) | marker-free ms / pair |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for name, r in res["configs"].items():
         st = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_ms"].items() if k != "total")
         free = f"{r['marker_free_ms']:.1f}" + (f" ({r['false_poses']} false poses)" if r["false_poses"] else "")
-        lines.append(f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} | {free} |")
+        blur = f"{r.get('blur_25_ms', float('nan')):.1f} ({r.get('blur_25_found', float('nan')):.2f})"
+        lines.append(f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} | {blur} | {free} |")
     return "\n".join(lines)
 
 
