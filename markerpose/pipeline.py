@@ -34,6 +34,9 @@ default_conf = {
     #                           classical ring fit near each stage-1 point) or "none" (stage-1 points)
     "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
     "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line fit (ours), "ellipse" (paper), "moments"
+    "blur_fit": True,  # sub-pixel edge fits: when the edges are smeared to near the black band's
+    #                    width (motion blur), refit the three rings together under a blurred-
+    #                    image model (classical.refine_blurred, ours); False: the edge fit alone
     "edge_refit": True,  # ellipsegnet: fit the ring's outer edge in the image to sub-pixel,
     #                      starting from the mask's ellipse (ours); False: the mask's centre (paper)
     "ids": "stereo",  # neural: how the rings are found and named:
@@ -122,6 +125,9 @@ class MarkerPose:
             the centre comes from its mask ("subpixel", the paper's "ellipse", "moments").
         edge_refit: with EllipSegNet, fit the ring's outer edge in the image to sub-pixel,
             starting from the ellipse of the mask (ours); False: the mask's centre (paper).
+        blur_fit: where the sub-pixel edges are smeared by motion to near the black band's
+            width, refit the three rings together under a blurred-image model (ours,
+            :func:`markerpose.classical.refine_blurred`); False: the edge fit alone.
         keypoint_weights, ellipse_weights: checkpoints of the two networks (None: shipped).
     """
 
@@ -142,6 +148,7 @@ class MarkerPose:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
         self.rig = rig
         self.marker = marker or Marker()
+        self._classical = {"blur_fit": bool(self.conf["blur_fit"])}  # settings of the classical fits
         self.timings: dict = {}  # seconds per stage of the last estimate() (see markerpose bench)
         self._keypoints = None
         if detector == "neural":
@@ -179,9 +186,9 @@ class MarkerPose:
                 centers, ok = found[0], found[1]
                 ellipses = None
                 if self._edge_refit:  # the image's edges, from the mask's ellipses
-                    c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, camera=cameras[k])
+                    c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, self._classical, camera=cameras[k])
                     if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                        c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, camera=cameras[k])
+                        c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=self._classical, camera=cameras[k])
                         c2 = np.where(ok2[:, None], c2, c3)
                         ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                         ok2 = ok2 | ok3
@@ -200,7 +207,7 @@ class MarkerPose:
             if self.conf["refine"] == "none":
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
-            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], camera=cam)
+            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=self._classical, camera=cam)
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
         return out
 
@@ -230,7 +237,7 @@ class MarkerPose:
         if self._keypoints is None:
             from . import classical
 
-            return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"])
+            return classical.detect(gray, self.marker, subpixel=self.conf["subpixel"], conf=self._classical)
         if self.conf["ids"] == "head" or self.conf["refine"] == "none":
             return self._neural([gray], [None])[0]  # the paper's decoding
         # Ours: each triple the marker's 2D layout allows, best first, refined, until one
@@ -278,7 +285,7 @@ class MarkerPose:
             return self._estimate_neural(gl, gr, t0)
         from . import classical
 
-        found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"])
+        found = classical.detect_stereo(gl, gr, self.rig, self.marker, subpixel=self.conf["subpixel"], conf=self._classical)
         t1 = time.perf_counter()
         self.timings["detect"] = t1 - t0
         return None if found is None else self._checked_estimate(found, t0, t1)

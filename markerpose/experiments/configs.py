@@ -38,7 +38,9 @@ NEURAL = {
     # + the ring's outer edge fitted in the image from EllipSegNet's ellipse, without the
     # transfer fallback (matching.transfer) for markers one camera sees at 70-80°.
     "neural + stereo match (no transfer) + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "transfer": False, "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
-    # ... with the transfer fallback: the default, MarkerPose(rig).
+    # ... with the transfer fallback, but the edge fit alone under heavy motion blur.
+    "neural + stereo match + EllipSegNet + edge refit (no blur fit) + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, "blur_fit": False, **OURS_POSE},
+    # ... and motion-blurred rings refitted under a blur model: the default, MarkerPose(rig).
     "neural + stereo match + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
     # Stage 1 (stereo match) with the classical ring fit instead of EllipSegNet.
     "neural stereo match + classical refine + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "classical", "subpixel": True, **OURS_POSE},
