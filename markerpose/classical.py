@@ -29,6 +29,11 @@ How it works, and why:
    occluder) are dropped. A direct least-squares ellipse fit (Halir-Flusser) with robust
    outlier rejection, iterated to convergence, gives the ellipse; with a camera the edge
    points are undistorted first (an imaged circle is an ellipse in ideal pixels only).
+   Under motion blur longer than about the black band's width the profiles along the
+   motion never reach a plateau and the edge fit errs along the motion (~1 px at 25 px
+   of blur): there the marker's three rings are fitted again together, every pixel
+   around them against a model of box-blurred rings (:func:`refine_blurred`,
+   :mod:`markerpose.blurfit`).
 4. **IDs by layout** (:func:`find_triples`): the three outer ellipses give the local
    affine map of the marker plane; undoing it (the symmetric square root of their mean
    quadratic form) rectifies the centres into marker units of one outer radius. A
