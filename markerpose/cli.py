@@ -180,7 +180,7 @@ def cmd_eval_ellipses(args):
 def cmd_eval_pipeline(args):
     from .experiments import endtoend
 
-    conf = {"pairs": args.pairs, "configs": args.configs}
+    conf = {"pairs": args.pairs, "configs": args.configs, "single_view": args.single_view}
     if args.sets:
         conf["sets"] = tuple(args.sets)
     res = endtoend.main(conf, args.json, progress=not args.quiet)
@@ -341,6 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--pairs", type=int, default=200, help="pairs per set")
     ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25 (default: all)")
     ep.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
+    ep.add_argument("--single-view", action="store_true", help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs")
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pipeline)

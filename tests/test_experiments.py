@@ -16,9 +16,11 @@ def test_bench_runs_and_reports_every_configuration():
 
 
 def test_end_to_end_counts_detections_and_errors():
-    res = endtoend.main({"pairs": 2, "sets": ("standard",), "configs": ["classical + sub-pixel + bias + rigid"]}, progress=False)
+    res = endtoend.main({"pairs": 2, "sets": ("standard",), "configs": ["classical + sub-pixel + bias + rigid"], "single_view": True}, progress=False)
     s = res["sets"]["standard"]["classical + sub-pixel + bias + rigid"]
     assert s["pairs"] == 2 and s["detected"] == 1.0
+    assert s["single_views"] == 4 and s["single_view_detected"] == 1.0
+    assert "Each view alone" in endtoend.report(res)
     assert s["center_median_px"] < 0.1 and s["t_median_mm"] < 0.05
     assert "standard" in endtoend.report(res) and "| tilt " in endtoend.report(res)
 

@@ -38,6 +38,7 @@ default_conf = {
     "sets": ("standard", "dark_0.0625", "blur_25"),
     "configs": None,  # None: all available
     "tolerance_px": 3.0,
+    "single_view": False,  # also each view alone (MarkerPose.detect)
 }
 
 
@@ -99,6 +100,16 @@ def evaluate_pair(tracker: MarkerPose, frame, tol: float) -> dict:
     }
 
 
+def evaluate_views(tracker: MarkerPose, frame, tol: float) -> list[bool]:
+    """Each view alone (:meth:`MarkerPose.detect`): all three centres within ``tol`` px of
+    the imaged ellipse centres, in ID order."""
+    out = []
+    for k, (image, view) in enumerate(zip(frame.images, frame.views)):
+        det = tracker.detect(image, view=k)
+        out.append(det is not None and bool(np.all(np.linalg.norm(det.centers - view.outer_centers, axis=1) <= tol)))
+    return out
+
+
 def _orthonormal(R: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(R)
     return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -144,15 +155,21 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     res = {"conf": {k: list(v) if isinstance(v, tuple) else v for k, v in c.items()}, "sets": {}}
     for set_name in c["sets"]:
         rows = {name: [] for name in trackers}
+        views = {name: [] for name in trackers}
         conds = []
         for frame, cond in tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress):
             conds.append(cond)
             for name, tr in trackers.items():
                 rows[name].append(evaluate_pair(tr, frame, c["tolerance_px"]))
+                if c["single_view"]:
+                    views[name] += evaluate_views(tr, frame, c["tolerance_px"])
         out_set = {}
         for name in trackers:
             s = summarize(rows[name])
             s["by_condition"] = by_condition(rows[name], conds)
+            if views[name]:
+                s["single_view_detected"] = float(np.mean(views[name]))
+                s["single_views"] = len(views[name])
             out_set[name] = s
         res["sets"][set_name] = out_set
     if out:
@@ -189,6 +206,9 @@ def report(res: dict) -> str:
                 f"{s['center3d_median_px']:.3f} / {s['center3d_p95_px']:.3f} | {s['t_median_mm']:.4f} / {s['t_p95_mm']:.4f} | "
                 f"{s['r_median_deg']:.4f} / {s['r_p95_deg']:.4f} |"
             )
+        if any("single_view_detected" in s for s in per.values()):
+            lines += ["", f"Each view alone (`MarkerPose.detect`, {next(iter(per.values()))['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
+                      + "; ".join(f"{name} {100 * s['single_view_detected']:.2f} %" for name, s in per.items())]
         lines.append("")
         # By distance and tilt: detection; centre median vs the ellipse centre / vs the
         # projected 3D centre (they differ by the perspective bias, which grows with tilt).
@@ -209,4 +229,4 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["SETS", "by_condition", "default_conf", "evaluate_pair", "main", "pairs", "random_pairs", "report", "summarize"]
+__all__ = ["SETS", "by_condition", "default_conf", "evaluate_pair", "evaluate_views", "main", "pairs", "random_pairs", "report", "summarize"]
