@@ -133,3 +133,20 @@ def test_pipeline_option_switches_the_blur_fit():
         assert est is not None
         err[on] = max(np.linalg.norm(d.centers - v.outer_centers, axis=1).max() for d, v in zip(est.detections, f.views))
     assert err[True] < 0.15 and err[True] < err[False], err
+
+
+@pytest.mark.parametrize("damage", ["dark occluder", "bright strip"])
+def test_damaged_blurred_rings_give_flags_or_right_centres(blurred_view, damage):
+    # Something across a blurred ring: a ring is either flagged as not refined or its
+    # centre is right (the robust weights let the model ignore what it cannot explain).
+    rig, img, truth = blurred_view
+    im = img.copy()
+    cx, cy = truth.outer_centers[0]
+    if damage == "dark occluder":
+        im[:, : int(cx)] = np.minimum(im[:, : int(cx)], 30)
+    else:
+        im[int(cy) - 60 : int(cy) + 60, int(cx) - 10 : int(cx) + 10] = 250
+    centers, ok, _ = C.refine_ellipses(im, _truth_rects(truth), camera=rig.left)
+    err = np.linalg.norm(centers - truth.outer_centers, axis=1)
+    assert ok.any()
+    assert np.all(err[ok] < 0.15), (ok, err)
