@@ -4,17 +4,18 @@ Why: under linear motion blur longer than the ring's black band, edge profiles a
 the motion never reach the ink or paper level inside the band, so edge-based fits
 (:func:`markerpose.classical.refine_ring`) locate the edges across the motion well but
 those along it poorly; a neighbouring ring's blur reaches into the profile as well.
-Here every pixel around the ring is used instead: the image is modelled as
+Here the marker's rings are fitted together to every pixel their blur reaches: the
+image is modelled as
 
-    I(x) = (p0 + g . x) + (a + b . x) * (R(x) + sum of the neighbours' R(x)),
+    I(x) = (p0 + g . x) + (a + b . x) * sum over the rings of R_k(x),
 
-where R is the ring (outer ellipse minus the white disk inside it) convolved with a
+where R_k is a ring (outer ellipse minus the white disk inside it) convolved with a
 box of length L along the motion direction theta and a Gaussian of sigma px (optics and
-pixel area), the two planes are the paper level and the ring's contrast (solved
-linearly for any geometry), and the neighbouring rings keep their current ellipses.
-The outer ellipse (centre and shape), the inner disk's offset, theta, L and sigma are
-fitted by robust non-linear least squares, started from the edge fit and from the best
-(theta, L) on a coarse grid.
+pixel area), and the two planes are the paper level and the rings' contrast (solved
+linearly for any geometry). Each ring's outer ellipse (centre and shape) and white
+disk's offset, and the shared theta, L and sigma, are fitted by robust
+Levenberg-Marquardt, started from the edge fit and from the best (theta, L) on a
+coarse grid.
 
 The box-blurred indicator of an ellipse is exact and cheap: along the line through a
 pixel in the motion direction the ellipse occupies a chord [s1, s2] (a quadratic's
@@ -176,7 +177,6 @@ class _Problem:
         self.noise = max(float(noise), 0.5)
         self.scale = float(np.mean([np.sqrt(1 / np.sqrt(np.linalg.det(Q))) for _, Q in self.cqs]))  # ~ sqrt(radius)
         self.k = len(self.cqs)
-        self._cache = None
 
     def pixels(self, reach, stride=1, motion=None):
         """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
@@ -219,7 +219,6 @@ class _Problem:
         span = max(x1 - x0, y1 - y0) / 2
         self.xs, self.ys = (self.x - ctr[0]) / span, (self.y - ctr[1]) / span
         self.w = np.ones(len(self.v))
-        self._cache = None
         return len(self.v) >= 50 * self.k
 
     def start(self):
@@ -237,9 +236,7 @@ class _Problem:
         return rings, p[-3], np.exp(p[-2]), np.exp(p[-1])
 
     def evaluate(self, p, jac=False):
-        key = p.tobytes()
-        if self._cache is not None and self._cache[0] == key and (self._cache[1][2] is not None or not jac):
-            return self._cache[1]
+        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None)."""
         rings, theta, L, sigma = self.unpack(p)
         R = np.zeros(len(self.v))
         cols = []
@@ -266,15 +263,10 @@ class _Problem:
             wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
             Jm = np.column_stack(cols + [shared]) * wgt[:, None]
             Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
-        out = (res, beta, Jr)
-        self._cache = (key, out)
-        return out
+        return res, beta, Jr
 
     def residual(self, p):
         return self.evaluate(p)[0]
-
-    def jacobian(self, p):
-        return self.evaluate(p, True)[2]
 
 
 def _robust_lm(prob, p, conf):
@@ -289,7 +281,6 @@ def _robust_lm(prob, p, conf):
     lam, nfev = 1e-3, 1
     for _ in range(conf["max_iter"]):
         prob.w = 1 / (1 + r * r / f2)
-        prob._cache = None
         r, _, J = prob.evaluate(p, jac=True)
         E = float(prob.w @ (r * r))
         Jw = J * prob.w[:, None]
@@ -332,7 +323,8 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         conf: overrides of :data:`default_conf`.
     Returns:
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
-        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas), ``nfev``; or None when
+        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas), ``contrast`` (ring
+        level minus paper level at the marker's middle, grey levels), ``nfev``; or None when
         too few pixels are usable or the fit fails.
     """
     c = dict(default_conf)

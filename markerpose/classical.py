@@ -914,8 +914,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     ring has an ellipse and either the widest edge-refined outer edge (75th percentile
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
     semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
-    a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too; a centre that moves farther than
-    conf["blur_fit_max_move"] px keeps the edge fit (all or none). With a camera the
+    a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too; a centre
+    that moves farther than conf["blur_fit_max_move"] px keeps the edge fit (all or none). With a camera the
     edge fit's distortion correction (the shift from the distorted-image ellipse's
     centre to the undistorted one's) carries over.
 
