@@ -25,6 +25,35 @@ def test_end_to_end_counts_detections_and_errors():
     assert "standard" in endtoend.report(res) and "| tilt " in endtoend.report(res)
 
 
+def test_marker_free_set_counts_false_poses_and_detections():
+    import numpy as np
+
+    from markerpose.camera import StereoRig
+    from markerpose.marker import Marker
+
+    rig, marker = StereoRig.default(), Marker()
+    frames = [f for f, _ in endtoend.pairs("marker_free", 2, rig, marker)]
+    assert not any(v.in_image.any() for f in frames for v in f.views)  # no ring of the marker in view
+    assert all(f.images[0].std() > 10 and not np.array_equal(f.images[0], f.images[1]) for f in frames)  # clutter, per view
+
+    class Claims:  # a tracker that always claims the marker
+        def estimate(self, left, right):
+            return object()
+
+        def detect(self, image, view=0):
+            return object() if view == 0 else None
+
+    r = endtoend.evaluate_marker_free(Claims(), frames[0], single_view=True)
+    assert r == {"false_pose": True, "false_views": 1}
+    s = endtoend.summarize_marker_free([r, {"false_pose": False, "false_views": 0}])
+    assert s == {"pairs": 2, "false_poses": 0.5, "single_views": 4, "single_view_false": 0.25}
+
+    res = endtoend.main({"pairs": 2, "sets": ("marker_free",), "configs": ["classical + sub-pixel + bias + rigid"], "single_view": True}, progress=False)
+    s = res["sets"]["marker_free"]["classical + sub-pixel + bias + rigid"]
+    assert s["pairs"] == 2 and s["false_poses"] == 0.0 and s["single_views"] == 4
+    assert "false poses" in endtoend.report(res)
+
+
 def test_confidence_intervals():
     import math
 

@@ -26,11 +26,12 @@ from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, look_at_pose, render_stereo
 from .configs import available
+from .endtoend import marker_free_pairs
 
 default_conf = {
     "pairs": 8,
     "blurred_pairs": 4,  # pairs with 25 px of motion blur (timed apart)
-    "empty_pairs": 4,  # marker-free pairs (the marker out of both views, clutter only)
+    "empty_pairs": 4,  # marker-free pairs (the marker out of both views, clutter with ring distractors)
     "repeats": 3,  # passes over the pairs (the first pass also warms up)
     "seed": 0,
     "threads": None,  # torch threads (None: torch's default, all cores)
@@ -51,14 +52,6 @@ def _pairs(n: int, seed: int, blur: float = 0.0):
     return rig, marker, frames
 
 
-def _empty_pairs(n: int, seed: int, rig: StereoRig, marker: Marker) -> list:
-    """Marker-free pairs: cluttered views with the marker far outside both."""
-    rng = np.random.default_rng(seed + 1)
-    T = np.eye(4)
-    T[:3, 3] = [0.0, 3000.0, 1000.0]  # ~70° above both cameras' axes, in front of them
-    return [render_stereo(rig, T, marker, Imaging(alpha=rng.uniform(0.5, 1.0)), seed=rng) for _ in range(n)]
-
-
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
     """Run the benchmark; returns (and optionally writes as JSON) the figures."""
     c = {**default_conf, **(conf or {})}
@@ -68,7 +61,9 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         torch.set_num_threads(int(c["threads"]))
     rig, marker, frames = _pairs(c["pairs"], c["seed"])
     blurred = _pairs(c["blurred_pairs"], c["seed"] + 2, blur=25.0)[2]
-    empty = _empty_pairs(c["empty_pairs"], c["seed"], rig, marker)
+    # Marker-free pairs: each view's clutter with ring distractors, the marker out of view.
+    spec = {"alpha": (0.5, 1.0), "blur": 0.0}
+    empty = [f for f, _ in marker_free_pairs(spec, c["empty_pairs"], rig, marker, np.random.default_rng(c["seed"] + 1))]
     configs = available(c["configs"])
     trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
     times = {name: [] for name in trackers}

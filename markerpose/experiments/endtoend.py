@@ -3,7 +3,10 @@
 Held-out pairs of the default rig (seeded, never trained on) with the marker anywhere in
 the working volume (350-800 mm, tilt up to 60°, any in-plane rotation, all three rings in
 both views), under standard conditions (gain α in [0.25, 1], motion blur ≤ 9 px), in the
-dark (α = 0.0625) and with 25 px motion blur. Every configuration runs on the same pairs.
+dark (α = 0.0625) and with 25 px motion blur; and marker-free pairs (clutter with many
+single rings and dark disks, the marker out of both views), where any pose — and, with
+``single_view``, any detection in a view — is a false positive. Every configuration runs
+on the same pairs.
 
 A pair is *detected* when all six centres (three per view) lie within ``tolerance_px``
 of the ground truth with the right IDs; a failure counts as a failure (error = inf),
@@ -24,18 +27,19 @@ from ..camera import StereoRig
 from ..geometry import rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
-from ..synth import Imaging, look_at_pose, render_stereo
+from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
 from .configs import available
 
 SETS = {
     "standard": {"seed": 3001, "alpha": (0.25, 1.0), "blur": (0.0, 9.0)},
     "dark_0.0625": {"seed": 3002, "alpha": 0.0625, "blur": (0.0, 9.0)},
     "blur_25": {"seed": 3003, "alpha": (0.25, 1.0), "blur": 25.0},
+    "marker_free": {"seed": 3004, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "marker_free": True},
 }
 
 default_conf = {
     "pairs": 200,  # per set
-    "sets": ("standard", "dark_0.0625", "blur_25"),
+    "sets": ("standard", "dark_0.0625", "blur_25", "marker_free"),
     "configs": None,  # None: all available
     "tolerance_px": 3.0,
     "single_view": False,  # also each view alone (MarkerPose.detect)
@@ -56,6 +60,9 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
     volume: ``spec`` gives the ``seed`` (anything ``default_rng`` takes) and the ``alpha``
     and ``blur`` (a value or a (lo, hi) range)."""
     rng = np.random.default_rng(spec["seed"])
+    if spec.get("marker_free"):
+        yield from marker_free_pairs(spec, n, rig, marker, rng)
+        return
     made = 0
     while made < n:
         z = rng.uniform(350, 800)
@@ -72,6 +79,30 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
             continue
         made += 1
         yield frame, {"distance": float(T[2, 3]), "tilt": float(tilt), "alpha": alpha, "blur": blur, "blur_angle": float(angle)}
+
+
+def marker_free_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker, rng: np.random.Generator):
+    """Yield (frame, conditions) for ``n`` pairs without the marker: each view's own clutter
+    with 3-10 ring distractors (single rings with the marker's inner/outer ratio, dark
+    disks) and the marker far outside both views; ``spec`` gives ``alpha`` and ``blur``."""
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 3000.0, 1000.0]  # ~70° above both cameras' axes, in front of them
+    ratio = marker.inner_radius / marker.outer_radius
+    for _ in range(n):
+        bgs = tuple(clutter_background(cam.image_size, rng, ring_distractors=int(rng.integers(3, 11)), ring_ratio=ratio) for cam in rig.cameras)
+        alpha, blur = _draw(rng, spec["alpha"]), _draw(rng, spec["blur"])
+        angle = rng.uniform(0, 180)
+        frame = render_stereo(rig, T, marker, Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle), bgs, seed=rng)
+        yield frame, {"alpha": alpha, "blur": blur, "blur_angle": float(angle)}
+
+
+def evaluate_marker_free(tracker: MarkerPose, frame, single_view: bool) -> dict:
+    """One tracker on a marker-free pair: whether it returns a pose (a false pose) and, with
+    ``single_view``, how many views :meth:`MarkerPose.detect` claims the marker in."""
+    out = {"false_pose": tracker.estimate(*frame.images) is not None}
+    if single_view:
+        out["false_views"] = sum(tracker.detect(image, view=k) is not None for k, image in enumerate(frame.images))
+    return out
 
 
 def evaluate_pair(tracker: MarkerPose, frame, tol: float) -> dict:
@@ -157,14 +188,21 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         rows = {name: [] for name in trackers}
         views = {name: [] for name in trackers}
         conds = []
+        free = SETS[set_name].get("marker_free", False)
         for frame, cond in tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress):
             conds.append(cond)
             for name, tr in trackers.items():
+                if free:
+                    rows[name].append(evaluate_marker_free(tr, frame, c["single_view"]))
+                    continue
                 rows[name].append(evaluate_pair(tr, frame, c["tolerance_px"]))
                 if c["single_view"]:
                     views[name] += evaluate_views(tr, frame, c["tolerance_px"])
         out_set = {}
         for name in trackers:
+            if free:
+                out_set[name] = summarize_marker_free(rows[name])
+                continue
             s = summarize(rows[name])
             s["by_condition"] = by_condition(rows[name], conds)
             if views[name]:
@@ -175,6 +213,15 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     if out:
         Path(out).write_text(json.dumps(res, indent=1))
     return res
+
+
+def summarize_marker_free(rows: list[dict]) -> dict:
+    """Fraction of marker-free pairs given a pose and, when measured, of views given a detection."""
+    s = {"pairs": len(rows), "false_poses": float(np.mean([r["false_pose"] for r in rows]))}
+    if rows and "false_views" in rows[0]:
+        s["single_views"] = 2 * len(rows)
+        s["single_view_false"] = float(sum(r["false_views"] for r in rows) / (2 * len(rows)))
+    return s
 
 
 def by_condition(rows, conds) -> list[dict]:
@@ -194,6 +241,20 @@ def report(res: dict) -> str:
     """Markdown tables of :func:`main`'s result."""
     lines = []
     for set_name, per in res["sets"].items():
+        first = next(iter(per.values()))
+        if "false_poses" in first:
+            views = "single_view_false" in first
+            lines += [
+                f"**{set_name}** ({first['pairs']} pairs without the marker; any output is a false positive)",
+                "",
+                "| configuration | false poses (pairs) |" + (f" false detections (`MarkerPose.detect`, {first['single_views']} views) |" if views else ""),
+                "|---|---|" + ("---|" if views else ""),
+            ]
+            for name, s in per.items():
+                cells = f"{100 * s['false_poses']:.2f} %" + (f" | {100 * s['single_view_false']:.2f} %" if views else "")
+                lines.append(f"| {name} | {cells} |")
+            lines.append("")
+            continue
         lines += [
             f"**{set_name}** ({next(iter(per.values()))['pairs']} pairs; detected = all six centres within {res['conf']['tolerance_px']:g} px, right IDs)",
             "",
@@ -229,4 +290,7 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["SETS", "by_condition", "default_conf", "evaluate_pair", "evaluate_views", "main", "pairs", "random_pairs", "report", "summarize"]
+__all__ = [
+    "SETS", "by_condition", "default_conf", "evaluate_marker_free", "evaluate_pair", "evaluate_views", "main",
+    "marker_free_pairs", "pairs", "random_pairs", "report", "summarize", "summarize_marker_free",
+]
