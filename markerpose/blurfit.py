@@ -237,6 +237,8 @@ class _Problem:
 
     def evaluate(self, p, jac=False):
         """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None)."""
+        if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
+            raise ValueError("blur length or sigma out of range")
         rings, theta, L, sigma = self.unpack(p)
         R = np.zeros(len(self.v))
         cols = []

@@ -142,8 +142,6 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
     model = np.asarray(model, np.float64)
     xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
     n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
-    t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
-    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
     conics = [None if e is None else ellipse_to_conic(*e) for e in (ellipses or [])]
     poses = []
     for rv, tv in zip(rvecs[:n], tvecs[:n]):
@@ -152,10 +150,10 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
         if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
             continue  # degenerate, or behind the camera
         misfit = []
-        for k, C in enumerate(conics):
+        edges = ring_edges(camera, T, model, radius) if conics else []
+        for C, edge in zip(conics, edges):
             if C is None:
                 continue
-            edge = camera.project((model[k] + circle) @ T[:3, :3].T + T[:3, 3])
             h = np.column_stack([edge, np.ones(len(edge))])
             lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
             misfit.append(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
@@ -166,7 +164,23 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
     return poses
 
 
-def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_poses: int = 2) -> list[np.ndarray]:
+def ring_edges(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float, n: int = 24) -> np.ndarray:
+    """(3, n, 2) distorted pixels of ``n`` points on each ring's outer circle in a view
+    where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm)."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
+    T = np.asarray(T_cam_marker, np.float64)
+    pts = (np.asarray(model, np.float64)[:, None, :] + circle[None]).reshape(-1, 3)
+    return camera.project(pts @ T[:3, :3].T + T[:3, 3]).reshape(len(model), n, 2)
+
+
+def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float) -> list:
+    """The rings' outer ellipses (OpenCV RotatedRects) in a view where the marker has pose
+    ``T_cam_marker``: ellipses fitted to the projected circles (lens distortion included)."""
+    return [cv2.fitEllipse(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]
+
+
+def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_poses: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
     """Where the marker's rings lie in the other view, from its poses in ``view``.
 
     Args:
@@ -176,20 +190,22 @@ def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_pose
         model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
         max_poses: how many poses to use.
     Returns:
-        up to ``max_poses`` arrays (3, 2): c0, c1, c2 predicted in the other view, best first.
+        up to ``max_poses`` of (points (3, 2): c0, c1, c2 predicted in the other view,
+        T_other_marker (4, 4): the pose there), best first.
     """
     to_left = np.eye(4) if view == 0 else np.linalg.inv(rig.T_right_left)
+    to_other = rig.T_right_left if view == 0 else to_left
     out = []
     for _, T in poses:
         Xl = (np.asarray(model, np.float64) @ T[:3, :3].T + T[:3, 3]) @ to_left[:3, :3].T + to_left[:3, 3]
-        if np.any(rig.to_right(Xl)[:, 2] <= 0):
+        if np.any(rig.to_right(Xl)[:, 2] <= 0) or np.any(Xl[:, 2] <= 0):
             continue
         pred = rig.project(Xl)[1 - view]
         if np.isfinite(pred).all():
-            out.append(pred)
+            out.append((pred, to_other @ T))
         if len(out) == max_poses:
             break
     return out
 
 
-__all__ = ["side_lengths", "stereo_triples", "transfer", "view_poses", "view_triples"]
+__all__ = ["ring_edges", "ring_ellipses", "side_lengths", "stereo_triples", "transfer", "view_poses", "view_triples"]

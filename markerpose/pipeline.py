@@ -18,7 +18,7 @@ from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
 from .keypoints import ID_MODES
 from .marker import Marker
-from .matching import stereo_triples, transfer, view_poses, view_triples
+from .matching import ring_ellipses, stereo_triples, transfer, view_poses, view_triples
 from .results import Detection, Estimate
 
 DETECTORS = ("classical", "neural")
@@ -57,6 +57,7 @@ default_conf = {
     "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
     "transfer_shape_tol": 0.6,
     "transfer_attempts": 2,  # ... and how many loose triples are tried
+    "transfer_sources": 4,  # transfer: one view's triples refined and carried over, at most
     "view_triples": 4,  # single view (detect) and transfer: layout triples tried per view
     "plate_tol": 0.05,  # single view (detect) and transfer: largest misfit of the refined rings'
     #                     ellipses to one pose of the marker (relative radius; true markers
@@ -351,8 +352,11 @@ class MarkerPose:
         never have one, so they cost nothing here): one view's triple — a side of a loosely
         matched triple, or the view's best triple by the marker's 2D layout — is refined;
         if its three rings refine, its pose (:func:`~markerpose.matching.transfer`) says
-        where the rings are in the other view, where they are refined and checked like any
-        matched triple."""
+        where the rings are in the other view and what ellipses they make there; their
+        edges are fitted from those ellipses (or, failing that, the rings are refined at the
+        predicted centres) and checked like any matched triple."""
+        from . import classical
+
         m = self.marker
         loose = stereo_triples(
             self.rig, cand[0], cand[1], m.points3d, self.conf["transfer_epipolar_tol"],
@@ -367,20 +371,35 @@ class MarkerPose:
         for a, pts, s in sources:
             if any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2 in seen):
                 continue
+            if len(seen) == self.conf["transfer_sources"]:
+                break
             seen.append((a, pts))
             b = 1 - a
             t = time.perf_counter()
             det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
             poses = self._plate_poses(det_a, cameras[a])
-            for pred in transfer(self.rig, a, poses, m.points3d):
+            for pred, T_b in transfer(self.rig, a, poses, m.points3d):
+                # The pose predicts the rings' ellipses in the other view to within a pixel
+                # or so: their edges are fitted from there (the classical ring fit, with the
+                # blur model where the edges are smeared), and only if that fails is the
+                # usual refinement run at the predicted centres — where a steep, blurred
+                # view can lead it to a neighbouring ring.
                 t = time.perf_counter()
-                det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
-                t1 = time.perf_counter()
-                self.timings["refine"] += t1 - t
-                est = self._accepted([det_a, det_b] if a == 0 else [det_b, det_a], t0, t1)
-                if est is not None:
-                    return est
+                predicted = ring_ellipses(cameras[b], T_b, m.points3d, m.outer_radius)
+                centers, ok, ellipses = classical.refine_ellipses(grays[b], predicted, m, self._classical, camera=cameras[b])
+                guided = Detection(centers=centers, ellipses=ellipses, score=s, refined=ok)
+                self.timings["refine"] += time.perf_counter() - t
+                candidates = [guided] if ok.all() else []
+                candidates.append(None)  # then the usual refinement at the predicted centres
+                for det_b in candidates:
+                    if det_b is None:
+                        t = time.perf_counter()
+                        det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
+                        self.timings["refine"] += time.perf_counter() - t
+                    est = self._accepted([det_a, det_b] if a == 0 else [det_b, det_a], t0, time.perf_counter())
+                    if est is not None:
+                        return est
         return None
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:

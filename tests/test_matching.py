@@ -6,7 +6,7 @@ import pytest
 import markerpose as mp
 from markerpose.classical import refine_points
 from markerpose.geometry import rotation_angle
-from markerpose.matching import side_lengths, stereo_triples, transfer, view_poses, view_triples
+from markerpose.matching import ring_ellipses, side_lengths, stereo_triples, transfer, view_poses, view_triples
 from markerpose.synth import look_at_pose
 
 
@@ -101,11 +101,17 @@ def test_transfer_puts_the_rings_where_the_other_view_sees_them(rig, view, seed)
     true = _project(rig, T, m.points3d)
     preds = transfer(rig, view, view_poses(rig.cameras[view], true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius), m.points3d)
     assert 1 <= len(preds) <= 2
-    # The ellipses' shapes pick the right one of P3P's poses: it comes first.
-    np.testing.assert_allclose(preds[0], true[1 - view], atol=0.05)
+    # The ellipses' shapes pick the right one of P3P's poses: it comes first, with the
+    # marker's pose in the other view and so its rings' ellipses there.
+    np.testing.assert_allclose(preds[0][0], true[1 - view], atol=0.05)
+    T_other = T if view == 1 else rig.T_right_left @ T
+    np.testing.assert_allclose(preds[0][1][:3, 3], T_other[:3, 3], atol=0.05)
+    for (c, ax, ang), (c2, ax2, ang2) in zip(ring_ellipses(rig.cameras[1 - view], preds[0][1], m.points3d, m.outer_radius), _ellipses(rig, T, m, 1 - view)):
+        np.testing.assert_allclose(c, c2, atol=0.05)
+        np.testing.assert_allclose(sorted(ax), sorted(ax2), atol=0.1)
     # Without ellipses the right pose is still among P3P's solutions.
     preds = transfer(rig, view, view_poses(rig.cameras[view], true[view], None, m.points3d, m.outer_radius), m.points3d, max_poses=4)
-    assert min(np.abs(p - true[1 - view]).max() for p in preds) < 0.05
+    assert min(np.abs(p - true[1 - view]).max() for p, _ in preds) < 0.05
 
 
 def test_view_triples_names_the_marker_by_its_layout(rig):
@@ -131,8 +137,8 @@ def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):
     for pts in ([[100, 100], [200, 200], [300, 300]], [[100, 100]] * 3, [[600, 500], [601, 500], [600, 501]]):
         for view in (0, 1):
             poses = view_poses(rig.cameras[view], np.array(pts, float), None, m.points3d, m.outer_radius)
-            for p in transfer(rig, view, poses, m.points3d, max_poses=4):
-                assert p.shape == (3, 2) and np.isfinite(p).all()
+            for p, T in transfer(rig, view, poses, m.points3d, max_poses=4):
+                assert p.shape == (3, 2) and np.isfinite(p).all() and T.shape == (4, 4)
     with pytest.raises(ValueError, match="finite"):
         refine_points(np.zeros((64, 64), np.uint8), np.full((3, 2), np.nan), m)
 
