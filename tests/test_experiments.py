@@ -18,7 +18,7 @@ def test_bench_runs_and_reports_every_configuration():
 def test_end_to_end_counts_detections_and_errors():
     res = endtoend.main({"pairs": 2, "sets": ("standard",), "configs": ["classical + sub-pixel + bias + rigid"], "single_view": True}, progress=False)
     s = res["sets"]["standard"]["classical + sub-pixel + bias + rigid"]
-    assert s["pairs"] == 2 and s["detected"] == 1.0
+    assert s["pairs"] == 2 and s["detected"] == 1.0 and s["returned_wrong"] == 0.0
     assert s["single_views"] == 4 and s["single_view_detected"] == 1.0
     assert "Each view alone" in endtoend.report(res)
     assert s["center_median_px"] < 0.1 and s["t_median_mm"] < 0.05
@@ -52,6 +52,16 @@ def test_marker_free_set_counts_false_poses_and_detections():
     s = res["sets"]["marker_free"]["classical + sub-pixel + bias + rigid"]
     assert s["pairs"] == 2 and s["false_poses"] == 0.0 and s["single_views"] == 4
     assert "false poses" in endtoend.report(res)
+
+
+def test_a_pose_returned_with_a_centre_off_counts_as_wrong_not_just_missed():
+    import numpy as np
+
+    ok = {"detected": True, "err": np.full(6, 0.01), "err3d": np.full(6, 0.01), "t_mm": 0.01, "r_deg": 0.01}
+    off = {"detected": False, "err": np.array([0.01] * 5 + [3.4]), "err3d": np.full(6, 0.5), "t_mm": 2.3, "r_deg": 6.7}
+    none = {"detected": False, "err": np.full(6, np.inf), "err3d": np.full(6, np.inf), "t_mm": np.inf, "r_deg": np.inf}
+    s = endtoend.summarize([ok, off, none, ok])
+    assert s["detected"] == 0.5 and s["returned_wrong"] == 0.25
 
 
 def test_confidence_intervals():

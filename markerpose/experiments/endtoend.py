@@ -158,9 +158,12 @@ def summarize(rows: list[dict]) -> dict:
     def pct(x, q):
         return float(np.percentile(x, q, method="higher"))
 
+    returned = np.array([np.isfinite(r["err"]).all() for r in rows])
     return {
         "pairs": len(rows),
         "detected": float(det.mean()),
+        # A pose returned although a centre is beyond the tolerance: a wrong pose, not a miss.
+        "returned_wrong": float(np.mean(returned & ~det)),
         "center_median_px": pct(err, 50),
         "center_p95_px": pct(err, 95),
         "center3d_median_px": pct(err3d, 50),
@@ -267,6 +270,9 @@ def report(res: dict) -> str:
                 f"{s['center3d_median_px']:.3f} / {s['center3d_p95_px']:.3f} | {s['t_median_mm']:.4f} / {s['t_p95_mm']:.4f} | "
                 f"{s['r_median_deg']:.4f} / {s['r_p95_deg']:.4f} |"
             )
+        if any("returned_wrong" in s for s in per.values()):
+            lines += ["", "Returned although a centre is beyond the tolerance (wrong poses, counted as not detected): "
+                      + "; ".join(f"{name} {100 * s['returned_wrong']:.2f} %" for name, s in per.items() if "returned_wrong" in s)]
         if any("single_view_detected" in s for s in per.values()):
             lines += ["", f"Each view alone (`MarkerPose.detect`, {next(iter(per.values()))['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
                       + "; ".join(f"{name} {100 * s['single_view_detected']:.2f} %" for name, s in per.items())]
