@@ -379,6 +379,10 @@ class MarkerPose:
             det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
             poses = self._plate_poses(det_a, cameras[a])
+
+            def ordered(det_b):  # (left, right), used within this iteration only
+                return [det_a, det_b] if a == 0 else [det_b, det_a]
+
             for pred, T_b in transfer(self.rig, a, poses, m.points3d):
                 # The pose predicts the rings' ellipses in the other view to within a pixel
                 # or so: their edges are fitted from there (the classical ring fit, with the
@@ -388,18 +392,19 @@ class MarkerPose:
                 t = time.perf_counter()
                 predicted = ring_ellipses(cameras[b], T_b, m.points3d, m.outer_radius)
                 centers, ok, ellipses = classical.refine_ellipses(grays[b], predicted, m, self._classical, camera=cameras[b])
-                guided = Detection(centers=centers, ellipses=ellipses, score=s, refined=ok)
                 self.timings["refine"] += time.perf_counter() - t
-                candidates = [guided] if ok.all() else []
-                candidates.append(None)  # then the usual refinement at the predicted centres
-                for det_b in candidates:
-                    if det_b is None:
-                        t = time.perf_counter()
-                        det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
-                        self.timings["refine"] += time.perf_counter() - t
-                    est = self._accepted([det_a, det_b] if a == 0 else [det_b, det_a], t0, time.perf_counter())
+                if ok.all():
+                    guided = Detection(centers=centers, ellipses=ellipses, score=s, refined=ok)
+                    est = self._accepted(ordered(guided), t0, time.perf_counter())
                     if est is not None:
                         return est
+                t = time.perf_counter()
+                det_b = self._refine([grays[b]], [cameras[b]], [(pred, s)])[0]
+                t1 = time.perf_counter()
+                self.timings["refine"] += t1 - t
+                est = self._accepted(ordered(det_b), t0, t1)
+                if est is not None:
+                    return est
         return None
 
     def estimate_from_detections(self, det_left: Detection, det_right: Detection) -> Estimate:

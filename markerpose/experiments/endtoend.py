@@ -259,7 +259,7 @@ def report(res: dict) -> str:
             lines.append("")
             continue
         lines += [
-            f"**{set_name}** ({next(iter(per.values()))['pairs']} pairs; detected = all six centres within {res['conf']['tolerance_px']:g} px, right IDs)",
+            f"**{set_name}** ({first['pairs']} pairs; detected = all six centres within {res['conf']['tolerance_px']:g} px, right IDs)",
             "",
             "| configuration | detected | centre median / p95 (px, vs ellipse centre) | vs projected 3D centre | translation median / p95 (mm) | rotation median / p95 (°) |",
             "|---|---|---|---|---|---|",
@@ -274,12 +274,12 @@ def report(res: dict) -> str:
             lines += ["", "Returned although a centre is beyond the tolerance (wrong poses, counted as not detected): "
                       + "; ".join(f"{name} {100 * s['returned_wrong']:.2f} %" for name, s in per.items() if "returned_wrong" in s)]
         if any("single_view_detected" in s for s in per.values()):
-            lines += ["", f"Each view alone (`MarkerPose.detect`, {next(iter(per.values()))['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
+            lines += ["", f"Each view alone (`MarkerPose.detect`, {first['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
                       + "; ".join(f"{name} {100 * s['single_view_detected']:.2f} %" for name, s in per.items())]
         lines.append("")
         # By distance and tilt: detection; centre median vs the ellipse centre / vs the
         # projected 3D centre (they differ by the perspective bias, which grows with tilt).
-        bins = [b["bin"] for b in next(iter(per.values()))["by_condition"]]
+        bins = [b["bin"] for b in first["by_condition"]]
         lines += [
             f"*{set_name} by distance (mm) and tilt (°)*: detected; centre median px vs ellipse centre / vs projected 3D centre",
             "",
@@ -291,7 +291,7 @@ def report(res: dict) -> str:
             for s in per.values():
                 c = s["by_condition"][k]
                 cells.append(f"{100 * c['detected']:.1f} %; {c['center_median_px']:.3f} / {c['center3d_median_px']:.3f}")
-            lines.append(f"| {b} | {next(iter(per.values()))['by_condition'][k]['pairs']} | " + " | ".join(cells) + " |")
+            lines.append(f"| {b} | {first['by_condition'][k]['pairs']} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 
