@@ -196,6 +196,8 @@ def cmd_eval_keypoints(args):
         "layout": "marker layout (ours)",
         "head_stereo": "ID head, stereo thresholds",
         "layout_stereo": "marker layout, stereo thresholds",
+        "layout_verify": "marker layout + ring evidence (ours)",
+        "layout_verify_stereo": "marker layout + ring evidence, stereo thresholds",
     }
     print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
     print("|---|---|---|---|---|---|---|---|---|")

@@ -49,6 +49,10 @@ default_conf = {
     "ids": "layout",
     "min_ratio": 0.35,  # layout: minimum singular-value ratio (cos 60° = 0.5, less perspective)
     "id_weight": 0.25,  # layout: exponent of the ID head's probabilities in the score
+    # Ours: weigh every triple by how much the image around it looks like the printed
+    # marker (ring_evidence: dark bands on one white plate, paper-white inside the rings);
+    # decoys that merely sit in a marker-like triangle do not. Needs the image.
+    "verify": False,
 }
 
 
@@ -202,18 +206,107 @@ def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
     return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
 
 
-_LAYOUT = Marker().centers2d  # the default marker's ring centres, mm
+_MARKER = Marker()  # the default marker
 
 
-def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, layout: np.ndarray | None = None):
+def _evidence_points(marker: Marker) -> dict:
+    """Where :func:`ring_evidence` looks, in the marker's frame (mm): per ring, circles of
+    16 points inside the white centre, across the black band and just outside the ring;
+    and a grid on the plate away from every ring (plate white)."""
+    R, r = marker.outer_radius, marker.inner_radius
+    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    unit = np.stack([np.cos(ang), np.sin(ang)], 1)
+    c = marker.centers2d
+
+    def circles(*radii):  # (3, 16 * len(radii), 2)
+        return np.concatenate([c[:, None, :] + rho * unit[None] for rho in radii], 1)
+
+    x0, y0, x1, y1 = marker.plate
+    inset, step = 0.4 * R, 0.4 * R
+    gx, gy = np.meshgrid(np.arange(x0 + inset, x1 - inset + 1e-9, step), np.arange(y0 + inset, y1 - inset + 1e-9, step))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    far = np.min(np.linalg.norm(grid[:, None] - c[None], axis=2), axis=1) >= 1.4 * R
+    return {
+        "inner": np.concatenate([c[:, None, :], circles(0.35 * r)], 1),
+        "band": circles(r + 0.3 * (R - r), r + 0.7 * (R - r)),
+        "outside": circles(1.3 * R),
+        "plate": grid[far],
+    }
+
+
+_EVIDENCE = {}  # marker → its evidence points (computed once per marker geometry)
+
+
+def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None) -> np.ndarray:
+    """How much the image around each triple of ring centres looks like the printed marker.
+
+    Each triple (c0, c1, c2) fixes the affine map from the marker's layout to the image
+    (near enough to the perspective one over a marker), so the image is sampled where the
+    marker would be: the plate away from the rings, each ring's black band, its white
+    centre and the plate just outside it. The marker shows black bands on one evenly lit
+    white plate, and paper of the plate's brightness inside and around every ring; three
+    ring-like things that merely lie in a marker-like triangle (decoys, clutter) fail some
+    of these. The product of four factors, each in [0, 1]:
+
+    - band contrast: sqrt of the smallest ring's (plate - band) / plate and
+      (outside - band) / outside;
+    - plate evenness: 1 - (10th-90th percentile spread of the plate) / plate;
+    - no ring brighter inside than the plate: 1 - 2 max((centre - plate) / plate);
+    - the plate's level right outside every ring: 1 - max |outside - plate| / plate.
+
+    Args:
+        image: (H, W) float32 in [0, 1] (the network input, or any resolution the
+            triples are in).
+        triples: (T, 3, 2) ring centres c0, c1, c2 in that image's pixels.
+        marker: the marker's geometry (default: the default marker).
+    Returns:
+        (T,) evidence in [0, 1].
+    """
+    marker = marker or _MARKER
+    key = (tuple(marker.centers2d.ravel()), marker.outer_radius, marker.inner_radius, marker.plate)
+    if key not in _EVIDENCE:
+        _EVIDENCE[key] = _evidence_points(marker)
+    zones = _EVIDENCE[key]
+    P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
+    L = marker.centers2d
+    A = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 2) @ np.linalg.inv(np.column_stack([L[1] - L[0], L[2] - L[0]]))
+    t = P[:, 0] - A @ L[0]
+    img = np.ascontiguousarray(image, np.float32)
+
+    def sample(pts):  # pts (..., 2) mm → (T, ...) image values
+        q = np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,))
+        flat = q.reshape(len(P), -1, 2).astype(np.float32)
+        v = cv2.remap(img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return v.reshape(q.shape[:-1])
+
+    eps = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
+    plate_px = sample(zones["plate"])  # (T, K)
+    plate = np.median(plate_px, axis=1)[:, None]
+    band = np.median(sample(zones["band"]), axis=2)  # (T, 3)
+    inner = np.median(sample(zones["inner"]), axis=2)
+    outside = np.median(sample(zones["outside"]), axis=2)
+    lo, hi = np.percentile(plate_px, [10, 90], axis=1)
+    contrast = np.minimum((plate - band) / (plate + eps), (outside - band) / (outside + eps)).min(1)
+    factors = [
+        np.sqrt(np.clip(contrast, 0, 1)),
+        1 - (hi - lo) / (plate[:, 0] + eps),
+        1 - 2 * np.clip((inner - plate) / (plate + eps), 0, None).max(1),
+        1 - (np.abs(outside - plate) / (plate + eps)).max(1),
+    ]
+    return np.prod([np.clip(f, 0, 1) for f in factors], axis=0)
+
+
+def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, marker: Marker | None = None,
+           image: np.ndarray | None = None):
     """The three ring centres and their IDs from the two heads of one image.
 
     Args:
         det_logits: (65, Hc, Wc) detector-head logits.
         id_logits: (4, Hc, Wc) ID-head logits.
         conf: overrides of :data:`default_conf`.
-        layout: (3, 2) the marker's ring centres in mm (``Marker.centers2d``); used by
-            ``ids="layout"`` (default: the default marker's).
+        marker: the marker's geometry, for ``ids="layout"`` and ``verify`` (default: the
+            default marker).
+        image: (H, W) float32 in [0, 1], the network's input: needed by ``verify``.
     Returns:
         (points (3, 2) in network-input pixels ordered by ID, score) or None when no
         consistent triple is found.
@@ -224,17 +317,21 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     handedness (c0 → c1 → c2 turns the same way in every real image). A collision (two
     points claiming the same ID) is thereby repaired by the second-best assignment, and
     a triple that no assignment makes consistent is rejected. With ``ids="layout"`` the
-    marker's shape chooses the order instead (see :data:`default_conf`).
+    marker's shape chooses the order instead (see :data:`default_conf`). With ``verify``
+    every allowed (triple, order) is then weighed by :func:`ring_evidence`.
     """
     c = {**default_conf, **(conf or {})}
     if c["ids"] not in ID_MODES:
         raise ValueError(f"ids must be one of {ID_MODES}, got {c['ids']!r}")
-    layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
+    if c["verify"] and image is None:
+        raise ValueError("decoding with verify=True needs the image")
+    marker = marker or _MARKER
+    layout = marker.centers2d
     cand, prob = candidates(det_logits, id_logits, c["threshold"], c["max_candidates"], c["nms_radius"])
     if len(cand) < 3:
         return None
     pts = cand[:, :2]
-    best = None
+    allowed: list[tuple[np.ndarray, float]] = []
     for trio in itertools.combinations(range(len(cand)), 3):
         for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
             p_id = prob[list(perm), [0, 1, 2]]
@@ -250,11 +347,16 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
                 if r < c["min_ratio"]:
                     continue
                 s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3) * r)
-            if best is None or s > best[1]:
-                best = (p, s)
-    if best is None or best[1] < c["min_score"]:
+            allowed.append((p, s))
+    if not allowed:
         return None
-    return best
+    scores = np.array([s for _, s in allowed])
+    if c["verify"]:
+        scores = scores * ring_evidence(image, np.stack([p for p, _ in allowed]), marker)
+    k = int(np.argmax(scores))
+    if scores[k] < c["min_score"]:
+        return None
+    return allowed[k][0], float(scores[k])
 
 
 def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
@@ -276,6 +378,12 @@ def to_full(points: np.ndarray, scale: np.ndarray) -> np.ndarray:
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 
 
+def tuned_key(ids: str, verify: bool = False, stereo: bool = False) -> str:
+    """Name of a set of decoding thresholds tuned at export: the ID mode, ``_verify`` and
+    ``_stereo`` (the operating point for views of a stereo pair)."""
+    return ids + ("_verify" if verify else "") + ("_stereo" if stereo else "")
+
+
 class KeypointNet:
     """Stage 1 with its weights: full-resolution images → ring centres by ID.
 
@@ -283,8 +391,8 @@ class KeypointNet:
         weights: a checkpoint path (``.pt``) or None for the shipped default.
         conf: decoding overrides of :data:`default_conf`; ``width`` comes from the checkpoint.
         device: torch device ("cpu" by default; "cuda" when wanted and present).
-        layout: (3, 2) ring centres of the marker in mm (``Marker.centers2d``), for
-            ``ids="layout"`` (default: the default marker's).
+        marker: the marker's geometry, for ``ids="layout"`` and ``verify`` (default: the
+            default marker).
         stereo: use the thresholds tuned for views of a stereo pair (a looser
             false-positive budget, as the pair's epipolar and shape checks reject false
             triples) when the checkpoint has them; else those for single images.
@@ -292,7 +400,7 @@ class KeypointNet:
 
     default_weights = WEIGHTS_DIR / "keypoints.pt"
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", layout=None, stereo: bool = False):
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", marker: Marker | None = None, stereo: bool = False):
         import torch
 
         path = Path(weights) if weights is not None else self.default_weights
@@ -304,8 +412,8 @@ class KeypointNet:
         for key in ("state_dict", "width"):
             if key not in ckpt:
                 raise ValueError(f"{path} is not a markerpose keypoint checkpoint: no {key!r}")
-        # Decoding thresholds: the defaults, those tuned for this ID mode when the weights
-        # were exported ({"head": {...}, "layout": {...}}), then the caller's.
+        # Decoding thresholds: the defaults, those tuned for this ID mode and operating
+        # point when the weights were exported (keyed by tuned_key), then the caller's.
         self.tuned = ckpt.get("decode", {})
         if not any(k in self.tuned for k in ID_MODES):  # older checkpoints: tuned for "head"
             self.tuned = {"head": self.tuned}
@@ -317,16 +425,18 @@ class KeypointNet:
         self.net = self.net.to(memory_format=torch.channels_last)
         self.device = device
         self.path = path
-        self.layout = _LAYOUT if layout is None else np.asarray(layout, np.float64)
+        self.marker = marker or _MARKER
 
     def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
         """Decoding settings: the defaults, the thresholds tuned at export for the ID mode
-        (``conf["ids"]``) and operating point (stereo or single view), then ``conf``."""
+        (``conf["ids"]``), ``verify`` and operating point (stereo or single view), then
+        ``conf``."""
         mode = (conf or {}).get("ids", default_conf["ids"])
         if mode not in ID_MODES:
             raise ValueError(f"ids must be one of {ID_MODES}, got {mode!r}")
-        single = self.tuned.get(mode, {})
-        chosen = self.tuned.get(mode + "_stereo", single) if stereo else single
+        verify = bool((conf or {}).get("verify", default_conf["verify"]))
+        single = self.tuned.get(tuned_key(mode, verify), {})
+        chosen = self.tuned.get(tuned_key(mode, verify, True), single) if stereo else single
         return {**default_conf, **chosen, **(conf or {})}
 
     def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -339,14 +449,14 @@ class KeypointNet:
         return det.float().cpu().numpy(), ids.float().cpu().numpy()
 
     def _forward(self, images: list[np.ndarray]):
-        """Full-resolution gray images → (det logits, ID logits, per-image scales back)."""
+        """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs)."""
         inputs, scales = zip(*(to_input(g) for g in images))
-        return (*self.logits(np.stack(inputs)), scales)
+        return (*self.logits(np.stack(inputs)), scales, inputs)
 
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass):
         per image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
-        det, ids, scales = self._forward(images)
+        det, ids, scales, _ = self._forward(images)
         out = []
         for k_, s in enumerate(scales):
             cand, _ = candidates(det[k_], ids[k_], threshold, k, self.conf["nms_radius"])
@@ -360,10 +470,10 @@ class KeypointNet:
         Returns:
             per image, (centers (3, 2) by ID, score) or None.
         """
-        det, ids, scales = self._forward(images)
+        det, ids, scales, inputs = self._forward(images)
         out = []
         for k, s in enumerate(scales):
-            found = decode(det[k], ids[k], self.conf, self.layout)
+            found = decode(det[k], ids[k], self.conf, self.marker, inputs[k])
             out.append(None if found is None else (to_full(found[0], s), found[1]))
         return out
 
@@ -380,8 +490,10 @@ __all__ = [
     "layer_widths",
     "make_targets",
     "nms",
+    "ring_evidence",
     "score_map",
     "signed_area",
     "to_full",
     "to_input",
+    "tuned_key",
 ]

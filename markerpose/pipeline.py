@@ -158,7 +158,7 @@ class MarkerPose:
             except ImportError as exc:  # torch missing
                 raise ValueError(f"detector='neural' needs PyTorch ({exc}); pip install 'markerpose[neural]'") from exc
             ids = "layout" if self.conf["ids"] == "stereo" else self.conf["ids"]  # single views
-            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": ids}, layout=self.marker.centers2d, stereo=True)
+            self._keypoints = KeypointNet(self.conf["keypoint_weights"], {"ids": ids}, marker=self.marker, stereo=True)
         self._ellipses = None
         # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
         self._edge_refit = detector == "neural" and self.conf["refine"] == "ellipsegnet" and self.conf["edge_refit"] and self.conf["fit"] != "moments"

@@ -236,3 +236,51 @@ def test_operating_points_from_the_checkpoint(tmp_path):
     assert kp.KeypointNet(path, {"min_score": 0.1}, stereo=True).conf["min_score"] == 0.1
     with pytest.raises(ValueError, match="ids"):
         kp.KeypointNet(path, {"ids": "nope"})
+
+
+# --- ring evidence (verify) ------------------------------------------------------------------
+def _drawn_rings(img, centers, outer, inner, ring_value, inside_value):
+    import cv2
+
+    for x, y in centers:
+        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(round(outer * 16)), ring_value, -1, cv2.LINE_AA, shift=4)
+        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(round(inner * 16)), inside_value, -1, cv2.LINE_AA, shift=4)
+
+
+def test_ring_evidence_tells_the_printed_marker_from_ring_decoys():
+    """The marker's triple (black bands on one white plate) scores high; the same triangle
+    of rings drawn straight on a dark background (no plate), a triple whose order puts the
+    rings' sizes wrong, and a triple over plain clutter score low."""
+    import cv2
+
+    m = mp.Marker()
+    s = 2.0  # px per mm, rotated by 25°, placed at (90, 130); y flips (image y points down)
+    a = np.deg2rad(25)
+    A = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag([1.0, -1.0])
+    to_img = lambda q: np.asarray(q) @ A.T + [90, 130]  # noqa: E731
+    img = np.full((240, 320), 0.25, np.float32)
+    x0, y0, x1, y1 = m.plate
+    cv2.fillConvexPoly(img, np.round(to_img([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]) * 16).astype(np.int32), 0.85, cv2.LINE_AA, shift=4)
+    marker = to_img(m.centers2d)
+    _drawn_rings(img, marker, m.outer_radius * s, m.inner_radius * s, 0.08, 0.85)
+    decoys = marker + [170, 80]  # the same triangle of rings, but on the dark background
+    _drawn_rings(img, decoys, m.outer_radius * s, m.inner_radius * s, 0.05, 0.8)
+    rng = np.random.default_rng(0)
+    img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1).astype(np.float32)
+    ev = kp.ring_evidence(img, np.stack([marker, decoys, marker[[0, 2, 1]], marker + [180, -40]]), m)
+    assert ev.shape == (4,) and np.all((ev >= 0) & (ev <= 1))
+    assert ev[0] > 0.6, ev
+    assert ev[1] < 0.2 and ev[3] < 0.2 and ev[2] < ev[0] / 2, ev
+    # Decoding: the decoys score higher in the network; with verify the marker wins.
+    dl = np.zeros((65, 30, 40))
+    dl[64] = 10.0
+    for pts, logit in ((marker, 12.0), (decoys, 20.0)):
+        det, _ = kp.make_targets(pts, np.ones(3, np.int8))
+        cy, cx = np.nonzero(det != 64)
+        dl[det[cy, cx], cy, cx] = logit
+    il = np.zeros((4, 30, 40))  # an ID head that says nothing
+    no, yes = ({"ids": "layout", "verify": v, "min_score": 0.0} for v in (False, True))
+    assert np.abs(kp.decode(dl, il, no)[0] - marker).max() > 20  # a triple with decoys in it
+    np.testing.assert_allclose(kp.decode(dl, il, yes, m, img)[0], np.floor(marker + 0.5), atol=1e-3)
+    with pytest.raises(ValueError, match="image"):
+        kp.decode(dl, il, {"verify": True})

@@ -115,38 +115,56 @@ def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.n
     return np.concatenate(dets), np.concatenate(ids)
 
 
+def decode_all(det: np.ndarray, id_logits: np.ndarray, images: np.ndarray, decode_conf: dict | None = None) -> list:
+    """:func:`~markerpose.keypoints.decode` of every image of a stack: the heads' logits
+    and the (N, 240, 320) uint8 inputs (which ``verify`` looks at)."""
+    verify = (decode_conf or {}).get("verify", kp.default_conf["verify"])
+    return [
+        kp.decode(det[j], id_logits[j], decode_conf, image=images[j].astype(np.float32) / 255.0 if verify else None)
+        for j in range(len(det))
+    ]
+
+
 def predict(net, images: np.ndarray, decode_conf: dict | None = None, batch: int = 32, device="cpu"):
     """Decode every image of a (N, 240, 320) uint8 stack: list of (points (3, 2), score) or None."""
-    det, ids = logits(net, images, batch, device)
-    return [kp.decode(det[j], ids[j], decode_conf) for j in range(len(det))]
+    return decode_all(*logits(net, images, batch, device), images, decode_conf)
 
 
-# Decoding thresholds searched by :func:`tune_decoding`, per ID mode.
-TUNING_GRID = {  # keys: kp.ID_MODES
+# The decoding variants tuned at export (named by kp.tuned_key) and the thresholds
+# :func:`tune_decoding` searches for each.
+DECODINGS = {
+    "head": {"ids": "head"},
+    "layout": {"ids": "layout"},
+    "layout_verify": {"ids": "layout", "verify": True},
+}
+TUNING_GRID = {
     "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
+    # the ring evidence (in [0, 1]) scales the scores down: a finer, lower grid
+    "layout_verify": {"threshold": (0.005, 0.01, 0.02), "min_score": tuple(round(0.01 * k, 2) for k in range(1, 41))},
 }
 
 
-def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", ids: str = "head"):
+def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head"):
     """The decoding thresholds (:data:`TUNING_GRID`) that detect the most views of ``data``
     (the validation set, with its marker-free views) with at most ``max_false_positive``
     false detections on its marker-free views.
 
     Args:
         max_false_positive: a budget, or a tuple of budgets (one decoding pass serves all).
+        decoding: the decoding variant, a key of :data:`DECODINGS`.
     Returns:
         (decode conf, its metrics on ``data``), or a list of them for a tuple of budgets.
     """
     budgets = max_false_positive if isinstance(max_false_positive, (tuple, list)) else (max_false_positive,)
     det, id_logits = logits(net, data["image"], device=device)
-    grid = dict(TUNING_GRID[ids])
+    grid = dict(TUNING_GRID[decoding])
     min_scores = grid.pop("min_score")
     best: list = [None] * len(budgets)
     for values in itertools.product(*grid.values()):
-        dc = {"ids": ids, **dict(zip(grid, values))}
+        dc = {**DECODINGS[decoding], **dict(zip(grid, values))}
         # The best triple does not depend on min_score: decode once, then threshold.
-        found = [kp.decode(det[j], id_logits[j], {**dc, "min_score": 0.0}) for j in range(len(det))]
+        found = decode_all(det, id_logits, data["image"], {**dc, "min_score": 0.0})
         for ms in min_scores:
             m = score([f if f is not None and f[1] >= ms else None for f in found], data)
             for b, budget in enumerate(budgets):
@@ -329,23 +347,25 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     net.load_state_dict(slim["state_dict"])
     val = validation_sets(data_dir, val_size)
     slim["decode"] = {}
-    for ids in TUNING_GRID:
-        for suffix, (dc, m) in zip(("", "_stereo"), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), ids=ids)):
-            slim["decode"][ids + suffix] = dc
-            print(f"decoding tuned on the validation set ({ids + suffix}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+    for name in DECODINGS:
+        for suffix, (dc, m) in zip(("", "_stereo"), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name)):
+            slim["decode"][name + suffix] = dc
+            print(f"decoding tuned on the validation set ({name + suffix}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
     return dest
 
 
-def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2, ids=kp.ID_MODES) -> dict:
+def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2, decodings=tuple(DECODINGS)) -> dict:
     """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached),
-    per ID mode and operating point (single view; ``_stereo``: the looser thresholds
-    MarkerPose uses on stereo pairs): ``{mode: {set: metrics}}``. One forward pass serves all."""
-    net = kp.KeypointNet(weights, {"ids": ids[0]})
+    per decoding variant (:data:`DECODINGS`) and operating point (single view; ``_stereo``:
+    the looser thresholds MarkerPose uses on stereo pairs): ``{variant: {set: metrics}}``.
+    One forward pass serves all. A variant whose thresholds the checkpoint lacks runs
+    with the defaults."""
+    net = kp.KeypointNet(weights)
     confs = {}
-    for mode in ids:
-        confs[mode] = net.decode_conf({"ids": mode})
-        confs[mode + "_stereo"] = net.decode_conf({"ids": mode}, stereo=True)
+    for name in decodings:
+        confs[name] = net.decode_conf(DECODINGS[name])
+        confs[name + "_stereo"] = net.decode_conf(DECODINGS[name], stereo=True)
     res: dict = {mode: {} for mode in confs}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
@@ -356,7 +376,7 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         diag = candidate_recall(det, id_logits, data, net.conf)
         for mode, dc in confs.items():
             t0 = time.perf_counter()
-            preds = [kp.decode(det[j], id_logits[j], dc) for j in range(n)]
+            preds = decode_all(det, id_logits, data["image"], dc)
             res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
     return res
 
@@ -405,4 +425,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["TEST_SETS", "TUNING_GRID", "cached", "candidate_recall", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
+__all__ = ["DECODINGS", "TEST_SETS", "TUNING_GRID", "cached", "candidate_recall", "decode_all", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
