@@ -96,6 +96,9 @@ default_conf: dict = {
     "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
     #                         fraction of the smallest outer minor semi-axis
     "blur_fit_max_move": 3.0,  # ... keeping the edge fit if a centre would move farther, px
+    "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
+    #                            spacing implies (area ratio within this factor squared): the
+    #                            fit is costly on large decoy ellipses (seconds) and cannot help
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
@@ -904,6 +907,19 @@ def refine_ring(
     )
 
 
+def _sizes_fit_spacing(cqs: list, marker: Marker, tol: float) -> bool:
+    """Whether three outer ellipses (centre, Q) c0, c1, c2 have the size their spacing
+    implies: the affine map from the marker's layout to the three centres scales a circle's
+    area by |det A|, so each ring's area should be about pi R^2 |det A| (perspective and the
+    edge fit's error stay well within ``tol`` squared)."""
+    p = np.array([cq[0] for cq in cqs], np.float64)
+    L = marker.centers2d
+    A = np.column_stack([p[1] - p[0], p[2] - p[0]]) @ np.linalg.inv(np.column_stack([L[1] - L[0], L[2] - L[0]]))
+    expected = np.pi * marker.outer_radius**2 * abs(np.linalg.det(A))
+    areas = np.array([np.pi / np.sqrt(max(np.linalg.det(cq[1]), 1e-30)) for cq in cqs])
+    return bool(expected > 0 and np.all(np.abs(np.log(areas / expected)) <= 2 * np.log(tol)))
+
+
 def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None) -> list:
     """The marker's edge-refined rings, fitted again together under a motion-blur model
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
@@ -915,7 +931,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
     semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
     a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too; a centre
-    that moves farther than conf["blur_fit_max_move"] px keeps the edge fit (all or none). With a camera the
+    that moves farther than conf["blur_fit_max_move"] px keeps the edge fit (all or none).
+    Three rings whose sizes do not fit their spacing (not the marker) are left alone. With a camera the
     edge fit's distortion correction (the shift from the distorted-image ellipse's
     centre to the undistorted one's) carries over.
 
@@ -926,6 +943,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         return rings
     minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
     if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
+        return rings
+    if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
         return rings
     from . import blurfit
 

@@ -464,6 +464,12 @@ class KeypointNet:
             out.append(cand)
         return out
 
+    def evidence(self, image: np.ndarray, triples: np.ndarray) -> np.ndarray:
+        """:func:`ring_evidence` of (T, 3, 2) triples in a full-resolution uint8 gray image's
+        pixels, looked at in the network's input (the resolution it is tuned at): (T,)."""
+        small, scale = to_input(image)
+        return ring_evidence(small, (np.asarray(triples, np.float64) + 0.5) / scale - 0.5, self.marker)
+
     def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:
         """Centres in full-resolution pixels for a batch of uint8 gray images (one forward pass).
 

@@ -62,6 +62,14 @@ default_conf = {
     "plate_tol": 0.05,  # single view (detect) and transfer: largest misfit of the refined rings'
     #                     ellipses to one pose of the marker (relative radius; true markers
     #                     ~0.001-0.015, decoy triples > 0.2 on held-out views)
+    "plate_check": True,  # stereo: each view's edge-fitted rings must also fit one plate pose
+    #                       within plate_tol (ours): a ring refined onto a neighbour's blur can
+    #                       pass the epipolar and shape checks and still give a wrong pose
+    "min_evidence": 0.1,  # single view (detect): layout triples whose ring evidence
+    #                       (keypoints.ring_evidence: dark bands on one white plate) is below
+    #                       this are not refined, the others are tried by score x evidence
+    #                       (stage 1's validation set: 285 of 286 true triples above); 0: by
+    #                       score alone
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -249,7 +257,7 @@ class MarkerPose:
         t1 = time.perf_counter()
         self.timings.update(stage1=t1 - t0, refine=0.0)
         cam = self.rig.cameras[view]
-        for pts, s in view_triples(cand, self.marker.centers2d, max_triples=self.conf["view_triples"]):
+        for pts, s in self._view_triples(gray, cand):
             t = time.perf_counter()
             det = self._refine([gray], [cam], [(pts, s)])[0]
             self.timings["refine"] += time.perf_counter() - t
@@ -258,6 +266,19 @@ class MarkerPose:
                 return det
         self.timings["total"] = time.perf_counter() - t0
         return None
+
+    def _view_triples(self, gray: np.ndarray, cand: np.ndarray) -> list:
+        """One view's layout triples to refine, best first: by score, or with
+        ``min_evidence`` by score x ring evidence, without those below it."""
+        n = self.conf["view_triples"]
+        if not self.conf["min_evidence"]:
+            return view_triples(cand, self.marker.centers2d, max_triples=n)
+        triples = view_triples(cand, self.marker.centers2d, max_triples=len(cand) ** 3)
+        if not triples:
+            return []
+        ev = self._keypoints.evidence(gray, np.stack([p for p, _ in triples]))
+        kept = [(p, s * e) for (p, s), e in zip(triples, ev) if e >= self.conf["min_evidence"]]
+        return sorted(kept, key=lambda t: -t[1])[:n]
 
     def _plate_poses(self, det: Detection | None, camera) -> list:
         """The marker's poses (:func:`~markerpose.matching.view_poses`) if one of them
@@ -344,6 +365,10 @@ class MarkerPose:
         both = found[0].refined & found[1].refined
         if np.any(d > np.where(both, self.conf["epipolar_tol"], self.conf["epipolar_tol_coarse"])):
             return None
+        if self.conf["plate_check"]:
+            for det, cam in zip(found, self.rig.cameras):
+                if det.ellipses is not None and det.refined.all() and not self._plate_poses(det, cam):
+                    return None
         return self._checked_estimate(found, t0, t1)
 
     def _transferred(self, grays: list, cameras: list, cand: list, t0: float) -> Estimate | None:

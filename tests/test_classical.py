@@ -503,3 +503,23 @@ def test_edge_weights_steady_the_centre_under_motion_blur():
             errs[w].append(np.linalg.norm(det.centers - truth.outer_centers, axis=1))
     rms = {w: float(np.sqrt(np.mean(np.square(errs[w])))) for w in errs}
     assert rms[True] < rms[False] and rms[True] < 0.5, rms
+
+
+def test_blur_fit_leaves_rings_whose_sizes_do_not_fit_their_spacing():
+    """The blurred-ring fit runs only for three ellipses the size their spacing implies."""
+    from markerpose.classical import _sizes_fit_spacing
+    from markerpose.matching import ring_ellipses
+    from markerpose.synth import look_at_pose
+
+    rig = StereoRig.default()
+    m = Marker()
+    T = look_at_pose([0, 0, 500], 50, 30, 60)
+    cqs = []
+    for (cx, cy), (w, h), ang in ring_ellipses(rig.left, T, m.points3d, m.outer_radius):
+        a, b = w / 2, h / 2
+        R = np.array([[np.cos(np.deg2rad(ang)), -np.sin(np.deg2rad(ang))], [np.sin(np.deg2rad(ang)), np.cos(np.deg2rad(ang))]])
+        cqs.append((np.array([cx, cy]), R @ np.diag([1 / a**2, 1 / b**2]) @ R.T))
+    assert _sizes_fit_spacing(cqs, m, 1.5)
+    big = [(c, Q / 4.0) for c, Q in cqs[:1]] + cqs[1:]  # one ring twice as large
+    assert not _sizes_fit_spacing(big, m, 1.5)
+    assert not _sizes_fit_spacing([(c, Q * 9.0) for c, Q in cqs], m, 1.5)  # all three a third

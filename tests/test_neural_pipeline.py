@@ -176,3 +176,51 @@ def test_single_view_detect_checks_the_rings_share_one_plate(rig, tracker):
     assert tracker.detect(empty) is None
     with pytest.raises(ValueError, match="view must be 0"):
         tracker.detect(f.images[0], view=2)
+
+
+def test_plate_check_rejects_a_ring_refined_onto_the_wrong_edge(rig):
+    """A ring whose edge fit slid (3 px along its epipolar line, its ellipse 20 % too small,
+    as on a neighbour's motion blur) passes the epipolar check and, loosened here, the
+    shape check, but not the plate check: its ellipse does not fit one pose of the marker
+    with the other two."""
+    from dataclasses import replace
+
+    from markerpose.geometry import epipolar_distance
+
+    f = render_stereo(rig, look_at_pose([10, 0, 550], 30, 40, 20), imaging=Imaging(alpha=0.8), seed=12)
+    loose = {"max_shape_error": 50.0}
+    found = mp.MarkerPose(rig, **loose).estimate(*f.images)
+    assert found is not None
+    left, right = found.detections
+    c = right.centers[2]
+    steps = [c + 3 * np.array([np.cos(a), np.sin(a)]) for a in np.deg2rad(np.arange(0, 180, 0.5))]
+    moved = min(steps, key=lambda p: epipolar_distance(rig, left.centers[2:3], p[None])[0, 0])
+    assert epipolar_distance(rig, left.centers[2:3], moved[None])[0, 0] < 0.2
+    ell = list(right.ellipses)
+    _, (w, h), ang = ell[2]
+    ell[2] = (tuple(moved), (0.8 * w, 0.8 * h), ang)
+    bad = replace(right, centers=np.vstack([right.centers[:2], moved]), ellipses=ell)
+    assert mp.MarkerPose(rig, plate_check=False, **loose)._accepted([left, bad], 0.0, 0.0) is not None
+    checked = mp.MarkerPose(rig, **loose)
+    assert checked._accepted([left, bad], 0.0, 0.0) is None
+    assert checked._accepted([left, right], 0.0, 0.0) is not None
+
+
+def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
+    """detect() refines the layout triples by score x ring evidence and skips those with
+    little evidence: the marker's triple first; on clutter with ring decoys, nothing."""
+    f = render_stereo(rig, look_at_pose([0, 0, 650], 25, 70, 10), imaging=Imaging(alpha=0.6), seed=14)
+    gray = f.images[0]
+    cand = tracker._keypoints.candidates([gray], 0.01, 16)[0]
+    triples = tracker._view_triples(gray, cand)
+    assert triples and np.abs(triples[0][0] - f.views[0].outer_centers).max() < 8
+    assert tracker._keypoints.evidence(gray, f.views[0].outer_centers[None])[0] > 0.5
+    rng = np.random.default_rng(3)
+    clutter = mp.synth.clutter_background((1280, 1024), rng, ring_distractors=10, ring_ratio=0.4)
+    empty = (clutter * 200).astype(np.uint8)
+    cand = tracker._keypoints.candidates([empty], 0.01, 16)[0]
+    kept = tracker._view_triples(empty, cand)
+    assert all(s >= 0 for _, s in kept)
+    every = mp.MarkerPose(rig, min_evidence=0.0)._view_triples(empty, cand)
+    assert len(kept) <= len(every)
+    assert tracker.detect(empty) is None
