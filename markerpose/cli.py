@@ -214,6 +214,15 @@ def cmd_eval_keypoints(args):
     print("\n| test set | all 3 centres among the candidates | ID head right at all 3 (of those) |")
     print("|---|---|---|")
     print("\n".join(diag))
+    best = "layout_verify" if "layout_verify" in res else next(iter(res))
+    sizes = {name: {b["bin"]: b for b in r["by_ring_size"]} for name, r in res[best].items() if r["n_views"]}
+    bins = sorted({b for s in sizes.values() for b in s}, key=lambda b: float(b.split("-")[0]))
+    print(f"\n{label[best]}, single view: detected by the outer ring's apparent diameter in network-input px (x4 at 1280 px wide; views)")
+    print("| diameter | " + " | ".join(sizes) + " |")
+    print("|---|" + "---|" * len(sizes))
+    for b in bins:
+        cells = [f"{s[b]['detected']:.3f} ({s[b]['n_views']})" if b in s else "—" for s in sizes.values()]
+        print(f"| {b} | " + " | ".join(cells) + " |")
     if args.speed:
         from .keypoints import KeypointNet
 

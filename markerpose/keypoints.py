@@ -18,6 +18,7 @@ The network needs torch; the decoding and the training targets are numpy functio
 from __future__ import annotations
 
 import itertools
+import warnings
 from pathlib import Path
 
 import cv2
@@ -246,11 +247,13 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     centre and the plate just outside it. The marker shows black bands on one evenly lit
     white plate, and paper of the plate's brightness inside and around every ring; three
     ring-like things that merely lie in a marker-like triangle (decoys, clutter) fail some
-    of these. The product of four factors, each in [0, 1]:
+    of these. Samples outside the image are left out; the plate's brightness is a plane
+    fitted to its samples (:func:`_plate_level`: light falls off smoothly), evaluated at
+    each ring. The product of four factors, each in [0, 1]:
 
     - band contrast: sqrt of the smallest ring's (plate - band) / plate and
       (outside - band) / outside;
-    - plate evenness: 1 - (10th-90th percentile spread of the plate) / plate;
+    - plate evenness: 1 - (10-90 % spread of the plate's residuals to its plane) / plate;
     - no ring brighter inside than the plate: 1 - 2 max((centre - plate) / plate);
     - the plate's level right outside every ring: 1 - max |outside - plate| / plate.
 
@@ -272,28 +275,61 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     A = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 2) @ np.linalg.inv(np.column_stack([L[1] - L[0], L[2] - L[0]]))
     t = P[:, 0] - A @ L[0]
     img = np.ascontiguousarray(image, np.float32)
+    h, w = img.shape
 
-    def sample(pts):  # pts (..., 2) mm → (T, ...) image values
+    def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
         q = np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,))
         flat = q.reshape(len(P), -1, 2).astype(np.float32)
         v = cv2.remap(img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return v.reshape(q.shape[:-1])
+        inside = (flat[..., 0] >= 0) & (flat[..., 0] <= w - 1) & (flat[..., 1] >= 0) & (flat[..., 1] <= h - 1)
+        return np.where(inside, v, np.nan).reshape(q.shape[:-1])
 
     eps = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
-    plate_px = sample(zones["plate"])  # (T, K)
-    plate = np.median(plate_px, axis=1)[:, None]
-    band = np.median(sample(zones["band"]), axis=2)  # (T, 3)
-    inner = np.median(sample(zones["inner"]), axis=2)
-    outside = np.median(sample(zones["outside"]), axis=2)
-    lo, hi = np.percentile(plate_px, [10, 90], axis=1)
-    contrast = np.minimum((plate - band) / (plate + eps), (outside - band) / (outside + eps)).min(1)
-    factors = [
-        np.sqrt(np.clip(contrast, 0, 1)),
-        1 - (hi - lo) / (plate[:, 0] + eps),
-        1 - 2 * np.clip((inner - plate) / (plate + eps), 0, None).max(1),
-        1 - (np.abs(outside - plate) / (plate + eps)).max(1),
-    ]
-    return np.prod([np.clip(f, 0, 1) for f in factors], axis=0)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
+        band = np.nanmedian(sample(zones["band"]), axis=2)  # (T, 3)
+        inner = np.nanmedian(sample(zones["inner"]), axis=2)
+        outside = np.nanmedian(sample(zones["outside"]), axis=2)
+        level, spread = _plate_level(sample(zones["plate"]), zones["plate"], L, np.nanmedian(outside, axis=1))
+        contrast = np.minimum((level - band) / (level + eps), (outside - band) / (outside + eps)).min(1)
+        factors = [
+            np.sqrt(np.clip(contrast, 0, 1)),
+            1 - spread,
+            1 - 2 * np.clip((inner - level) / (level + eps), 0, None).max(1),
+            1 - (np.abs(outside - level) / (level + eps)).max(1),
+        ]
+    return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
+
+
+def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallback: np.ndarray, min_points: int = 8):
+    """The plate's brightness at each ring and its unevenness, from plate samples.
+
+    Light falls off smoothly across a plate (a gradient, vignetting), so a plane in the
+    marker's coordinates is fitted to the samples inside the image (NaN elsewhere):
+    its value at each ring centre is that ring's plate level, and the 10-90 % spread of
+    the residuals over the median level is the unevenness (clutter is uneven, paper is
+    not). With fewer than ``min_points`` samples in the image the level is ``fallback``
+    (e.g. the rings' surroundings) and the unevenness 0.
+
+    Args:
+        values: (T, K) samples; pts: (K, 2) where they are, mm; centers: (3, 2) mm;
+        fallback: (T,).
+    Returns:
+        (level (T, 3), spread (T,)).
+    """
+    ok = np.isfinite(values)
+    X = np.column_stack([np.ones(len(pts)), pts - pts.mean(0)])  # (K, 3)
+    W = ok.astype(np.float64)
+    M = np.einsum("tk,ki,kj->tij", W, X, X) + np.diag([0.0, 1e-3, 1e-3]) * len(pts)  # slopes damped
+    b = np.einsum("tk,ki,tk->ti", W, X, np.nan_to_num(values))
+    coef = np.linalg.solve(M, b[..., None])[..., 0]  # (T, 3)
+    level = np.column_stack([np.ones(3), centers - pts.mean(0)]) @ coef.T  # (3, T)
+    resid = values - coef @ X.T
+    lo, hi = np.nanpercentile(np.where(ok, resid, np.nan), [10, 90], axis=1)
+    spread = (hi - lo) / (np.abs(coef[:, 0]) + 2.0 / 255)
+    few = ok.sum(1) < min_points
+    level = np.where(few[:, None], fallback[:, None], level.T)
+    return level, np.where(few, 0.0, spread)
 
 
 def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, marker: Marker | None = None,

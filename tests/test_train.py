@@ -131,3 +131,19 @@ def test_training_window_keeps_the_marker_and_shifts_its_points():
     # A point outside the window is absent, one on its edge ignored.
     out, p, lab = crop(img, np.array([[1.0, 1.0], [319.0, 239.0], [160.0, 120.0]], np.float32), np.ones(3, np.int8), np.random.default_rng(1))
     assert lab[2] in (1, -1) and (lab[:2] != 1).all()
+
+
+def test_stage1_detection_by_ring_size():
+    """eval keypoints' breakdown: views binned by the ring's diameter in input px, misses counted."""
+    from markerpose.train.keypoints import by_ring_size
+
+    pts = np.array([[[100, 100], [120, 100], [100, 130]]] * 4, np.float32)
+    data = {
+        "points": pts,
+        "labels": np.array([[1, 1, 1], [1, 1, 1], [1, 1, 1], [1, 0, 1]], np.int8),  # the last: a ring absent
+        "scale": np.full((4, 2), 4.0, np.float32),
+        "ring_px": np.array([20.0, 24.0, 100.0, 100.0], np.float32),  # 5, 6 and 25 input px
+    }
+    preds = [(pts[0], 1.0), None, (pts[2] + 3.0, 1.0), None]  # 3 input px = 12 full-res px off: a miss
+    out = by_ring_size(preds, data)
+    assert [(b["bin"], b["n_views"], b["detected"]) for b in out] == [("0-8", 2, 0.5), ("18-26", 1, 0.0)]

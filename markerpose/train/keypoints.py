@@ -377,8 +377,29 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         for mode, dc in confs.items():
             t0 = time.perf_counter()
             preds = decode_all(det, id_logits, data["image"], dc)
-            res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n}
+            res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n,
+                               "by_ring_size": by_ring_size(preds, data)}
     return res
+
+
+# Bins of the outer ring's apparent diameter in network-input pixels (a 1280-px-wide
+# frame is shrunk 4x: 12 input px = a 48 px ring at full resolution).
+RING_SIZE_BINS = (0.0, 8.0, 12.0, 18.0, 26.0, np.inf)
+
+
+def by_ring_size(preds: list, data: dict, bins=RING_SIZE_BINS) -> list[dict]:
+    """Detection (:func:`score`) of the views with all three rings visible, by the outer
+    ring's apparent diameter in network-input pixels: [{"bin", "n_views", "detected"}]."""
+    size = data["ring_px"] / data["scale"][:, 0]
+    full = np.all(data["labels"] == 1, axis=1)
+    out = []
+    for lo, hi in zip(bins[:-1], bins[1:]):
+        idx = np.nonzero(full & (size >= lo) & (size < hi))[0]
+        if len(idx):
+            sub = {k: data[k][idx] for k in ("points", "labels", "scale")}
+            m = score([preds[j] for j in idx], sub)
+            out.append({"bin": f"{lo:g}-{hi:g}", "n_views": len(idx), "detected": m["detected"]})
+    return out
 
 
 def candidate_recall(det: np.ndarray, id_logits: np.ndarray, data: dict, conf: dict, tolerance_px: float = 8.0) -> dict:
@@ -425,4 +446,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["DECODINGS", "TEST_SETS", "TUNING_GRID", "cached", "candidate_recall", "decode_all", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
+__all__ = ["DECODINGS", "RING_SIZE_BINS", "TEST_SETS", "TUNING_GRID", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "evaluate", "export", "generate", "main", "predict", "score", "speed", "tune_decoding", "validation_sets"]
