@@ -90,7 +90,7 @@ def stereo_triples(
     return found[:max_triples]
 
 
-def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
+def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int | None = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
     """Triples of one view's candidates named by the marker's 2D layout, best first.
 
     Args:
@@ -98,7 +98,7 @@ def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, 
         layout: (3, 2) the marker's ring centres in mm (``Marker.centers2d``).
         min_ratio: smallest singular-value ratio of the affine map from the layout
             (:func:`~markerpose.keypoints.layout_ratio`; cos 60° = 0.5).
-        max_triples: how many to return (distinct sets of candidates).
+        max_triples: how many to return (distinct sets of candidates; None: all).
     Returns:
         up to ``max_triples`` of (points (3, 2) ordered c0, c1, c2, score); the score is the
         geometric mean of the three candidates' scores times the layout ratio.

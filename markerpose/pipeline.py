@@ -273,7 +273,7 @@ class MarkerPose:
         n = self.conf["view_triples"]
         if not self.conf["min_evidence"]:
             return view_triples(cand, self.marker.centers2d, max_triples=n)
-        triples = view_triples(cand, self.marker.centers2d, max_triples=len(cand) ** 3)
+        triples = view_triples(cand, self.marker.centers2d, max_triples=None)
         if not triples:
             return []
         ev = self._keypoints.evidence(gray, np.stack([p for p, _ in triples]))
