@@ -55,7 +55,7 @@ import cv2
 import numpy as np
 
 from .camera import Camera, StereoRig
-from .geometry import epipolar_distance
+from .geometry import epipolar_distance, layout_affine
 from .marker import Marker
 from .results import Detection
 
@@ -912,9 +912,7 @@ def _sizes_fit_spacing(cqs: list, marker: Marker, tol: float) -> bool:
     implies: the affine map from the marker's layout to the three centres scales a circle's
     area by |det A|, so each ring's area should be about pi R^2 |det A| (perspective and the
     edge fit's error stay well within ``tol`` squared)."""
-    p = np.array([cq[0] for cq in cqs], np.float64)
-    L = marker.centers2d
-    A = np.column_stack([p[1] - p[0], p[2] - p[0]]) @ np.linalg.inv(np.column_stack([L[1] - L[0], L[2] - L[0]]))
+    A = layout_affine(np.array([cq[0] for cq in cqs], np.float64), marker.centers2d)
     expected = np.pi * marker.outer_radius**2 * abs(np.linalg.det(A))
     areas = np.array([np.pi / np.sqrt(max(np.linalg.det(cq[1]), 1e-30)) for cq in cqs])
     return bool(expected > 0 and np.all(np.abs(np.log(areas / expected)) <= 2 * np.log(tol)))

@@ -15,6 +15,16 @@ POSE_METHODS = ("paper", "rigid")
 
 
 # --- triangulation ------------------------------------------------------------------
+def layout_affine(points: np.ndarray, layout: np.ndarray) -> np.ndarray:
+    """The linear part A of the affine map taking the marker's layout (3, 2) to three
+    image points ((3, 2), or (T, 3, 2) for many at once): ``p_j - p_0 = A (l_j - l_0)``.
+    Returns (2, 2) or (T, 2, 2)."""
+    P = np.asarray(points, np.float64)
+    L = np.asarray(layout, np.float64)
+    B = np.column_stack([L[1] - L[0], L[2] - L[0]])
+    return np.stack([P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :]], -1) @ np.linalg.inv(B)
+
+
 def triangulate(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of corresponding distorted pixels, as the paper does.
 

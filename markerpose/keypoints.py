@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .geometry import layout_affine
 from .marker import Marker
 
 ID_MODES = ("head", "layout")  # how decoding assigns ring IDs (see default_conf["ids"])
@@ -201,9 +202,7 @@ def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
     ``layout`` (3, 2, mm), in the same ID order: the ratio of the singular values of the
     affine map between the two (1 = a similarity; a plane tilted by θ seen from afar gives
     cos θ). Orders that put a ring in the wrong place give small ratios."""
-    a = np.column_stack([p[1] - p[0], p[2] - p[0]])
-    b = np.column_stack([layout[1] - layout[0], layout[2] - layout[0]])
-    sv = np.linalg.svd(a @ np.linalg.inv(b), compute_uv=False)
+    sv = np.linalg.svd(layout_affine(p, layout), compute_uv=False)
     return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
 
 
@@ -272,7 +271,7 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     zones = _EVIDENCE[key]
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
-    A = np.stack([P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]], 2) @ np.linalg.inv(np.column_stack([L[1] - L[0], L[2] - L[0]]))
+    A = layout_affine(P, L)
     t = P[:, 0] - A @ L[0]
     img = np.ascontiguousarray(image, np.float32)
     h, w = img.shape
@@ -290,7 +289,7 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
         band = np.nanmedian(sample(zones["band"]), axis=2)  # (T, 3)
         inner = np.nanmedian(sample(zones["inner"]), axis=2)
         outside = np.nanmedian(sample(zones["outside"]), axis=2)
-        level, spread = _plate_level(sample(zones["plate"]), zones["plate"], L, np.nanmedian(outside, axis=1))
+        level, spread = _plate_level(sample(zones["plate"]), zones["plate"], L, np.nanmedian(outside, axis=1), eps)
         contrast = np.minimum((level - band) / (level + eps), (outside - band) / (outside + eps)).min(1)
         factors = [
             np.sqrt(np.clip(contrast, 0, 1)),
@@ -301,19 +300,19 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
 
 
-def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallback: np.ndarray, min_points: int = 8):
+def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallback: np.ndarray, eps: float, min_points: int = 8):
     """The plate's brightness at each ring and its unevenness, from plate samples.
 
     Light falls off smoothly across a plate (a gradient, vignetting), so a plane in the
     marker's coordinates is fitted to the samples inside the image (NaN elsewhere):
     its value at each ring centre is that ring's plate level, and the 10-90 % spread of
-    the residuals over the median level is the unevenness (clutter is uneven, paper is
-    not). With fewer than ``min_points`` samples in the image the level is ``fallback``
+    the residuals over the plane's value at the samples' centroid (+ ``eps``) is the
+    unevenness (clutter is uneven, paper is not). With fewer than ``min_points`` samples in the image the level is ``fallback``
     (e.g. the rings' surroundings) and the unevenness 0.
 
     Args:
         values: (T, K) samples; pts: (K, 2) where they are, mm; centers: (3, 2) mm;
-        fallback: (T,).
+        fallback: (T,); eps: added to the level divided by.
     Returns:
         (level (T, 3), spread (T,)).
     """
@@ -326,7 +325,7 @@ def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallb
     level = np.column_stack([np.ones(3), centers - pts.mean(0)]) @ coef.T  # (3, T)
     resid = values - coef @ X.T
     lo, hi = np.nanpercentile(np.where(ok, resid, np.nan), [10, 90], axis=1)
-    spread = (hi - lo) / (np.abs(coef[:, 0]) + 2.0 / 255)
+    spread = (hi - lo) / (np.abs(coef[:, 0]) + eps)
     few = ok.sum(1) < min_points
     level = np.where(few[:, None], fallback[:, None], level.T)
     return level, np.where(few, 0.0, spread)

@@ -348,9 +348,10 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     val = validation_sets(data_dir, val_size)
     slim["decode"] = {}
     for name in DECODINGS:
-        for suffix, (dc, m) in zip(("", "_stereo"), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name)):
-            slim["decode"][name + suffix] = dc
-            print(f"decoding tuned on the validation set ({name + suffix}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+        for stereo, (dc, m) in zip((False, True), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name)):
+            key = kp.tuned_key(dc["ids"], dc.get("verify", False), stereo)  # what KeypointNet looks up
+            slim["decode"][key] = dc
+            print(f"decoding tuned on the validation set ({key}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
     return dest
 
