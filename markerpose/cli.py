@@ -142,7 +142,7 @@ _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size
 def cmd_train_keypoints(args):
     from .train import keypoints
 
-    _train(keypoints, args, ("width", "background_weight", "steep_size") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
+    _train(keypoints, args, ("width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
 
 
 def cmd_train_ellipses(args):
@@ -333,6 +333,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
+    tk.add_argument("--small-boost", type=float, default=1.0, help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)")
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)
     te = tsub.add_parser("ellipses", help="stage 2: EllipSegNet on 120x120 patches")

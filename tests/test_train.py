@@ -147,3 +147,21 @@ def test_stage1_detection_by_ring_size():
     preds = [(pts[0], 1.0), None, (pts[2] + 3.0, 1.0), None]  # 3 input px = 12 full-res px off: a miss
     out = by_ring_size(preds, data)
     assert [(b["bin"], b["n_views"], b["detected"]) for b in out] == [("0-8", 2, 0.5), ("18-26", 1, 0.0)]
+
+
+def test_epoch_order_draws_small_rings_more_often():
+    """small_boost: views with rings under 12 input px drawn that many times as often; 1 keeps a permutation."""
+    from markerpose.train.keypoints import epoch_order
+
+    # 1000 views: 100 small (8 input px), 800 large (30 px), 100 marker-free.
+    ring = np.r_[np.full(100, 32.0), np.full(800, 120.0), np.zeros(100)].astype(np.float32)
+    data = {"ring_px": ring, "scale": np.full((1000, 2), 4.0, np.float32)}
+    plain = epoch_order(data, np.random.default_rng(0))
+    assert sorted(plain.tolist()) == list(range(1000))
+    idx = epoch_order(data, np.random.default_rng(0), small_boost=3.0)
+    assert len(idx) == 1000
+    share = (idx < 100).mean()  # expected 300 / 1200 = 0.25 (plain: 0.10)
+    assert 0.21 < share < 0.29
+    assert 0.05 < (idx >= 900).mean() < 0.12  # negatives keep their weight (100 / 1200)
+    with pytest.raises(ValueError):
+        epoch_order(data, np.random.default_rng(0), small_boost=0.0)
