@@ -180,7 +180,7 @@ def cmd_eval_ellipses(args):
 def cmd_eval_pipeline(args):
     from .experiments import endtoend
 
-    conf = {"pairs": args.pairs, "configs": args.configs, "single_view": args.single_view}
+    conf = {"pairs": args.pairs, "configs": args.configs, "single_view": args.single_view, "workers": args.workers}
     if args.sets:
         conf["sets"] = tuple(args.sets)
     res = endtoend.main(conf, args.json, progress=not args.quiet)
@@ -354,6 +354,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25, marker_free (default: all)")
     ep.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
     ep.add_argument("--single-view", action="store_true", help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs")
+    ep.add_argument("--workers", type=int, default=1, help="processes running sets at once (one torch thread each; figures unchanged)")
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pipeline)

@@ -1,5 +1,7 @@
 """The benchmark and the end-to-end evaluation run and report what they measured."""
 
+import pytest
+
 from markerpose.experiments import bench, endtoend
 
 
@@ -23,6 +25,17 @@ def test_end_to_end_counts_detections_and_errors():
     assert "Each view alone" in endtoend.report(res)
     assert s["center_median_px"] < 0.1 and s["t_median_mm"] < 0.05
     assert "standard" in endtoend.report(res) and "| tilt " in endtoend.report(res)
+
+
+def test_end_to_end_workers_give_the_same_figures():
+    """--workers runs the sets in processes; the figures are those of one process."""
+    conf = {"pairs": 2, "sets": ("standard", "marker_free"), "configs": ["classical + sub-pixel + bias + rigid"]}
+    one = endtoend.main(conf, progress=False)
+    two = endtoend.main({**conf, "workers": 2}, progress=False)
+    assert list(two["sets"]) == ["standard", "marker_free"]
+    assert endtoend.report(two) == endtoend.report(one)
+    with pytest.raises(ValueError):
+        endtoend.main({**conf, "workers": 0}, progress=False)
 
 
 def test_marker_free_set_counts_false_poses_and_detections():
@@ -82,8 +95,6 @@ def test_confidence_intervals():
 def test_experiments_write_report_plots_and_json(tmp_path):
     import json
 
-    import pytest
-
     from markerpose.experiments import reproduce
 
     conf = {"trials": 1, "pairs": 2, "alphas": (1.0,), "detection_alphas": (1.0, 0.0625), "blurs": (0.0, 25.0), "configs": ("classical (paper)", "classical + sub-pixel + bias + rigid")}
@@ -124,7 +135,6 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     import json
 
     import numpy as np
-    import pytest
 
     from markerpose import cli
 

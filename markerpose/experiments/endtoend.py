@@ -18,6 +18,7 @@ centre (they differ by the perspective bias); pose errors against the true pose.
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,7 @@ default_conf = {
     "configs": None,  # None: all available
     "tolerance_px": 3.0,
     "single_view": False,  # also each view alone (MarkerPose.detect)
+    "workers": 1,  # processes running sets at once
 }
 
 
@@ -180,39 +182,69 @@ def summarize(rows: list[dict]) -> dict:
     }
 
 
-def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
-    """Run every configuration on the held-out pairs; returns (and writes as JSON) the figures."""
-    c = {**default_conf, **(conf or {})}
+def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0) -> dict:
+    """Every configuration of ``conf`` on one held-out set; returns {configuration: figures}."""
+    c = {**default_conf, **conf}
     rig, marker = StereoRig.default(), Marker()
-    configs = available(c["configs"])
-    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
-    res = {"conf": {k: list(v) if isinstance(v, tuple) else v for k, v in c.items()}, "sets": {}}
-    for set_name in c["sets"]:
-        rows = {name: [] for name in trackers}
-        views = {name: [] for name in trackers}
-        conds = []
-        free = SETS[set_name].get("marker_free", False)
-        for frame, cond in tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress):
-            conds.append(cond)
-            for name, tr in trackers.items():
-                if free:
-                    rows[name].append(evaluate_marker_free(tr, frame, c["single_view"]))
-                    continue
-                rows[name].append(evaluate_pair(tr, frame, c["tolerance_px"]))
-                if c["single_view"]:
-                    views[name] += evaluate_views(tr, frame, c["tolerance_px"])
-        out_set = {}
-        for name in trackers:
+    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in available(c["configs"]).items()}
+    rows = {name: [] for name in trackers}
+    views = {name: [] for name in trackers}
+    conds = []
+    free = SETS[set_name].get("marker_free", False)
+    bar = tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress, position=position)
+    for frame, cond in bar:
+        conds.append(cond)
+        for name, tr in trackers.items():
             if free:
-                out_set[name] = summarize_marker_free(rows[name])
+                rows[name].append(evaluate_marker_free(tr, frame, c["single_view"]))
                 continue
-            s = summarize(rows[name])
-            s["by_condition"] = by_condition(rows[name], conds)
-            if views[name]:
-                s["single_view_detected"] = float(np.mean(views[name]))
-                s["single_views"] = len(views[name])
-            out_set[name] = s
-        res["sets"][set_name] = out_set
+            rows[name].append(evaluate_pair(tr, frame, c["tolerance_px"]))
+            if c["single_view"]:
+                views[name] += evaluate_views(tr, frame, c["tolerance_px"])
+    out_set = {}
+    for name in trackers:
+        if free:
+            out_set[name] = summarize_marker_free(rows[name])
+            continue
+        s = summarize(rows[name])
+        s["by_condition"] = by_condition(rows[name], conds)
+        if views[name]:
+            s["single_view_detected"] = float(np.mean(views[name]))
+            s["single_views"] = len(views[name])
+        out_set[name] = s
+    return out_set
+
+
+def _run_set_alone(args) -> dict:
+    """:func:`run_set` in a worker process: one torch thread, so workers do not contend."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:
+        pass
+    return run_set(*args)
+
+
+def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
+    """Run every configuration on the held-out pairs; returns (and writes as JSON) the figures.
+
+    With ``conf["workers"]`` > 1 the sets run in that many processes at once (same pairs,
+    same figures; each process uses one torch thread).
+    """
+    c = {**default_conf, **(conf or {})}
+    available(c["configs"])  # unknown names fail here, before any work
+    if c["workers"] < 1:
+        raise ValueError(f"workers must be >= 1, got {c['workers']}")
+    res = {"conf": {k: list(v) if isinstance(v, tuple) else v for k, v in c.items()}, "sets": {}}
+    if c["workers"] == 1 or len(c["sets"]) == 1:
+        for set_name in c["sets"]:
+            res["sets"][set_name] = run_set(set_name, c, progress)
+    else:
+        jobs = [(name, c, progress, k) for k, name in enumerate(c["sets"])]
+        with mp.get_context("spawn").Pool(min(c["workers"], len(jobs))) as pool:
+            for name, out_set in zip(c["sets"], pool.map(_run_set_alone, jobs, chunksize=1)):
+                res["sets"][name] = out_set
     if out:
         Path(out).write_text(json.dumps(res, indent=1))
     return res
@@ -298,5 +330,5 @@ def report(res: dict) -> str:
 
 __all__ = [
     "SETS", "by_condition", "default_conf", "evaluate_marker_free", "evaluate_pair", "evaluate_views", "main",
-    "marker_free_pairs", "pairs", "random_pairs", "report", "summarize", "summarize_marker_free",
+    "marker_free_pairs", "pairs", "random_pairs", "report", "run_set", "summarize", "summarize_marker_free",
 ]
