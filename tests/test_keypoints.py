@@ -238,6 +238,74 @@ def test_operating_points_from_the_checkpoint(tmp_path):
         kp.KeypointNet(path, {"ids": "nope"})
 
 
+def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
+    """second_look=2: views without a marker go through the network again at 640x480,
+    with the tuned look threshold; a zoom below 1 is an error."""
+    path = tmp_path / "kp.pt"
+    decode = {"layout": {}, "layout_verify": {"min_score": 0.05}, "layout_verify_look": {"look_min_score": 0.3}}
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    assert kp.KeypointNet(path, {"verify": True}).conf["look_min_score"] is None
+    net = kp.KeypointNet(path, {"verify": True, "second_look": 2.0})
+    assert net.conf["look_min_score"] == 0.3 and net.conf["min_score"] == 0.05
+    assert kp.look_conf(net.conf)["min_score"] == 0.3
+    with pytest.raises(ValueError, match="second_look"):
+        kp.KeypointNet(path, {"second_look": 0.5})
+    shapes = []
+
+    def nothing(batch):  # every cell "no centre": no candidate, no marker
+        shapes.append(batch.shape)
+        hc, wc = batch.shape[1] // kp.CELL, batch.shape[2] // kp.CELL
+        det = np.zeros((len(batch), 65, hc, wc), np.float32)
+        det[:, 64] = 20.0
+        return det, np.zeros((len(batch), 4, hc, wc), np.float32)
+
+    monkeypatch.setattr(net, "logits", nothing)
+    imgs = [np.full((1024, 1280), 90, np.uint8), np.full((960, 1280), 60, np.uint8)]
+    assert net(imgs) == [None, None]
+    assert shapes == [(2, 240, 320), (2, 480, 640)]
+    shapes.clear()
+    net.conf["second_look"] = 1.0
+    assert net(imgs) == [None, None] and shapes == [(2, 240, 320)]
+
+
+def test_look_again_maps_the_zoomed_points_back(monkeypatch):
+    """eval keypoints' second look: only the views without a result, enlarged, points
+    mapped back to the 320x240 input."""
+    from markerpose.train import keypoints as tk
+
+    seen = {}
+
+    def fake_logits(net, images, batch=32, device="cpu"):
+        seen["shape"] = images.shape
+        return np.zeros((len(images), 65, 1, 1)), np.zeros((len(images), 4, 1, 1))
+
+    zoomed = np.array([[101.0, 41.0], [141.0, 41.0], [101.0, 121.0]])
+    monkeypatch.setattr(tk, "logits", fake_logits)
+    monkeypatch.setattr(tk, "decode_all", lambda det, ids, images, conf: [(zoomed, conf["min_score"])] * len(det))
+    images = np.zeros((3, 240, 320), np.uint8)
+    first = [(np.zeros((3, 2)), 0.9), None, None]
+    out = tk.look_again(None, images, first, {"second_look": 2.0, "min_score": 0.1, "look_min_score": 0.4})
+    assert seen["shape"] == (2, 480, 640)
+    assert out[0] is first[0]
+    np.testing.assert_allclose(out[1][0], [[50.25, 20.25], [70.25, 20.25], [50.25, 60.25]])
+    assert out[2][1] == 0.4  # decoded with the look threshold
+    assert tk.look_again(None, images, first, {"second_look": 1.0}) == first
+
+
+@shipped
+def test_second_look_finds_a_distant_marker():
+    """A marker 2.3 m from the default rig (rings ~22 px wide at full resolution, ~5 px
+    at 320x240): the second look at 640x480 finds it, centres within 3 px."""
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    net = kp.KeypointNet(conf={"verify": True, "second_look": 2.0})
+    for k, (x, tilt, roll) in enumerate(((0, 20, 40), (60, 35, 200))):
+        img, truth = render_view(rig.left, look_at_pose([x, 20, 2300], tilt, 30, roll), imaging=Imaging(alpha=0.6), seed=k)
+        (found,) = net([img])
+        assert found is not None and np.linalg.norm(found[0] - truth.centers, axis=1).max() < 3.0
+
+
 # --- ring evidence (verify) ------------------------------------------------------------------
 def _drawn_rings(img, centers, outer, inner, ring_value, inside_value):
     import cv2

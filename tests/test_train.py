@@ -165,3 +165,11 @@ def test_epoch_order_draws_small_rings_more_often():
     assert 0.05 < (idx >= 900).mean() < 0.12  # negatives keep their weight (100 / 1200)
     with pytest.raises(ValueError):
         epoch_order(data, np.random.default_rng(0), small_boost=0.0)
+
+
+def test_speed_times_the_pair_and_the_second_look():
+    pytest.importorskip("torch")
+    from markerpose.train.keypoints import speed
+
+    r = speed((0.25,), runs=2)[0.25]
+    assert r["params"] == 81301 and r["pair_ms"] > 0 and r["look_ms"] > 0
