@@ -27,11 +27,14 @@ def test_end_to_end_counts_detections_and_errors():
     assert "standard" in endtoend.report(res) and "| tilt " in endtoend.report(res)
 
 
-def test_end_to_end_workers_give_the_same_figures():
+def test_end_to_end_workers_give_the_same_figures(tmp_path):
     """--workers runs the sets in processes; the figures are those of one process."""
+    import json
+
     conf = {"pairs": 2, "sets": ("standard", "marker_free"), "configs": ["classical + sub-pixel + bias + rigid"]}
     one = endtoend.main(conf, progress=False)
-    two = endtoend.main({**conf, "workers": 2}, progress=False)
+    two = endtoend.main({**conf, "workers": 2}, tmp_path / "e2e.json", progress=False)
+    assert json.loads((tmp_path / "e2e.json").read_text())["sets"].keys() == {"standard", "marker_free"}
     assert list(two["sets"]) == ["standard", "marker_free"]
     assert endtoend.report(two) == endtoend.report(one)
     with pytest.raises(ValueError):

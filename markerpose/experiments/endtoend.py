@@ -230,23 +230,28 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     """Run every configuration on the held-out pairs; returns (and writes as JSON) the figures.
 
     With ``conf["workers"]`` > 1 the sets run in that many processes at once (same pairs,
-    same figures; each process uses one torch thread).
+    same figures; each process uses one torch thread). ``out`` is rewritten as each set
+    finishes (in the order of ``conf["sets"]``), so a stopped run keeps what it finished.
     """
     c = {**default_conf, **(conf or {})}
     available(c["configs"])  # unknown names fail here, before any work
     if c["workers"] < 1:
         raise ValueError(f"workers must be >= 1, got {c['workers']}")
     res = {"conf": {k: list(v) if isinstance(v, tuple) else v for k, v in c.items()}, "sets": {}}
+
+    def done(name, out_set):  # the JSON is rewritten after every set: a stopped run keeps the finished ones
+        res["sets"][name] = out_set
+        if out:
+            Path(out).write_text(json.dumps(res, indent=1))
+
     if c["workers"] == 1 or len(c["sets"]) == 1:
         for set_name in c["sets"]:
-            res["sets"][set_name] = run_set(set_name, c, progress)
+            done(set_name, run_set(set_name, c, progress))
     else:
         jobs = [(name, c, progress, k) for k, name in enumerate(c["sets"])]
         with mp.get_context("spawn").Pool(min(c["workers"], len(jobs))) as pool:
-            for name, out_set in zip(c["sets"], pool.map(_run_set_alone, jobs, chunksize=1)):
-                res["sets"][name] = out_set
-    if out:
-        Path(out).write_text(json.dumps(res, indent=1))
+            for name, out_set in zip(c["sets"], pool.imap(_run_set_alone, jobs, chunksize=1)):
+                done(name, out_set)
     return res
 
 
