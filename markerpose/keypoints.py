@@ -427,6 +427,11 @@ def look_conf(conf: dict) -> dict:
     return conf if ms is None else {**conf, "min_score": ms}
 
 
+def look_size(zoom: float = 1.0) -> tuple[int, int]:
+    """The network input's (width, height) for a look ``zoom`` times the paper's 320x240."""
+    return round(INPUT_SIZE[0] * zoom), round(INPUT_SIZE[1] * zoom)
+
+
 def tuned_key(ids: str, verify: bool = False, stereo: bool = False) -> str:
     """Name of a set of decoding thresholds tuned at export: the ID mode, ``_verify`` and
     ``_stereo`` (the operating point for views of a stereo pair). The second look's
@@ -503,15 +508,17 @@ class KeypointNet:
             det, ids = self.net(x)
         return det.float().cpu().numpy(), ids.float().cpu().numpy()
 
-    def _forward(self, images: list[np.ndarray]):
-        """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs)."""
-        inputs, scales = zip(*(to_input(g) for g in images))
+    def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
+        """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
+        looked at ``zoom`` times the paper's input size."""
+        inputs, scales = zip(*(to_input(g, look_size(zoom)) for g in images))
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
-    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16) -> list[np.ndarray]:
-        """Every view's ``k`` best centre candidates, whatever their ID (one forward pass):
-        per image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
-        det, ids, scales, _ = self._forward(images)
+    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0) -> list[np.ndarray]:
+        """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
+        ``zoom`` times 320x240): per image, (N, 3) rows (x, y, score) in full-resolution
+        pixels, best first."""
+        det, ids, scales, _ = self._forward(images, zoom)
         out = []
         for k_, s in enumerate(scales):
             cand, _ = candidates(det[k_], ids[k_], threshold, k, self.conf["nms_radius"])
@@ -519,10 +526,10 @@ class KeypointNet:
             out.append(cand)
         return out
 
-    def evidence(self, image: np.ndarray, triples: np.ndarray) -> np.ndarray:
+    def evidence(self, image: np.ndarray, triples: np.ndarray, zoom: float = 1.0) -> np.ndarray:
         """:func:`ring_evidence` of (T, 3, 2) triples in a full-resolution uint8 gray image's
-        pixels, looked at in the network's input (the resolution it is tuned at): (T,)."""
-        small, scale = to_input(image)
+        pixels, looked at in the network's input of the look that found them: (T,)."""
+        small, scale = to_input(image, look_size(zoom))
         return ring_evidence(small, (np.asarray(triples, np.float64) + 0.5) / scale - 0.5, self.marker)
 
     def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:
@@ -540,9 +547,7 @@ class KeypointNet:
         again = [k for k, o in enumerate(out) if o is None]
         if zoom > 1 and again:
             # The second look resizes the full-resolution image, so it sees finer detail.
-            size = (round(INPUT_SIZE[0] * zoom), round(INPUT_SIZE[1] * zoom))
-            inputs, scales = zip(*(to_input(images[k], size) for k in again))
-            det, ids = self.logits(np.stack(inputs))
+            det, ids, scales, inputs = self._forward([images[k] for k in again], zoom)
             conf = look_conf(self.conf)
             for j, k in enumerate(again):
                 found = decode(det[j], ids[j], conf, self.marker, inputs[j])
@@ -560,6 +565,7 @@ __all__ = [
     "default_conf",
     "layout_ratio",
     "layer_widths",
+    "look_size",
     "make_targets",
     "nms",
     "ring_evidence",

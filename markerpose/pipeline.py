@@ -70,6 +70,12 @@ default_conf = {
     #                       this are not refined, the others are tried by score x evidence
     #                       (stage 1's validation set: 285 of 286 true triples above); 0: by
     #                       score alone
+    "second_look": 2.0,  # neural, "stereo" ids and single views (detect): when the first pass
+    #                      finds no marker, stage 1 looks again at this many times its 320x240
+    #                      input, resized from the full image (ours; rings under ~12 px at
+    #                      320x240, a marker beyond ~0.8 m with the default rig, are found far
+    #                      more often). Costs one forward pass zoom² as large, paid only by
+    #                      frames without the marker found; 1: no second look (the paper)
     "keypoint_weights": None,  # neural: stage-1 checkpoint (None = the shipped weights)
     "ellipse_weights": None,  # ellipsegnet: stage-2 checkpoint (None = the shipped weights)
     "epipolar_tol": 3.0,  # neural: max epipolar distance of same-ID refined centres, px
@@ -253,30 +259,38 @@ class MarkerPose:
         # whose rings fit one plate pose (matching.view_poses) — decoys in a marker-like
         # triangle do not.
         t0 = time.perf_counter()
-        cand = self._keypoints.candidates([gray], self.conf["candidate_threshold"], self.conf["candidates"])[0]
-        t1 = time.perf_counter()
-        self.timings.update(stage1=t1 - t0, refine=0.0)
+        self.timings.update(stage1=0.0, refine=0.0)
         cam = self.rig.cameras[view]
-        for pts, s in self._view_triples(gray, cand):
+        for zoom in self._looks():
             t = time.perf_counter()
-            det = self._refine([gray], [cam], [(pts, s)])[0]
-            self.timings["refine"] += time.perf_counter() - t
-            if self._plate_poses(det, cam):
-                self.timings["total"] = time.perf_counter() - t0
-                return det
+            cand = self._keypoints.candidates([gray], self.conf["candidate_threshold"], self.conf["candidates"], zoom)[0]
+            self.timings["stage1"] += time.perf_counter() - t
+            for pts, s in self._view_triples(gray, cand, zoom):
+                t = time.perf_counter()
+                det = self._refine([gray], [cam], [(pts, s)])[0]
+                self.timings["refine"] += time.perf_counter() - t
+                if self._plate_poses(det, cam):
+                    self.timings["total"] = time.perf_counter() - t0
+                    return det
         self.timings["total"] = time.perf_counter() - t0
         return None
 
-    def _view_triples(self, gray: np.ndarray, cand: np.ndarray) -> list:
+    def _looks(self) -> tuple[float, ...]:
+        """Stage 1's zoom factors, tried in turn while the marker is not found."""
+        zoom = float(self.conf["second_look"])
+        return (1.0, zoom) if zoom > 1 else (1.0,)
+
+    def _view_triples(self, gray: np.ndarray, cand: np.ndarray, zoom: float = 1.0) -> list:
         """One view's layout triples to refine, best first: by score, or with
-        ``min_evidence`` by score x ring evidence, without those below it."""
+        ``min_evidence`` by score x ring evidence (in the input of the look ``zoom`` that
+        found the candidates), without those below it."""
         n = self.conf["view_triples"]
         if not self.conf["min_evidence"]:
             return view_triples(cand, self.marker.centers2d, max_triples=n)
         triples = view_triples(cand, self.marker.centers2d, max_triples=None)
         if not triples:
             return []
-        ev = self._keypoints.evidence(gray, np.stack([p for p, _ in triples]))
+        ev = self._keypoints.evidence(gray, np.stack([p for p, _ in triples]), zoom)
         kept = [(p, s * e) for (p, s), e in zip(triples, ev) if e >= self.conf["min_evidence"]]
         return sorted(kept, key=lambda t: -t[1])[:n]
 
@@ -325,30 +339,40 @@ class MarkerPose:
 
     def _estimate_neural(self, gl: np.ndarray, gr: np.ndarray, t0: float) -> Estimate | None:
         """Stage 1 on both views, then each hypothesis (matched triples, best first) is
-        refined and checked (epipolar distances, shape) until one passes."""
-        cameras = list(self.rig.cameras)
-        if self.conf["ids"] == "stereo":
-            cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"])
+        refined and checked (epipolar distances, shape) until one passes; with "stereo"
+        ids, the whole is done again on stage 1's second look if none does."""
+        self.timings.update(stage1=0.0, refine=0.0)
+        if self.conf["ids"] != "stereo":  # one triple per view (the paper's "head")
+            found = self._keypoints([gl, gr])
+            self.timings["stage1"] = time.perf_counter() - t0
+            hypotheses = [found] if found[0] is not None and found[1] is not None else []
+            return self._first_accepted([gl, gr], hypotheses, t0)
+        for zoom in self._looks():
+            t = time.perf_counter()
+            cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"], zoom)
+            self.timings["stage1"] += time.perf_counter() - t
             triples = stereo_triples(
                 self.rig, cand[0], cand[1], self.marker.points3d, self.conf["match_epipolar_tol"],
                 self.conf["shape_tol"], self.conf["max_triples"],
             )
-            hypotheses = [[(pl, s), (pr, s)] for pl, pr, s in triples]
-        else:
-            found = self._keypoints([gl, gr])
-            hypotheses = [found] if found[0] is not None and found[1] is not None else []
-        t1 = time.perf_counter()
-        self.timings.update(stage1=t1 - t0, refine=0.0)
+            est = self._first_accepted([gl, gr], [[(pl, s), (pr, s)] for pl, pr, s in triples], t0)
+            if est is None and self.conf["transfer"]:
+                est = self._transferred([gl, gr], list(self.rig.cameras), cand, t0)
+            if est is not None:
+                return est
+        self.timings["total"] = time.perf_counter() - t0
+        return None
+
+    def _first_accepted(self, grays: list, hypotheses: list, t0: float) -> Estimate | None:
+        """Each hypothesis (stage-1 points of both views) refined and checked, in turn: the
+        first estimate that passes, or None."""
+        cameras = list(self.rig.cameras)
         for stage1 in hypotheses:
             t = time.perf_counter()
-            found = self._refine([gl, gr], cameras, stage1)
+            found = self._refine(grays, cameras, stage1)
             t1 = time.perf_counter()
             self.timings["refine"] += t1 - t
             est = self._accepted(found, t0, t1)
-            if est is not None:
-                return est
-        if self.conf["ids"] == "stereo" and self.conf["transfer"]:
-            est = self._transferred([gl, gr], cameras, cand, t0)
             if est is not None:
                 return est
         self.timings["total"] = time.perf_counter() - t0

@@ -42,6 +42,8 @@ NEURAL = {
     "neural + stereo match + EllipSegNet + edge refit (no blur fit) + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, "blur_fit": False, **OURS_POSE},
     # ... and motion-blurred rings refitted under a blur model: the default, MarkerPose(rig).
     "neural + stereo match + EllipSegNet + edge refit + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, **OURS_POSE},
+    # ... without stage 1's second look (a 640x480 pass when the first finds no marker).
+    "neural + stereo match + EllipSegNet + edge refit + bias + rigid (no second look)": {"detector": "neural", "ids": "stereo", "refine": "ellipsegnet", "patch": "adaptive", "fit": "subpixel", "edge_refit": True, "second_look": 1.0, **OURS_POSE},
     # Stage 1 (stereo match) with the classical ring fit instead of EllipSegNet.
     "neural stereo match + classical refine + bias + rigid": {"detector": "neural", "ids": "stereo", "refine": "classical", "subpixel": True, **OURS_POSE},
 }

@@ -36,6 +36,9 @@ SETS = {
     "dark_0.0625": {"seed": 3002, "alpha": 0.0625, "blur": (0.0, 9.0)},
     "blur_25": {"seed": 3003, "alpha": (0.25, 1.0), "blur": 25.0},
     "marker_free": {"seed": 3004, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "marker_free": True},
+    # Beyond the paper's working volume (rings under ~12 px at stage 1's 320x240 input):
+    # what stage 1's second look is for. Not among the default sets.
+    "far": {"seed": 3005, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "distance": (800.0, 1600.0)},
 }
 
 default_conf = {
@@ -59,15 +62,16 @@ def pairs(name: str, n: int, rig: StereoRig, marker: Marker):
 
 def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
     """Yield (frame, conditions) for ``n`` pairs with the marker anywhere in the working
-    volume: ``spec`` gives the ``seed`` (anything ``default_rng`` takes) and the ``alpha``
-    and ``blur`` (a value or a (lo, hi) range)."""
+    volume: ``spec`` gives the ``seed`` (anything ``default_rng`` takes), the ``alpha``
+    and ``blur`` (a value or a (lo, hi) range) and optionally the ``distance`` range in mm
+    (default: the paper's 350-800)."""
     rng = np.random.default_rng(spec["seed"])
     if spec.get("marker_free"):
         yield from marker_free_pairs(spec, n, rig, marker, rng)
         return
     made = 0
     while made < n:
-        z = rng.uniform(350, 800)
+        z = rng.uniform(*spec.get("distance", (350.0, 800.0)))
         tilt = rng.uniform(0, 60)
         T = look_at_pose([0, 0, z], tilt, rng.uniform(0, 360), rng.uniform(0, 360))
         # Anywhere both cameras see it: around the rig's convergence line, spread with depth.
@@ -267,7 +271,7 @@ def summarize_marker_free(rows: list[dict]) -> dict:
 def by_condition(rows, conds) -> list[dict]:
     """:func:`summarize` by distance and by tilt bins of the pairs' conditions."""
     out = []
-    for key, edges in (("distance", (350, 500, 650, 801)), ("tilt", (0, 20, 40, 61))):
+    for key, edges in (("distance", (350, 500, 650, 801, 1000, 1200, 1401, 1601)), ("tilt", (0, 20, 40, 61))):
         v = np.array([cd[key] for cd in conds])
         for lo, hi in zip(edges[:-1], edges[1:]):
             sel = np.nonzero((v >= lo) & (v < hi))[0]
