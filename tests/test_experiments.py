@@ -31,14 +31,25 @@ def test_end_to_end_workers_give_the_same_figures(tmp_path):
     """--workers runs the sets in processes; the figures are those of one process."""
     import json
 
-    conf = {"pairs": 2, "sets": ("standard", "marker_free"), "configs": ["classical + sub-pixel + bias + rigid"]}
+    conf = {"pairs": 2, "sets": ("marker_free", "standard"), "configs": ["classical + sub-pixel + bias + rigid"]}
     one = endtoend.main(conf, progress=False)
-    two = endtoend.main({**conf, "workers": 2}, tmp_path / "e2e.json", progress=False)
+    two = endtoend.main({**conf, "workers": 2}, tmp_path / "e2e.json", progress=False)  # reported in SETS order
     assert json.loads((tmp_path / "e2e.json").read_text())["sets"].keys() == {"standard", "marker_free"}
     assert list(two["sets"]) == ["standard", "marker_free"]
     assert endtoend.report(two) == endtoend.report(one)
     with pytest.raises(ValueError):
         endtoend.main({**conf, "workers": 0}, progress=False)
+    with pytest.raises(ValueError, match="unknown set"):
+        endtoend.main({**conf, "sets": ("standart",)}, progress=False)
+
+
+def test_far_set_lies_beyond_the_working_volume():
+    import markerpose as mp
+
+    rig, m = mp.StereoRig.default(), mp.Marker()
+    conds = [cd for _, cd in endtoend.pairs("far", 3, rig, m)]
+    assert all(800 <= cd["distance"] <= 1600 for cd in conds)
+    assert all(350 <= cd["distance"] <= 800 for _, cd in endtoend.pairs("standard", 3, rig, m))
 
 
 def test_marker_free_set_counts_false_poses_and_detections():

@@ -219,7 +219,7 @@ def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0)
     return out_set
 
 
-def _run_set_alone(args) -> dict:
+def _run_set_alone(args) -> tuple[str, dict]:
     """:func:`run_set` in a worker process: one torch thread, so workers do not contend."""
     try:
         import torch
@@ -227,24 +227,29 @@ def _run_set_alone(args) -> dict:
         torch.set_num_threads(1)
     except ImportError:
         pass
-    return run_set(*args)
+    return args[0], run_set(*args)
 
 
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
     """Run every configuration on the held-out pairs; returns (and writes as JSON) the figures.
 
-    With ``conf["workers"]`` > 1 the sets run in that many processes at once (same pairs,
-    same figures; each process uses one torch thread). ``out`` is rewritten as each set
-    finishes (in the order of ``conf["sets"]``), so a stopped run keeps what it finished.
+    With ``conf["workers"]`` > 1 the sets run in that many processes at once, started in
+    the order of ``conf["sets"]`` (put the slowest first; same pairs, same figures; each
+    process uses one torch thread). ``out`` is rewritten as each set finishes, so a
+    stopped run keeps what it finished. Sets are reported in the order of :data:`SETS`.
     """
     c = {**default_conf, **(conf or {})}
     available(c["configs"])  # unknown names fail here, before any work
+    unknown = [n for n in c["sets"] if n not in SETS]
+    if unknown:
+        raise ValueError(f"unknown set(s) {unknown}; known: {list(SETS)}")
     if c["workers"] < 1:
         raise ValueError(f"workers must be >= 1, got {c['workers']}")
     res = {"conf": {k: list(v) if isinstance(v, tuple) else v for k, v in c.items()}, "sets": {}}
 
     def done(name, out_set):  # the JSON is rewritten after every set: a stopped run keeps the finished ones
         res["sets"][name] = out_set
+        res["sets"] = {n: res["sets"][n] for n in SETS if n in res["sets"]}
         if out:
             Path(out).write_text(json.dumps(res, indent=1))
 
@@ -254,7 +259,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     else:
         jobs = [(name, c, progress, k) for k, name in enumerate(c["sets"])]
         with mp.get_context("spawn").Pool(min(c["workers"], len(jobs))) as pool:
-            for name, out_set in zip(c["sets"], pool.imap(_run_set_alone, jobs, chunksize=1)):
+            for name, out_set in pool.imap_unordered(_run_set_alone, jobs, chunksize=1):
                 done(name, out_set)
     return res
 
