@@ -161,6 +161,8 @@ class MarkerPose:
             raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from {IDS}")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
+        if not float(self.conf["second_look"]) >= 1:
+            raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {self.conf['second_look']!r}")
         self.rig = rig
         self.marker = marker or Marker()
         self._classical = {"blur_fit": bool(self.conf["blur_fit"])}  # settings of the classical fits

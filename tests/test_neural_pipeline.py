@@ -130,6 +130,21 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     assert tr.estimate(*f.images) is None
 
 
+def test_second_look_finds_a_marker_beyond_the_working_volume(rig):
+    """At 1.9 m (rings ~6 px at stage 1's 320x240 input) the first pass finds no marker;
+    the second look at 640x480 does, in the pair and in one view, to the usual accuracy."""
+    f = render_stereo(rig, look_at_pose([-40, 20, 1900], 50, 30, 120), imaging=Imaging(alpha=0.6), seed=2)
+    off = mp.MarkerPose(rig, second_look=1.0)
+    assert off.estimate(*f.images) is None and off.detect(f.images[0]) is None
+    on = mp.MarkerPose(rig)
+    est = on.estimate(*f.images)
+    assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.1  # mm
+    det = on.detect(f.images[0])
+    assert det is not None and np.abs(det.centers - f.views[0].outer_centers).max() < 0.1  # px
+    with pytest.raises(ValueError, match="second_look"):
+        mp.MarkerPose(rig, second_look=0.5)
+
+
 def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     # Regression (held-out standard pair 219): the right camera sees the plate at 75°,
     # stage 1 puts one of its rings 23 px off and no triple matches; the left view's
