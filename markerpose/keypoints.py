@@ -35,9 +35,10 @@ PAPER_HEAD = 256
 
 default_conf = {
     "width": 1.0,  # multiplier of the paper's layer widths (1.0 = the paper's network)
-    "nms_radius": 4,  # px at 320x240: a ring centre is at least a ring radius (>= 5 px) from another
+    "nms_radius": 2,  # px at 320x240 (v0.8: 4): a steeply tilted marker puts two ring centres
+    #                   ~6 px apart, and a radius of 4 kept one candidate between them
     "threshold": 0.05,  # minimum location score of a candidate
-    "max_candidates": 8,  # best candidates kept after NMS, per image
+    "max_candidates": 10,  # best candidates kept after NMS, per image (v0.8: 8)
     "min_id_prob": 0.2,  # an assigned ID must have at least this probability at its point
     "min_score": 0.15,  # geometric mean of the three points' (score x ID probability)
     # How IDs are assigned to a triple of candidates:
@@ -514,14 +515,16 @@ class KeypointNet:
         inputs, scales = zip(*(to_input(g, look_size(zoom)) for g in images))
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
-    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0) -> list[np.ndarray]:
+    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
+                   nms_radius: int | None = None) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
-        ``zoom`` times 320x240): per image, (N, 3) rows (x, y, score) in full-resolution
-        pixels, best first."""
+        ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
+        image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
         det, ids, scales, _ = self._forward(images, zoom)
+        r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         out = []
         for k_, s in enumerate(scales):
-            cand, _ = candidates(det[k_], ids[k_], threshold, k, self.conf["nms_radius"])
+            cand, _ = candidates(det[k_], ids[k_], threshold, k, r)
             cand[:, :2] = to_full(cand[:, :2], s)
             out.append(cand)
         return out

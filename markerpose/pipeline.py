@@ -46,6 +46,7 @@ default_conf = {
     #   "head"   (paper): one triple per view, named by the ID head.
     "candidates": 16,  # stereo: stage-1 candidates per view
     "candidate_threshold": 0.01,  # stereo: their minimum location score
+    "candidate_nms": 4,  # stereo and detect(): NMS radius of the candidates, px at 320x240
     "match_epipolar_tol": 20.0,  # stereo: largest epipolar distance of two matched candidates, px
     #                              (stage 1 misplaces steeply tilted rings by 10-20 px)
     "shape_tol": 0.35,  # stereo: relative error allowed in each triangulated ring distance
@@ -265,7 +266,7 @@ class MarkerPose:
         cam = self.rig.cameras[view]
         for zoom in self._looks():
             t = time.perf_counter()
-            cand = self._keypoints.candidates([gray], self.conf["candidate_threshold"], self.conf["candidates"], zoom)[0]
+            cand = self._keypoints.candidates([gray], self.conf["candidate_threshold"], self.conf["candidates"], zoom, self.conf["candidate_nms"])[0]
             self.timings["stage1"] += time.perf_counter() - t
             for pts, s in self._view_triples(gray, cand, zoom):
                 t = time.perf_counter()
@@ -351,7 +352,7 @@ class MarkerPose:
             return self._first_accepted([gl, gr], hypotheses, t0)
         for zoom in self._looks():
             t = time.perf_counter()
-            cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"], zoom)
+            cand = self._keypoints.candidates([gl, gr], self.conf["candidate_threshold"], self.conf["candidates"], zoom, self.conf["candidate_nms"])
             self.timings["stage1"] += time.perf_counter() - t
             triples = stereo_triples(
                 self.rig, cand[0], cand[1], self.marker.points3d, self.conf["match_epipolar_tol"],

@@ -152,6 +152,16 @@ def test_nms_keeps_separated_maxima():
     np.testing.assert_array_equal(out[:, :2], [[10, 10], [50, 30]])
 
 
+def test_default_nms_keeps_the_close_rings_of_a_steep_marker():
+    """A steeply tilted marker can put two ring centres ~3-6 input px apart: the default
+    decoding radius keeps both maxima (v0.8's radius of 4 kept one)."""
+    s = np.zeros((40, 60))
+    s[10, 10], s[10, 13] = 0.9, 0.8
+    r = kp.default_conf["nms_radius"]
+    np.testing.assert_array_equal(kp.nms(s, r, 0.1, 5)[:, :2], [[10, 10], [13, 10]])
+    assert len(kp.nms(s, 4, 0.1, 5)) == 1
+
+
 def test_input_and_full_resolution_mapping():
     gray = np.zeros((1024, 1280), np.uint8)
     gray[500:520, 600:640] = 255
