@@ -428,6 +428,13 @@ def look_conf(conf: dict) -> dict:
     return conf if ms is None else {**conf, "min_score": ms}
 
 
+def check_second_look(value) -> float:
+    """``second_look`` as a float; ValueError unless it is a zoom factor >= 1 (1: none)."""
+    if not float(value) >= 1:
+        raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {value!r}")
+    return float(value)
+
+
 def look_size(zoom: float = 1.0) -> tuple[int, int]:
     """The network input's (width, height) for a look ``zoom`` times the paper's 320x240."""
     return round(INPUT_SIZE[0] * zoom), round(INPUT_SIZE[1] * zoom)
@@ -496,8 +503,7 @@ class KeypointNet:
         if float((conf or {}).get("second_look", default_conf["second_look"])) > 1:
             chosen = {**chosen, **self.tuned.get(tuned_key(mode, verify, stereo) + "_look", {})}
         out = {**default_conf, **chosen, **(conf or {})}
-        if not float(out["second_look"]) >= 1:
-            raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {out['second_look']!r}")
+        check_second_look(out["second_look"])
         return out
 
     def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -564,6 +570,7 @@ __all__ = [
     "KeypointNet",
     "build_network",
     "candidates",
+    "check_second_look",
     "decode",
     "default_conf",
     "layout_ratio",

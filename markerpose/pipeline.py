@@ -16,7 +16,7 @@ import numpy as np
 
 from .camera import StereoRig
 from .geometry import POSE_METHODS, epipolar_distance, perspective_bias, pose_from_points, pose_rigid, triangulate
-from .keypoints import ID_MODES
+from .keypoints import ID_MODES, check_second_look
 from .marker import Marker
 from .matching import ring_ellipses, stereo_triples, transfer, view_poses, view_triples
 from .results import Detection, Estimate
@@ -162,8 +162,7 @@ class MarkerPose:
             raise ValueError(f"unknown ids method {self.conf['ids']!r}; choose from {IDS}")
         if self.conf["pose"] not in POSE_METHODS:
             raise ValueError(f"unknown pose method {self.conf['pose']!r}; choose from {POSE_METHODS}")
-        if not float(self.conf["second_look"]) >= 1:
-            raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {self.conf['second_look']!r}")
+        check_second_look(self.conf["second_look"])
         self.rig = rig
         self.marker = marker or Marker()
         self._classical = {"blur_fit": bool(self.conf["blur_fit"])}  # settings of the classical fits
