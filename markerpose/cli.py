@@ -142,6 +142,13 @@ _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size
 def cmd_train_keypoints(args):
     from .train import keypoints
 
+    if args.retune:  # no training: the checkpoint's decoding thresholds tuned afresh
+        if not args.export:
+            raise SystemExit("--retune needs --export (where to write the re-tuned weights)")
+        t0 = time.perf_counter()
+        dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size)
+        print(f"exported the weights to {dest} ({(time.perf_counter() - t0) / 60:.1f} min)")
+        return
     _train(keypoints, args, ("width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
 
 
@@ -199,6 +206,9 @@ def cmd_eval_keypoints(args):
         "layout_verify": "marker layout + ring evidence (ours)",
         "layout_verify_stereo": "marker layout + ring evidence, stereo thresholds",
         "layout_verify_look": "marker layout + ring evidence + second look at 2x (ours)",
+        "layout_verify_align": "marker layout + ring evidence + alignment (ours)",
+        "layout_verify_align_stereo": "marker layout + ring evidence + alignment, stereo thresholds",
+        "layout_verify_align_look": "marker layout + ring evidence + alignment + second look at 2x (ours)",
     }
     print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
     print("|---|---|---|---|---|---|---|---|---|")
@@ -215,7 +225,9 @@ def cmd_eval_keypoints(args):
     print("\n| test set | all 3 centres among the candidates | ID head right at all 3 (of those) |")
     print("|---|---|---|")
     print("\n".join(diag))
-    for best in [m for m in ("layout_verify", "layout_verify_look") if m in res] or [next(iter(res))]:
+    best_modes = [m for m in ("layout_verify_align", "layout_verify_align_look") if m in res]
+    best_modes = best_modes or [m for m in ("layout_verify", "layout_verify_look") if m in res] or [next(iter(res))]
+    for best in best_modes:
         sizes = {name: {b["bin"]: b for b in r["by_ring_size"]} for name, r in res[best].items() if r["n_views"]}
         bins = sorted({b for s in sizes.values() for b in s}, key=lambda b: float(b.split("-")[0]))
         print(f"\n{label[best]}, single view: detected by the outer ring's apparent diameter in network-input px (x4 at 1280 px wide; views)")
@@ -334,6 +346,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
+    tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")
     tk.add_argument("--small-boost", type=float, default=1.0, help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)")
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)

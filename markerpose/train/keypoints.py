@@ -125,9 +125,10 @@ def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.n
 def decode_all(det: np.ndarray, id_logits: np.ndarray, images: np.ndarray, decode_conf: dict | None = None) -> list:
     """:func:`~markerpose.keypoints.decode` of every image of a stack: the heads' logits
     and the (N, 240, 320) uint8 inputs (which ``verify`` looks at)."""
-    verify = (decode_conf or {}).get("verify", kp.default_conf["verify"])
+    c = {**kp.default_conf, **(decode_conf or {})}
+    needs_image = c["verify"] or c["align"]
     return [
-        kp.decode(det[j], id_logits[j], decode_conf, image=images[j].astype(np.float32) / 255.0 if verify else None)
+        kp.decode(det[j], id_logits[j], decode_conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
         for j in range(len(det))
     ]
 
@@ -160,13 +161,16 @@ DECODINGS = {
     "head": {"ids": "head"},
     "layout": {"ids": "layout"},
     "layout_verify": {"ids": "layout", "verify": True},
+    "layout_verify_align": {"ids": "layout", "verify": True, "align": True},
 }
+LOOKS = ("layout_verify", "layout_verify_align")  # the variants also tuned and evaluated with a second look
 TUNING_GRID = {
     "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
     # the ring evidence (in [0, 1]) scales the scores down: a finer, lower grid
     "layout_verify": {"threshold": (0.005, 0.01, 0.02), "min_score": tuple(round(0.01 * k, 2) for k in range(1, 41))},
 }
+TUNING_GRID["layout_verify_align"] = TUNING_GRID["layout_verify"]
 
 
 def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head"):
@@ -409,12 +413,13 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     slim["decode"] = {}
     for name in DECODINGS:
         for stereo, (dc, m) in zip((False, True), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name)):
-            key = kp.tuned_key(dc["ids"], dc.get("verify", False), stereo)  # what KeypointNet looks up
+            key = kp.tuned_key(dc["ids"], dc.get("verify", False), stereo, dc.get("align", False))  # what KeypointNet looks up
             slim["decode"][key] = dc
             print(f"decoding tuned on the validation set ({key}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
-    dc, m = tune_second_look(net, val, slim["decode"]["layout_verify"])
-    slim["decode"]["layout_verify_look"] = dc
-    print(f"second look tuned on the validation set (layout_verify_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+    for name in LOOKS:
+        dc, m = tune_second_look(net, val, slim["decode"][name])
+        slim["decode"][name + "_look"] = dc
+        print(f"second look tuned on the validation set ({name}_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
     return dest
 
@@ -426,14 +431,16 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
     the looser thresholds MarkerPose uses on stereo pairs): ``{variant: {set: metrics}}``.
     One forward pass serves all. A variant whose thresholds the checkpoint lacks runs
     with the defaults. ``layout_verify_look``: ring evidence at the single-view
-    thresholds with a second look ``second_look`` times larger (:func:`look_again`)."""
+    thresholds with a second look ``second_look`` times larger (:func:`look_again`);
+    ``layout_verify_align_look`` likewise with alignment."""
     net = kp.KeypointNet(weights)
     confs = {}
     for name in decodings:
         confs[name] = net.decode_conf(DECODINGS[name])
         confs[name + "_stereo"] = net.decode_conf(DECODINGS[name], stereo=True)
-    if second_look > 1 and "layout_verify" in confs:  # single-view thresholds, a second look where none is found
-        confs["layout_verify_look"] = net.decode_conf({**DECODINGS["layout_verify"], "second_look": second_look})
+    for name in LOOKS:  # single-view thresholds, a second look where none is found
+        if second_look > 1 and name in confs:
+            confs[name + "_look"] = net.decode_conf({**DECODINGS[name], "second_look": second_look})
     res: dict = {mode: {} for mode in confs}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
@@ -519,4 +526,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["DECODINGS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
+__all__ = ["DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
