@@ -393,11 +393,10 @@ def align_triple(image: np.ndarray, points: np.ndarray, marker: Marker | None = 
     pts = np.asarray(points, np.float64)
     tmpl, origin = _template(marker)
     src = ((marker.centers2d - origin) * _TEMPLATE_PPM).astype(np.float32)  # template px
-    spacing = min(np.linalg.norm(pts[a] - pts[b]) for a, b in ((0, 1), (0, 2), (1, 2)))
-    scale = spacing / (min(np.linalg.norm(src[a] - src[b]) for a, b in ((0, 1), (0, 2), (1, 2))) + 1e-9)
-    if not np.all(np.isfinite(pts)) or scale <= 0:
+    spacing = _min_spacing(pts)
+    if not (np.isfinite(spacing) and spacing > 0):
         return pts, None
-    t = cv2.GaussianBlur(tmpl, (0, 0), 0.7 / scale)  # ~0.7 image px, in template px
+    t = cv2.GaussianBlur(tmpl, (0, 0), 0.7 * _min_spacing(src) / spacing)  # ~0.7 image px, in template px
     img = cv2.GaussianBlur(np.ascontiguousarray(image, np.float32), (0, 0), 0.7)
     warp = np.vstack([cv2.getAffineTransform(src, pts.astype(np.float32)), [0, 0, 1]]).astype(np.float32)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-4)
@@ -405,13 +404,15 @@ def align_triple(image: np.ndarray, points: np.ndarray, marker: Marker | None = 
         cc, warp = cv2.findTransformECC(t, img, warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 1)
     except cv2.error:  # no convergence, or a degenerate start
         return pts, None
-    q = np.column_stack([src, np.ones(3)]) @ warp.T.astype(np.float64)
-    if not np.all(np.abs(q[:, 2]) > 1e-9):
-        return pts, None
-    q = q[:, :2] / q[:, 2:]
+    q = cv2.perspectiveTransform(src[None].astype(np.float64), warp.astype(np.float64))[0]
     if not np.all(np.isfinite(q)) or signed_area(q) >= 0 or np.linalg.norm(q - pts, axis=1).max() > 0.4 * spacing:
         return pts, None
     return q, float(cc)
+
+
+def _min_spacing(p: np.ndarray) -> float:
+    """The smallest distance between two of three points (3, 2)."""
+    return float(min(np.linalg.norm(p[a] - p[b]) for a, b in ((0, 1), (0, 2), (1, 2))))
 
 
 def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, marker: Marker | None = None,
@@ -452,7 +453,7 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     if len(cand) < 3:
         return None
     pts = cand[:, :2]
-    allowed: list[tuple[np.ndarray, float, float]] = []  # (points by ID, score, layout ratio)
+    allowed: list[tuple[np.ndarray, float, float]] = []  # (points by ID, score without the ratio, layout ratio)
     for trio in itertools.combinations(range(len(cand)), 3):
         for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
             p_id = prob[list(perm), [0, 1, 2]]
@@ -467,11 +468,11 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
                 r = layout_ratio(p, layout)
                 if r < c["min_ratio"]:
                     continue
-                s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3) * r)
+                s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3))
             allowed.append((p, s, r))
     if not allowed:
         return None
-    scores = np.array([s for _, s, _ in allowed])
+    scores = np.array([s * r for _, s, r in allowed])
     if c["verify"]:
         scores = scores * ring_evidence(image, np.stack([p for p, _, _ in allowed]), marker)
     k = int(np.argmax(scores))
@@ -479,9 +480,8 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     if c["align"]:
         q, cc = align_triple(image, best, marker)
         r = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
-        if cc is not None and r >= (c["min_ratio"] if c["ids"] == "layout" else 0):
-            p, s, r0 = allowed[k]
-            best, score = q, s / r0 * r
+        if cc is not None and (c["ids"] != "layout" or r >= c["min_ratio"]):
+            best, score = q, allowed[k][1] * r
             if c["verify"]:
                 score *= float(ring_evidence(image, q[None], marker)[0])
     if score < c["min_score"]:
