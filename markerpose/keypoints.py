@@ -206,22 +206,45 @@ def candidates(det_logits: np.ndarray, id_logits: np.ndarray, threshold: float, 
     return cand, prob
 
 
+def signed_areas(p: np.ndarray) -> np.ndarray:
+    """Signed areas of triangles p0 p1 p2 ((..., 3, 2), y down): negative for the real marker."""
+    d1, d2 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
+    return 0.5 * (d1[..., 0] * d2[..., 1] - d2[..., 0] * d1[..., 1])
+
+
 def signed_area(p: np.ndarray) -> float:
     """Signed area of the triangle p0 p1 p2 ((3, 2), y down): negative for the real marker."""
-    (x0, y0), (x1, y1), (x2, y2) = p
-    return 0.5 * ((x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0))
+    return float(signed_areas(np.asarray(p, np.float64)))
+
+
+def layout_ratios(p: np.ndarray, layout: np.ndarray) -> np.ndarray:
+    """How far image triangles ``p`` (..., 3, 2) are from views of the marker triangle
+    ``layout`` (3, 2, mm), in the same ID order: the ratio of the singular values of the
+    affine map between the two (1 = a similarity; a plane tilted by θ seen from afar gives
+    cos θ; 0 for a degenerate triangle). Orders that put a ring in the wrong place give
+    small ratios."""
+    sv = np.linalg.svd(layout_affine(p, layout), compute_uv=False)  # (..., 2), largest first
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sv[..., 0] > 0, sv[..., 1] / sv[..., 0], 0.0)
 
 
 def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
-    """How far the image triangle ``p`` (3, 2) is from a view of the marker triangle
-    ``layout`` (3, 2, mm), in the same ID order: the ratio of the singular values of the
-    affine map between the two (1 = a similarity; a plane tilted by θ seen from afar gives
-    cos θ). Orders that put a ring in the wrong place give small ratios."""
-    sv = np.linalg.svd(layout_affine(p, layout), compute_uv=False)
-    return float(sv[1] / sv[0]) if sv[0] > 0 else 0.0
+    """:func:`layout_ratios` of one triangle (3, 2)."""
+    return float(layout_ratios(p, layout))
 
 
 _MARKER = Marker()  # the default marker
+_TRIPLES: dict = {}  # n → triple_orders(n)
+
+
+def triple_orders(n: int) -> np.ndarray:
+    """Every triple of ``n`` points in each of its six ID orders, as indices (6 C(n, 3), 3):
+    row 6 t + o is triple t (in ``itertools.combinations`` order) in order o (in
+    ``itertools.permutations`` order); column j is the point taking ID j."""
+    if n not in _TRIPLES:
+        trios = np.array(list(itertools.combinations(range(n), 3)), int).reshape(-1, 3)
+        _TRIPLES[n] = trios[:, list(itertools.permutations(range(3)))].reshape(-1, 3)
+    return _TRIPLES[n]
 
 
 def _evidence_points(marker: Marker) -> dict:
@@ -452,36 +475,31 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     cand, prob = candidates(det_logits, id_logits, c["threshold"], c["max_candidates"], c["nms_radius"])
     if len(cand) < 3:
         return None
-    pts = cand[:, :2]
-    allowed: list[tuple[np.ndarray, float, float]] = []  # (points by ID, score without the ratio, layout ratio)
-    for trio in itertools.combinations(range(len(cand)), 3):
-        for perm in itertools.permutations(trio):  # perm[j] = candidate taking ID j
-            p_id = prob[list(perm), [0, 1, 2]]
-            p = pts[list(perm)]
-            if signed_area(p) >= 0:  # wrong handedness or degenerate
-                continue
-            if c["ids"] == "head":
-                if p_id.min() < c["min_id_prob"]:
-                    continue
-                s, r = float(np.prod(cand[list(perm), 2] * p_id) ** (1 / 3)), 1.0
-            else:
-                r = layout_ratio(p, layout)
-                if r < c["min_ratio"]:
-                    continue
-                s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3))
-            allowed.append((p, s, r))
-    if not allowed:
+    # Every triple of candidates in every ID order at once: idx[m, j] = the candidate taking ID j.
+    idx = triple_orders(len(cand))
+    p = cand[idx, :2]  # (M, 3, 2)
+    p_id = prob[idx, [0, 1, 2]]  # (M, 3)
+    keep = signed_areas(p) < 0  # the marker's handedness; degenerate triples out
+    if c["ids"] == "head":
+        keep &= p_id.min(1) >= c["min_id_prob"]
+        s, r = np.prod(cand[idx, 2] * p_id, axis=1) ** (1 / 3), np.ones(len(idx))
+    else:
+        r = layout_ratios(p, layout)
+        keep &= r >= c["min_ratio"]
+        s = np.prod(cand[idx, 2], axis=1) ** (1 / 3) * np.prod(p_id, axis=1) ** (c["id_weight"] / 3)
+    if not keep.any():
         return None
-    scores = np.array([s * r for _, s, r in allowed])
+    p, s, r = p[keep], s[keep], r[keep]  # the allowed (triple, order): points by ID, score without the ratio, ratio
+    scores = s * r
     if c["verify"]:
-        scores = scores * ring_evidence(image, np.stack([p for p, _, _ in allowed]), marker)
+        scores = scores * ring_evidence(image, p, marker)
     k = int(np.argmax(scores))
-    best, score = allowed[k][0], float(scores[k])
+    best, score = p[k], float(scores[k])
     if c["align"]:
         q, cc = align_triple(image, best, marker)
-        r = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
-        if cc is not None and (c["ids"] != "layout" or r >= c["min_ratio"]):
-            best, score = q, allowed[k][1] * r
+        rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
+        if cc is not None and (c["ids"] != "layout" or rq >= c["min_ratio"]):
+            best, score = q, float(s[k]) * rq
             if c["verify"]:
                 score *= float(ring_evidence(image, q[None], marker)[0])
     if score < c["min_score"]:
@@ -662,6 +680,7 @@ __all__ = [
     "decode",
     "default_conf",
     "layout_ratio",
+    "layout_ratios",
     "layer_widths",
     "look_size",
     "make_targets",
@@ -669,7 +688,9 @@ __all__ = [
     "ring_evidence",
     "score_map",
     "signed_area",
+    "signed_areas",
     "to_full",
     "to_input",
+    "triple_orders",
     "tuned_key",
 ]

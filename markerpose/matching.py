@@ -18,14 +18,13 @@ like any other hypothesis.
 
 from __future__ import annotations
 
-import itertools
 
 import cv2
 import numpy as np
 
 from .camera import StereoRig
 from .geometry import ellipse_to_conic, epipolar_distance, triangulate
-from .keypoints import layout_ratio, signed_area
+from .keypoints import layout_ratios, signed_area, signed_areas, triple_orders
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -104,19 +103,18 @@ def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, 
         geometric mean of the three candidates' scores times the layout ratio.
     """
     cand = np.asarray(cand, np.float64).reshape(-1, 3)[:top]
-    best: dict = {}
-    for trio in itertools.combinations(range(len(cand)), 3):
-        for perm in itertools.permutations(trio):  # perm[j] = the candidate named c_j
-            p = cand[list(perm), :2]
-            if signed_area(p) >= 0:  # mirror image or degenerate
-                continue
-            r = layout_ratio(p, layout)
-            if r < min_ratio:
-                continue
-            s = float(np.prod(cand[list(perm), 2]) ** (1 / 3) * r)
-            if s > best.get(trio, (None, -1.0))[1]:
-                best[trio] = (p, s)
-    return sorted(best.values(), key=lambda f: -f[1])[:max_triples]
+    idx = triple_orders(len(cand))  # every triple in every order; idx[m, j] = the candidate named c_j
+    if len(idx) == 0:
+        return []
+    p = cand[idx, :2]
+    r = layout_ratios(p, layout)
+    ok = (signed_areas(p) < 0) & (r >= min_ratio)  # not a mirror image, not degenerate; the layout's shape
+    s = np.where(ok, np.prod(cand[idx, 2], axis=1) ** (1 / 3) * r, -np.inf).reshape(-1, 6)
+    order = s.argmax(1)  # each triple's best order
+    best = s[np.arange(len(s)), order]
+    trios = np.nonzero(np.isfinite(best))[0]
+    trios = trios[np.argsort(-best[trios], kind="stable")][:max_triples]
+    return [(p[6 * t + order[t]], float(best[t])) for t in trios]
 
 
 def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float) -> list[tuple[float, np.ndarray]]:

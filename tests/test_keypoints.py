@@ -417,3 +417,61 @@ def test_decode_with_align_needs_the_image_and_refines():
 def test_tuned_key_names_the_alignment():
     assert kp.tuned_key("layout", True, True, True) == "layout_verify_align_stereo"
     assert kp.tuned_key("layout", True) == "layout_verify"
+
+
+# --- every triple in every order, at once --------------------------------------------------
+def test_triple_orders_cover_every_ordered_triple_once():
+    import itertools
+
+    idx = kp.triple_orders(5)
+    assert idx.shape == (60, 3)
+    assert [tuple(r) for r in idx] == [p for t in itertools.combinations(range(5), 3) for p in itertools.permutations(t)]
+    assert kp.triple_orders(2).shape == (0, 3)
+
+
+def _decode_by_loop(det, ids, conf, image=None):
+    """The decoding's choice of triple written as a plain loop over triples and orders
+    (``align`` off): the reference the vectorised :func:`kp.decode` must agree with."""
+    import itertools
+
+    c = {**kp.default_conf, **conf}
+    cand, prob = kp.candidates(det, ids, c["threshold"], c["max_candidates"], c["nms_radius"])
+    best = None
+    for trio in itertools.combinations(range(len(cand)), 3):
+        for perm in itertools.permutations(trio):
+            perm = list(perm)
+            p, p_id = cand[perm, :2], prob[perm, [0, 1, 2]]
+            if kp.signed_area(p) >= 0:
+                continue
+            if c["ids"] == "head":
+                if p_id.min() < c["min_id_prob"]:
+                    continue
+                s = np.prod(cand[perm, 2] * p_id) ** (1 / 3)
+            else:
+                r = kp.layout_ratio(p, mp.Marker().centers2d)
+                if r < c["min_ratio"]:
+                    continue
+                s = np.prod(cand[perm, 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3) * r
+            if c["verify"]:
+                s *= kp.ring_evidence(image, p[None])[0]
+            if best is None or s > best[1]:
+                best = (p, s)
+    return None if best is None or best[1] < c["min_score"] else best
+
+
+@pytest.mark.parametrize("conf", [{"ids": "head", "min_id_prob": 0.05}, {"ids": "layout"}, {"ids": "layout", "verify": True}])
+def test_decode_agrees_with_a_loop_over_triples(conf):
+    rng = np.random.default_rng(3)
+    image = rng.uniform(0, 1, (240, 320)).astype(np.float32)
+    agreed = found = 0
+    for _ in range(12):
+        det = rng.normal(0, 3, (65, 30, 40))
+        det[64] += 6.0  # mostly "no centre", a few dozen peaks
+        ids = rng.normal(0, 1, (4, 30, 40))
+        conf_ = {**conf, "threshold": 0.02, "min_score": 0.0}
+        a, b = kp.decode(det, ids, conf_, image=image), _decode_by_loop(det, ids, conf_, image)
+        assert (a is None) == (b is None)
+        if a is not None:
+            found += 1
+            agreed += int(np.array_equal(a[0], b[0]) and np.isclose(a[1], b[1], rtol=1e-12))
+    assert found >= 6 and agreed == found

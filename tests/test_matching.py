@@ -155,3 +155,33 @@ def test_view_poses_tell_one_plate_from_rings_that_do_not_share_one(rig):
     # The same centres with ellipses turned 60°: three rings that no plate pose explains.
     turned = [(c, ax, a + 60.0) for c, ax, a in ells]
     assert view_poses(rig.left, true, turned, m.points3d, m.outer_radius)[0][0] > 0.1
+
+
+def test_view_triples_agrees_with_a_loop_over_triples():
+    """The vectorised search equals the plain loop: per set of three candidates its best
+    ID order, sets ranked by score (ties in candidate order)."""
+    import itertools
+
+    from markerpose.keypoints import layout_ratio, signed_area
+
+    layout = mp.Marker().centers2d
+    rng = np.random.default_rng(5)
+    for n in (0, 3, 5, 8, 10):
+        cand = np.column_stack([rng.uniform(0, 320, (n, 2)), np.sort(rng.uniform(0.01, 1, n))[::-1]])
+        if n >= 5:
+            cand[:3, :2] = [[100, 150], [140, 160], [88, 90]]  # the marker's triangle, c0 c1 c2
+        ref = {}
+        for trio in itertools.combinations(range(min(n, 8)), 3):
+            for perm in itertools.permutations(trio):
+                p = cand[list(perm), :2]
+                r = layout_ratio(p, layout)
+                if signed_area(p) < 0 and r >= 0.35:
+                    s = np.prod(cand[list(perm), 2]) ** (1 / 3) * r
+                    if s > ref.get(trio, (None, -1.0))[1]:
+                        ref[trio] = (p, s)
+        ref = sorted(ref.values(), key=lambda f: -f[1])
+        got = view_triples(cand, layout, max_triples=None)
+        assert len(got) == len(ref) and (n < 5 or len(got) > 0)
+        for (p, s), (q, t) in zip(got, ref):
+            np.testing.assert_array_equal(p, q)
+            assert s == pytest.approx(t, rel=1e-12)

@@ -97,7 +97,7 @@ def test_generation_does_not_depend_on_the_number_of_workers(monkeypatch):
 
 
 def test_training_loop_checkpoints_and_resumes(tmp_path):
-    pytest.importorskip("torch")
+    torch = pytest.importorskip("torch")
     from markerpose import keypoints as kp
     from markerpose.train import keypoints as tk
 
@@ -107,9 +107,14 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     tk.main({**conf, "epochs": 2}, tmp_path / "run", resume=True, data_dir=tmp_path / "data")
     hist = json.loads((tmp_path / "run" / "history.json").read_text())
     assert [h["epoch"] for h in hist] == [1, 2]
-    slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8)
+    slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8, negatives=16)
     net = kp.KeypointNet(slim)
     assert net.conf["width"] == 0.125
+    tuned = torch.load(slim, weights_only=True)["decode"]
+    for name in tk.DECODINGS:  # every variant, both operating points; the looks
+        assert {name, name + "_stereo"} <= set(tuned), name
+    assert {name + "_look" for name in tk.LOOKS} <= set(tuned)
+    assert kp.KeypointNet(slim, {"verify": True, "align": True}).conf["min_score"] == tuned["layout_verify_align"]["min_score"]
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1
 
 

@@ -167,13 +167,16 @@ LOOKS = ("layout_verify", "layout_verify_align")  # the variants also tuned and 
 TUNING_GRID = {
     "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
-    # the ring evidence (in [0, 1]) scales the scores down: a finer, lower grid
-    "layout_verify": {"threshold": (0.005, 0.01, 0.02), "min_score": tuple(round(0.01 * k, 2) for k in range(1, 41))},
+    # The ring evidence (in [0, 1]) scales the scores down: a finer, lower grid. The
+    # candidates' threshold: 0.005 won every export of (0.005, 0.01, 0.02) from v0.8 to
+    # v0.10, for both operating points, so it is no longer searched (each value searched
+    # costs a decoding of the validation set, ~2 min with alignment).
+    "layout_verify": {"threshold": (0.005,), "min_score": tuple(round(0.01 * k, 2) for k in range(1, 41))},
 }
 TUNING_GRID["layout_verify_align"] = TUNING_GRID["layout_verify"]
 
 
-def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head"):
+def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head", found: list | None = None):
     """The decoding thresholds (:data:`TUNING_GRID`) that detect the most views of ``data``
     (the validation set, with its marker-free views) with at most ``max_false_positive``
     false detections on its marker-free views.
@@ -181,6 +184,8 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
     Args:
         max_false_positive: a budget, or a tuple of budgets (one decoding pass serves all).
         decoding: the decoding variant, a key of :data:`DECODINGS`.
+        found: a list to which the predictions of each budget's chosen thresholds are
+            appended (what :func:`predict` returns with them), for :func:`tune_second_look`.
     Returns:
         (decode conf, its metrics on ``data``), or a list of them for a tuple of budgets.
     """
@@ -192,29 +197,34 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
     for values in itertools.product(*grid.values()):
         dc = {**DECODINGS[decoding], **dict(zip(grid, values))}
         # The best triple does not depend on min_score: decode once, then threshold.
-        found = decode_all(det, id_logits, data["image"], {**dc, "min_score": 0.0})
+        every = decode_all(det, id_logits, data["image"], {**dc, "min_score": 0.0})
         for ms in min_scores:
-            m = score([f if f is not None and f[1] >= ms else None for f in found], data)
+            kept = [f if f is not None and f[1] >= ms else None for f in every]
+            m = score(kept, data)
             for b, budget in enumerate(budgets):
                 key = (np.nan_to_num(m["false_positive"]) <= budget, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
                 if best[b] is None or key > best[b][0]:
-                    best[b] = (key, {**dc, "min_score": ms}, m)
+                    best[b] = (key, {**dc, "min_score": ms}, m, kept)
+    if found is not None:
+        found.extend(b[3] for b in best)
     out = [(b[1], b[2]) for b in best]
     return out if isinstance(max_false_positive, (tuple, list)) else out[0]
 
 
-def tune_second_look(net, data: dict, decode_conf: dict, zoom: float = 2.0, max_false_positive: float | None = None, device="cpu"):
+def tune_second_look(net, data: dict, decode_conf: dict, zoom: float = 2.0, max_false_positive: float | None = None, device="cpu",
+                     first: list | None = None):
     """The second look's ``look_min_score`` that detects the most views of ``data`` (the
     validation set with its marker-free views) with both looks together within
     ``max_false_positive`` (default :data:`SINGLE_VIEW_FP`), the first look decoded with
-    ``decode_conf``.
+    ``decode_conf`` (its predictions ``first`` when already at hand).
 
     Returns:
         ({"second_look", "look_min_score"}, metrics of both looks on ``data``).
     """
     if max_false_positive is None:
         max_false_positive = SINGLE_VIEW_FP
-    first = predict(net, data["image"], decode_conf, device=device)
+    if first is None:
+        first = predict(net, data["image"], decode_conf, device=device)
     again = look_again(net, data["image"], first, {**decode_conf, "second_look": zoom, "look_min_score": 0.0}, device)
     best = None
     for ms in TUNING_GRID["layout_verify"]["min_score"]:
@@ -400,24 +410,29 @@ def validation_sets(data_dir: str | Path = "runs/data", val_size: int = 400, neg
     return {k: np.concatenate([val[k], neg[k]]) for k in val}
 
 
-def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400) -> Path:
+def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400,
+           negatives: int = 600) -> Path:
     """The inference part of a stage-1 checkpoint (weights, width, metrics), with decoding
-    thresholds tuned on the validation set (:func:`tune_decoding`) for both ID modes."""
+    thresholds tuned on the validation set (:func:`tune_decoding`; ``val_size`` views and
+    ``negatives`` marker-free ones) for every variant of :data:`DECODINGS` and :data:`LOOKS`."""
     import torch
 
     dest = export_checkpoint(checkpoint, dest, keep=("width",))
     slim = torch.load(dest, weights_only=True)
     net = kp.build_network(slim["width"])
     net.load_state_dict(slim["state_dict"])
-    val = validation_sets(data_dir, val_size)
-    slim["decode"] = {}
+    val = validation_sets(data_dir, val_size, negatives)
+    slim["decode"], firsts = {}, {}
     for name in DECODINGS:
-        for stereo, (dc, m) in zip((False, True), tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name)):
+        found: list = []
+        tuned = tune_decoding(net, val, (SINGLE_VIEW_FP, STEREO_FP), decoding=name, found=found)
+        firsts[name] = found[0]  # the single view's predictions, which the second look starts from
+        for stereo, (dc, m) in zip((False, True), tuned):
             key = kp.tuned_key(dc["ids"], dc.get("verify", False), stereo, dc.get("align", False))  # what KeypointNet looks up
             slim["decode"][key] = dc
             print(f"decoding tuned on the validation set ({key}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     for name in LOOKS:
-        dc, m = tune_second_look(net, val, slim["decode"][name])
+        dc, m = tune_second_look(net, val, slim["decode"][name], first=firsts[name])
         slim["decode"][name + "_look"] = dc
         print(f"second look tuned on the validation set ({name}_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
