@@ -149,7 +149,7 @@ def cmd_train_keypoints(args):
         dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size)
         print(f"exported the weights to {dest} ({(time.perf_counter() - t0) / 60:.1f} min)")
         return
-    _train(keypoints, args, ("width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
+    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
 
 
 def cmd_train_ellipses(args):
@@ -344,6 +344,7 @@ def build_parser() -> argparse.ArgumentParser:
     tsub = t.add_subparsers(dest="what", required=True)
     tk = tsub.add_parser("keypoints", help="stage 1: the SuperPoint-like centre + ID network")
     tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
+    tk.add_argument("--stem-width", type=float, default=None, help="multiplier of the first four convolutions, at full and half resolution (default: --width)")
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
     tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")

@@ -73,14 +73,20 @@ default_conf = {
 }
 
 
-def layer_widths(width: float = 1.0) -> tuple[tuple[int, ...], int]:
-    """(encoder widths (8,), head width) for a width multiplier (1.0 = the paper's)."""
-    enc = tuple(max(8, int(round(c * width))) for c in PAPER_WIDTHS)
+def layer_widths(width: float = 1.0, stem_width: float | None = None) -> tuple[tuple[int, ...], int]:
+    """(encoder widths (8,), head width) for a width multiplier (1.0 = the paper's).
+
+    ``stem_width`` (ours), when given, multiplies the first four convolutions instead —
+    those at full and half resolution, which cost most of the compute: the deeper layers
+    and the heads run on 16x fewer pixels, so they can be wider for little time."""
+    stem = width if stem_width is None else stem_width
+    enc = tuple(max(8, int(round(c * (stem if i < 4 else width)))) for i, c in enumerate(PAPER_WIDTHS))
     return enc, max(16, int(round(PAPER_HEAD * width)))
 
 
-def build_network(width: float = 1.0):
-    """The SuperPoint-like network (torch ``nn.Module``), paper widths times ``width``.
+def build_network(width: float = 1.0, stem_width: float | None = None):
+    """The SuperPoint-like network (torch ``nn.Module``), paper widths times ``width``
+    (the first four convolutions times ``stem_width`` when given; see :func:`layer_widths`).
 
     Input: (B, 1, H, W) float in [0, 1], H and W multiples of 8.
     Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits.
@@ -88,7 +94,7 @@ def build_network(width: float = 1.0):
     import torch
     from torch import nn
 
-    enc, head = layer_widths(width)
+    enc, head = layer_widths(width, stem_width)
 
     def conv(cin, cout, k=3):
         return [nn.Conv2d(cin, cout, k, padding=k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
@@ -105,7 +111,7 @@ def build_network(width: float = 1.0):
             self.encoder = nn.Sequential(*layers)
             self.det_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, CELL * CELL + 1, 1))
             self.id_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, 4, 1))
-            self.width = width
+            self.width, self.stem_width = width, stem_width
 
         def forward(self, x: torch.Tensor):
             f = self.encoder(x)
@@ -556,7 +562,8 @@ class KeypointNet:
 
     Args:
         weights: a checkpoint path (``.pt``) or None for the shipped default.
-        conf: decoding overrides of :data:`default_conf`; ``width`` comes from the checkpoint.
+        conf: decoding overrides of :data:`default_conf`; ``width`` and ``stem_width``
+            come from the checkpoint.
         device: torch device ("cpu" by default; "cuda" when wanted and present).
         marker: the marker's geometry, for ``ids="layout"`` and ``verify`` (default: the
             default marker).
@@ -586,7 +593,8 @@ class KeypointNet:
             self.tuned = {"head": self.tuned}
         self.conf = self.decode_conf(conf, stereo)
         self.conf["width"] = float(ckpt["width"])
-        self.net = build_network(self.conf["width"]).to(device).eval()
+        self.conf["stem_width"] = ckpt.get("stem_width")
+        self.net = build_network(self.conf["width"], self.conf["stem_width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
         # Channels-last convolutions run faster on this CPU (same outputs to ~1e-6).
         self.net = self.net.to(memory_format=torch.channels_last)

@@ -34,6 +34,13 @@ def test_width_option_scales_layers():
     assert det.shape[1:] == (65, 30, 40) and ids.shape[1:] == (4, 30, 40)
 
 
+def test_stem_width_sets_the_first_four_convolutions_only():
+    net = kp.build_network(0.5, stem_width=0.25)
+    assert _conv_widths(net) == [16, 16, 16, 16, 64, 64, 64, 64]
+    assert net.det_head[0].out_channels == 128 and net.id_head[0].out_channels == 128
+    assert kp.layer_widths(0.25) == kp.layer_widths(0.25, None) == ((16, 16, 16, 16, 32, 32, 32, 32), 64)
+
+
 # --- targets and decoding ------------------------------------------------------------------
 def _logits_from_targets(det, ids, sharp=20.0):
     """Ideal network outputs for given cell targets (ignored cells → background)."""

@@ -101,7 +101,7 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     from markerpose import keypoints as kp
     from markerpose.train import keypoints as tk
 
-    conf = {"width": 0.125, "epochs": 1, "train_size": 32, "val_size": 8, "batch_size": 8, "workers": 1}
+    conf = {"width": 0.25, "stem_width": 0.125, "epochs": 1, "train_size": 32, "val_size": 8, "batch_size": 8, "workers": 1}
     best = tk.main(conf, tmp_path / "run", data_dir=tmp_path / "data")
     assert best.is_file() and (tmp_path / "run" / "last.pt").is_file()
     tk.main({**conf, "epochs": 2}, tmp_path / "run", resume=True, data_dir=tmp_path / "data")
@@ -109,7 +109,7 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     assert [h["epoch"] for h in hist] == [1, 2]
     slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8, negatives=16)
     net = kp.KeypointNet(slim)
-    assert net.conf["width"] == 0.125
+    assert net.conf["width"] == 0.25 and net.conf["stem_width"] == 0.125
     tuned = torch.load(slim, weights_only=True)["decode"]
     for name in tk.DECODINGS:  # every variant, both operating points; the looks
         assert {name, name + "_stereo"} <= set(tuned), name

@@ -30,6 +30,7 @@ from .scenes import sample
 
 default_conf = {
     "width": 1.0,  # network width multiplier (1.0 = the paper's)
+    "stem_width": None,  # multiplier of the first four convolutions (None: ``width``)
     "lr": 1e-4,  # Adam learning rate (the paper's)
     "schedule": "constant",  # "constant" (paper) or "cosine" decay to 0 over the run
     "epochs": 10,
@@ -358,7 +359,9 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
         steep = cached(data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz", c["steep_size"], c["seed"] + 100, STEEP, c["workers"], "render steep")
         train = {k: np.concatenate([train[k], steep[k]]) for k in train}
     val = cached(data_dir / f"kp_val_{c['val_size']}.npz", c["val_size"], 1, None, c["workers"], "render val")
-    net = kp.build_network(c["width"]).to(c["device"])
+    # Channels-last convolutions: a training step of the width-0.25 network on this CPU
+    # took 297 ms instead of 462 (batch of 16 windows of 192x144, forward + backward).
+    net = kp.build_network(c["width"], c["stem_width"]).to(c["device"]).to(memory_format=torch.channels_last)
     dev = c["device"]
     w = c["background_weight"]
     ce_loc = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0] * 64 + [w], device=dev), ignore_index=-100)
@@ -390,7 +393,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
         Path(out_dir),
         resume,
         describe,
-        extra={"width": c["width"]},
+        extra={"width": c["width"], "stem_width": c["stem_width"]},
     )
 
 
@@ -417,9 +420,9 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     ``negatives`` marker-free ones) for every variant of :data:`DECODINGS` and :data:`LOOKS`."""
     import torch
 
-    dest = export_checkpoint(checkpoint, dest, keep=("width",))
+    dest = export_checkpoint(checkpoint, dest, keep=("width", "stem_width"))
     slim = torch.load(dest, weights_only=True)
-    net = kp.build_network(slim["width"])
+    net = kp.build_network(slim["width"], slim.get("stem_width"))
     net.load_state_dict(slim["state_dict"])
     val = validation_sets(data_dir, val_size, negatives)
     slim["decode"], firsts = {}, {}

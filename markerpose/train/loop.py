@@ -103,13 +103,13 @@ def fit(
 
 
 def export(checkpoint: str | Path, dest: str | Path, keep: tuple = ()) -> Path:
-    """Keep only what inference needs (float32 weights, metrics and ``keep`` keys) from a checkpoint."""
+    """Keep only what inference needs (float32 weights, metrics and those ``keep`` keys it has) from a checkpoint."""
     import torch
 
     ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
     slim = {"state_dict": {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()}}
     slim["metrics"] = {k: v for k, v in ck.get("metrics", {}).items() if isinstance(v, (int, float, str))}
-    slim.update({k: ck[k] for k in keep})
+    slim.update({k: ck[k] for k in keep if k in ck})
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     torch.save(slim, dest)
