@@ -176,5 +176,6 @@ def test_speed_times_the_pair_and_the_second_look():
     pytest.importorskip("torch")
     from markerpose.train.keypoints import speed
 
-    r = speed((0.25,), runs=2)[0.25]
-    assert r["params"] == 81301 and r["pair_ms"] > 0 and r["look_ms"] > 0
+    r = speed((0.25, (0.5, 0.25)), runs=2)
+    assert r[0.25]["params"] == 81301 and r[0.25]["pair_ms"] > 0 and r[0.25]["look_ms"] > 0
+    assert r[(0.5, 0.25)]["params"] > 3 * r[0.25]["params"]  # the deeper layers and heads twice as wide

@@ -522,7 +522,8 @@ def candidate_recall(det: np.ndarray, id_logits: np.ndarray, data: dict, conf: d
 def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     """Median milliseconds of one forward pass of a stereo pair (a batch of two 320x240
     inputs; ``pair_ms``) and of one 640x480 input (a second look at 2x; ``look_ms``) per
-    network width, and the parameter counts (speed does not depend on the weights)."""
+    network width — a multiplier, or (width, stem_width) — and the parameter counts
+    (speed does not depend on the weights). Channels-last, as :class:`KeypointNet` runs."""
     import torch
 
     def median_ms(net, x):
@@ -538,7 +539,7 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     out = {}
     w0, h0 = kp.INPUT_SIZE
     for w in widths:
-        net = kp.build_network(w).eval()
+        net = kp.build_network(*(w if isinstance(w, tuple) else (w,))).eval().to(memory_format=torch.channels_last)
         out[w] = {"pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)), "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)),
                   "params": int(sum(p.numel() for p in net.parameters()))}
     return out
