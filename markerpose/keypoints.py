@@ -89,7 +89,7 @@ def build_network(width: float = 1.0, stem_width: float | None = None):
     (the first four convolutions times ``stem_width`` when given; see :func:`layer_widths`).
 
     Input: (B, 1, H, W) float in [0, 1], H and W multiples of 8.
-    Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits.
+    Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits. Weights channels-last.
     """
     import torch
     from torch import nn
@@ -117,7 +117,9 @@ def build_network(width: float = 1.0, stem_width: float | None = None):
             f = self.encoder(x)
             return self.det_head(f), self.id_head(f)
 
-    return SuperPointLike()
+    # Channels-last: the convolutions run faster on this CPU, in training (297 against
+    # 462 ms a step at width 0.25) and inference, with the same outputs to ~1e-6.
+    return SuperPointLike().to(memory_format=torch.channels_last)
 
 
 # --- training targets ------------------------------------------------------------------
@@ -596,8 +598,6 @@ class KeypointNet:
         self.conf["stem_width"] = ckpt.get("stem_width")
         self.net = build_network(self.conf["width"], self.conf["stem_width"]).to(device).eval()
         self.net.load_state_dict(ckpt["state_dict"])  # strict: every weight must match
-        # Channels-last convolutions run faster on this CPU (same outputs to ~1e-6).
-        self.net = self.net.to(memory_format=torch.channels_last)
         self.device = device
         self.path = path
         self.marker = marker or _MARKER

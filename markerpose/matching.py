@@ -18,7 +18,6 @@ like any other hypothesis.
 
 from __future__ import annotations
 
-
 import cv2
 import numpy as np
 

@@ -359,9 +359,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
         steep = cached(data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz", c["steep_size"], c["seed"] + 100, STEEP, c["workers"], "render steep")
         train = {k: np.concatenate([train[k], steep[k]]) for k in train}
     val = cached(data_dir / f"kp_val_{c['val_size']}.npz", c["val_size"], 1, None, c["workers"], "render val")
-    # Channels-last convolutions: a training step of the width-0.25 network on this CPU
-    # took 297 ms instead of 462 (batch of 16 windows of 192x144, forward + backward).
-    net = kp.build_network(c["width"], c["stem_width"]).to(c["device"]).to(memory_format=torch.channels_last)
+    net = kp.build_network(c["width"], c["stem_width"]).to(c["device"])
     dev = c["device"]
     w = c["background_weight"]
     ce_loc = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0] * 64 + [w], device=dev), ignore_index=-100)
@@ -523,7 +521,7 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     """Median milliseconds of one forward pass of a stereo pair (a batch of two 320x240
     inputs; ``pair_ms``) and of one 640x480 input (a second look at 2x; ``look_ms``) per
     network width — a multiplier, or (width, stem_width) — and the parameter counts
-    (speed does not depend on the weights). Channels-last, as :class:`KeypointNet` runs."""
+    (speed does not depend on the weights)."""
     import torch
 
     def median_ms(net, x):
@@ -539,7 +537,7 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     out = {}
     w0, h0 = kp.INPUT_SIZE
     for w in widths:
-        net = kp.build_network(*(w if isinstance(w, tuple) else (w,))).eval().to(memory_format=torch.channels_last)
+        net = kp.build_network(*(w if isinstance(w, tuple) else (w,))).eval()
         out[w] = {"pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)), "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)),
                   "params": int(sum(p.numel() for p in net.parameters()))}
     return out
