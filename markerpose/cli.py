@@ -146,10 +146,11 @@ def cmd_train_keypoints(args):
         if not args.export:
             raise SystemExit("--retune needs --export (where to write the re-tuned weights)")
         t0 = time.perf_counter()
-        dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size)
+        dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size, negatives=args.val_negatives)
         print(f"exported the weights to {dest} ({(time.perf_counter() - t0) / 60:.1f} min)")
         return
-    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size)
+    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size,
+           negatives=args.val_negatives)
 
 
 def cmd_train_ellipses(args):
@@ -197,7 +198,11 @@ def cmd_eval_pipeline(args):
 def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
-    res = tk.evaluate(args.weights, args.data, args.sets, args.workers)
+    unknown = sorted(set(args.decodings or ()) - set(tk.DECODINGS))
+    if unknown:
+        raise SystemExit(f"unknown --decodings {unknown}; choose from {sorted(tk.DECODINGS)}")
+    res = tk.evaluate(args.weights, args.data, args.sets, args.workers, decodings=tuple(args.decodings or tk.DECODINGS),
+                      second_look=args.second_look)
     label = {
         "head": "ID head (paper)",
         "layout": "marker layout (ours)",
@@ -353,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
     tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")
+    tk.add_argument("--val-negatives", type=int, default=None, help="marker-free validation images the export tunes the false-positive budget on (default 3000)")
     tk.add_argument("--small-boost", type=float, default=1.0, help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)")
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)
@@ -365,6 +371,8 @@ def build_parser() -> argparse.ArgumentParser:
     ek = esub.add_parser("keypoints", help="stage 1 on the held-out sets (standard, dark, blur, negatives)")
     _eval_args(ek, "stage-1")
     ek.add_argument("--speed", action="store_true", help="also time the paper-width and the shipped network")
+    ek.add_argument("--decodings", nargs="*", help="decoding variants (default: all): head layout layout_verify layout_verify_align")
+    ek.add_argument("--second-look", type=float, default=2.0, help="zoom of the second look of the variants that have one (1 = none)")
     ek.set_defaults(func=cmd_eval_keypoints)
     ee = esub.add_parser("ellipses", help="stage 2 on the held-out patch sets (standard, dark, blur)")
     _eval_args(ee, "EllipSegNet")

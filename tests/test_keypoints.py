@@ -130,6 +130,20 @@ def test_decode_by_layout_needs_no_id_head():
         kp.decode(dl, il, {"ids": "magic"})
 
 
+def test_steep_marker_is_not_scored_down_to_its_ratio():
+    """Layout IDs: a marker tilted by ~60° (layout ratio ~0.45) keeps its ID order and
+    scores min(1, ratio / ratio_full) of a frontal view, not the ratio itself (v0.12)."""
+    p = _view(62, 30, 100, dist=250.0)
+    r = kp.layout_ratio(p, mp.Marker().centers2d)
+    assert 0.35 < r < 0.5
+    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    dl, il = _logits_from_targets(det, ids)
+    soft, old = kp.decode(dl, il, {"ids": "layout"}), kp.decode(dl, il, {"ids": "layout", "ratio_full": None})
+    np.testing.assert_allclose(soft[0], np.floor(p + 0.5), atol=1e-6)
+    np.testing.assert_array_equal(soft[0], old[0])
+    assert soft[1] / old[1] == pytest.approx(min(1.0, r / kp.default_conf["ratio_full"]) / r, rel=1e-3)
+
+
 def test_decode_by_layout_rejects_wrong_shapes():
     """Three ring-like points in a line or in the mirror image are not the marker."""
     det, ids = kp.make_targets(np.array([[100.0, 100.0], [130.0, 100.0], [160.0, 101.0]]), np.ones(3, np.int8))
@@ -253,6 +267,12 @@ def test_operating_points_from_the_checkpoint(tmp_path):
     assert kp.KeypointNet(path, {"min_score": 0.1}, stereo=True).conf["min_score"] == 0.1
     with pytest.raises(ValueError, match="ids"):
         kp.KeypointNet(path, {"ids": "nope"})
+    # Thresholds tuned before ratio_full existed keep the scoring they were tuned with.
+    assert kp.KeypointNet(path).conf["ratio_full"] is None
+    decode["layout"]["ratio_full"] = 0.5
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    assert kp.KeypointNet(path).conf["ratio_full"] == 0.5
+    assert kp.KeypointNet(path, {"ratio_full": 0.6}).conf["ratio_full"] == 0.6
 
 
 def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
@@ -298,7 +318,7 @@ def test_look_again_maps_the_zoomed_points_back(monkeypatch):
 
     zoomed = np.array([[101.0, 41.0], [141.0, 41.0], [101.0, 121.0]])
     monkeypatch.setattr(tk, "logits", fake_logits)
-    monkeypatch.setattr(tk, "decode_all", lambda det, ids, images, conf: [(zoomed, conf["min_score"])] * len(det))
+    monkeypatch.setattr(tk, "decode_all", lambda det, ids, images, conf, desc=None: [(zoomed, conf["min_score"])] * len(det))
     images = np.zeros((3, 240, 320), np.uint8)
     first = [(np.zeros((3, 2)), 0.9), None, None]
     out = tk.look_again(None, images, first, {"second_look": 2.0, "min_score": 0.1, "look_min_score": 0.4})
@@ -307,6 +327,13 @@ def test_look_again_maps_the_zoomed_points_back(monkeypatch):
     np.testing.assert_allclose(out[1][0], [[50.25, 20.25], [70.25, 20.25], [50.25, 60.25]])
     assert out[2][1] == 0.4  # decoded with the look threshold
     assert tk.look_again(None, images, first, {"second_look": 1.0}) == first
+    # A shared cache: the network runs only on views it has not seen at this zoom.
+    cache: dict = {}
+    tk.look_again(None, images, [first[0], first[0], None], {"second_look": 2.0, "min_score": 0.1}, zoomed=cache)
+    assert seen["shape"] == (1, 480, 640) and set(cache) == {2}
+    out = tk.look_again(None, images, first, {"second_look": 2.0, "min_score": 0.1}, zoomed=cache)
+    assert seen["shape"] == (1, 480, 640) and set(cache) == {1, 2}  # only view 1 was new
+    assert out[1] is not None and out[2] is not None
 
 
 @shipped
@@ -438,13 +465,16 @@ def test_triple_orders_cover_every_ordered_triple_once():
 
 def _decode_by_loop(det, ids, conf, image=None):
     """The decoding's choice of triple written as a plain loop over triples and orders
-    (``align`` off): the reference the vectorised :func:`kp.decode` must agree with."""
+    (``align`` off): the reference the vectorised :func:`kp.decode` must agree with.
+    Each triple's ID order is the one with the best score using the layout ratio itself;
+    the triples compete with the ratio softened by ``ratio_full`` (layout IDs)."""
     import itertools
 
     c = {**kp.default_conf, **conf}
     cand, prob = kp.candidates(det, ids, c["threshold"], c["max_candidates"], c["nms_radius"])
     best = None
     for trio in itertools.combinations(range(len(cand)), 3):
+        order = None  # (points, score with the ratio, score with the softened ratio)
         for perm in itertools.permutations(trio):
             perm = list(perm)
             p, p_id = cand[perm, :2], prob[perm, [0, 1, 2]]
@@ -454,19 +484,24 @@ def _decode_by_loop(det, ids, conf, image=None):
                 if p_id.min() < c["min_id_prob"]:
                     continue
                 s = np.prod(cand[perm, 2] * p_id) ** (1 / 3)
+                r = soft = 1.0
             else:
                 r = kp.layout_ratio(p, mp.Marker().centers2d)
                 if r < c["min_ratio"]:
                     continue
-                s = np.prod(cand[perm, 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3) * r
+                s = np.prod(cand[perm, 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3)
+                soft = r if c["ratio_full"] is None else min(1.0, r / c["ratio_full"])
             if c["verify"]:
                 s *= kp.ring_evidence(image, p[None])[0]
-            if best is None or s > best[1]:
-                best = (p, s)
+            if order is None or s * r > order[1]:
+                order = (p, s * r, s * soft)
+        if order is not None and (best is None or order[2] > best[1]):
+            best = (order[0], order[2])
     return None if best is None or best[1] < c["min_score"] else best
 
 
-@pytest.mark.parametrize("conf", [{"ids": "head", "min_id_prob": 0.05}, {"ids": "layout"}, {"ids": "layout", "verify": True}])
+@pytest.mark.parametrize("conf", [{"ids": "head", "min_id_prob": 0.05}, {"ids": "layout"}, {"ids": "layout", "ratio_full": None},
+                                  {"ids": "layout", "verify": True}, {"ids": "layout", "verify": True, "ratio_full": None}])
 def test_decode_agrees_with_a_loop_over_triples(conf):
     rng = np.random.default_rng(3)
     image = rng.uniform(0, 1, (240, 320)).astype(np.float32)
