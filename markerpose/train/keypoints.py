@@ -154,11 +154,12 @@ def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="
         return list(preds)
     zoomed = {} if zoomed is None else zoomed
     new = [k for k in again if k not in zoomed]
-    if new:
-        big = np.stack([cv2.resize(images[k], None, fx=zoom, fy=zoom, interpolation=cv2.INTER_LINEAR) for k in new])
+    for b in range(0, len(new), 32):  # batch by batch: thousands of 640x480 logits are GBs
+        chunk = new[b : b + 32]
+        big = np.stack([cv2.resize(images[k], None, fx=zoom, fy=zoom, interpolation=cv2.INTER_LINEAR) for k in chunk])
         det, ids = logits(net, big, device=device)
-        zoomed.update({k: (big[j], det[j], ids[j]) for j, k in enumerate(new)})
-    big, det, ids = (np.stack(a) for a in zip(*(zoomed[k] for k in again)))
+        zoomed.update({k: (big[j], det[j], ids[j]) for j, k in enumerate(chunk)})
+    big, det, ids = zip(*(zoomed[k] for k in again))  # lists, not stacked copies
     found = decode_all(det, ids, big, kp.look_conf(decode_conf), desc=desc)
     out = list(preds)
     for k, f in zip(again, found):
