@@ -77,6 +77,15 @@ default_conf = {
     # chosen by the ratio itself. Validation (400 views + 3000 marker-free, first look,
     # alignment, <= 0.5 % FP): 94.4 % detected with None, 95.1 % with 0.5.
     "ratio_full": 0.5,
+    # Ours (v0.14), with align: the best ``align_top`` triples (each in its best ID order)
+    # are aligned and scored again, and the best of them after alignment wins (up to
+    # v0.13: the best one alone). Triples enter with a layout ratio of at least
+    # ``align_min_ratio`` (None: ``min_ratio``); after alignment they must reach
+    # ``min_ratio``. Stage 1's points on a steeply tilted or blurred marker are a few
+    # pixels off, enough to put its ratio under ``min_ratio`` or another triple ahead
+    # of it until the alignment puts them right.
+    "align_top": 3,
+    "align_min_ratio": 0.25,
 }
 
 
@@ -484,8 +493,9 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     marker's shape chooses the order instead (see :data:`default_conf`), and triples
     compete with the layout ratio softened by ``ratio_full``. With ``verify``
     every allowed (triple, order) is then weighed by :func:`ring_evidence`. With
-    ``align`` the best one is refined by :func:`align_triple` and scored again (layout
-    ratio and evidence of the refined points) before ``min_score`` decides.
+    ``align`` the ``align_top`` best triples are refined by :func:`align_triple` and
+    scored again (layout ratio and evidence of the refined points); the best of them,
+    and ``min_score``, decide.
     """
     c = {**default_conf, **(conf or {})}
     if c["ids"] not in ID_MODES:
@@ -508,33 +518,43 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
         s, r = np.prod(cand[idx, 2] * p_id, axis=1) ** (1 / 3), np.ones(len(idx))
     else:
         r = layout_ratios(p, layout)
-        keep &= r >= c["min_ratio"]
+        loose = c["align"] and c["align_min_ratio"] is not None
+        keep &= r >= (c["align_min_ratio"] if loose else c["min_ratio"])
         s = np.prod(cand[idx, 2], axis=1) ** (1 / 3) * np.prod(p_id, axis=1) ** (c["id_weight"] / 3)
     if not keep.any():
         return None
     ev = np.ones(len(p))
     if c["verify"]:
         ev[keep] = ring_evidence(image, p[keep], marker)
-    rank = np.where(keep, s * r * ev, -1.0)
-    soft = c["ids"] == "layout" and c["ratio_full"] is not None
-    if soft:
-        # Each triple's ID order by the ratio itself (a wrong order puts a ring in the
-        # wrong place: a small ratio); the triples against each other by the softened
-        # ratio, so a steeply tilted marker is not outscored by a flatter decoy.
-        per_triple = rank.reshape(-1, 6)
-        rows = np.arange(len(per_triple)) * 6 + np.argmax(per_triple, axis=1)
-        rows = rows[per_triple.max(1) >= 0]
-        rank = np.full(len(p), -1.0)
-        rank[rows] = s[rows] * _ratio_weight(r[rows], c["ratio_full"]) * ev[rows]
-    k = int(np.argmax(rank))
-    best, score = p[k], float(rank[k])
-    if c["align"]:
-        q, cc = align_triple(image, best, marker)
-        rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
-        if cc is not None and (c["ids"] != "layout" or rq >= c["min_ratio"]):
-            best, score = q, float(s[k] * (_ratio_weight(rq, c["ratio_full"]) if soft else rq))
-            if c["verify"]:
-                score *= float(ring_evidence(image, q[None], marker)[0])
+    # Each triple in its best ID order (a wrong order puts a ring in the wrong place:
+    # a small ratio), then the triples against each other — with the softened ratio, so
+    # a steeply tilted marker is not outscored by a flatter decoy (ratio_full; the ID
+    # mode "head" has no ratio: r = 1).
+    per_triple = np.where(keep, s * r * ev, -1.0).reshape(-1, 6)
+    rows = np.arange(len(per_triple)) * 6 + np.argmax(per_triple, axis=1)
+    rows = rows[per_triple.max(1) >= 0]
+    value = s[rows] * _ratio_weight(r[rows], c["ratio_full"]) * ev[rows]
+    order = np.argsort(-value, kind="stable")
+    if not c["align"]:
+        best, score = p[rows[order[0]]], float(value[order[0]])
+    else:
+        best, score = None, -1.0
+        for j in order[: max(1, int(c["align_top"]))]:
+            k = rows[j]
+            q, cc = align_triple(image, p[k], marker)
+            rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
+            if cc is not None and (c["ids"] != "layout" or rq >= c["min_ratio"]):
+                found = float(s[k] * _ratio_weight(rq, c["ratio_full"]))
+                if c["verify"]:
+                    found *= float(ring_evidence(image, q[None], marker)[0])
+            elif c["ids"] != "layout" or r[k] >= c["min_ratio"]:  # the unrefined triple stands
+                q, found = p[k], float(value[j])
+            else:
+                continue
+            if found > score:
+                best, score = q, found
+        if best is None:
+            return None
     if score < c["min_score"]:
         return None
     return best, score
@@ -640,6 +660,8 @@ class KeypointNet:
         chosen = self.tuned.get(tuned_key(mode, verify, True, align), single) if stereo else single
         if mode == "layout" and chosen and "ratio_full" not in chosen:
             chosen = {**chosen, "ratio_full": None}  # tuned before v0.13, with the ratio itself
+        if chosen.get("align") and "align_top" not in chosen:
+            chosen = {**chosen, "align_top": 1, "align_min_ratio": None}  # tuned before v0.14: the best triple aligned
         if float((conf or {}).get("second_look", default_conf["second_look"])) > 1:
             chosen = {**chosen, **self.tuned.get(tuned_key(mode, verify, stereo, align) + "_look", {})}
         out = {**default_conf, **chosen, **(conf or {})}

@@ -273,6 +273,15 @@ def test_operating_points_from_the_checkpoint(tmp_path):
     torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
     assert kp.KeypointNet(path).conf["ratio_full"] == 0.5
     assert kp.KeypointNet(path, {"ratio_full": 0.6}).conf["ratio_full"] == 0.6
+    # Alignment thresholds tuned before v0.14 aligned the best triple alone.
+    decode["layout_verify_align"] = {"ids": "layout", "verify": True, "align": True, "ratio_full": 0.5, "min_score": 0.06}
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    old_align = kp.KeypointNet(path, {"verify": True, "align": True}).conf
+    assert old_align["align_top"] == 1 and old_align["align_min_ratio"] is None
+    decode["layout_verify_align"].update(align_top=3, align_min_ratio=0.3)
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    new_align = kp.KeypointNet(path, {"verify": True, "align": True}).conf
+    assert new_align["align_top"] == 3 and new_align["align_min_ratio"] == 0.3
 
 
 def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
@@ -448,6 +457,34 @@ def test_decode_with_align_needs_the_image_and_refines():
     assert e_aligned < 0.15 < e_plain, (e_plain, e_aligned)
 
 
+def test_align_recovers_a_steep_triple_whose_ratio_the_cells_put_under_min_ratio():
+    """A blurred marker tilted by 66° (layout ratio 0.41) whose stage-1 points, ~2 px off,
+    have a ratio of 0.34 < min_ratio: v0.13's decoding (align_min_ratio None) finds
+    nothing; v0.14's lets the triple in, aligns it and keeps it at its true ratio."""
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    img, truth = render_view(rig.left, look_at_pose([10, 0, 450], 66, 60, 20), imaging=Imaging(alpha=0.5, motion_blur=10.0), seed=2)
+    small, scale = kp.to_input(img)
+    gt = (truth.centers + 0.5) / scale - 0.5
+    start = np.round(gt + np.random.default_rng(0).uniform(-2, 2, (3, 2)))
+    layout = mp.Marker().centers2d
+    assert kp.layout_ratio(start, layout) < kp.default_conf["min_ratio"] <= kp.layout_ratio(gt, layout)
+    det, _ = kp.make_targets(start, np.ones(3, np.int8))
+    dl = np.zeros((65, 30, 40))
+    dl[64] = 10.0
+    cy, cx = np.nonzero(det != 64)
+    dl[det[cy, cx], cy, cx] = 20.0
+    il = np.zeros((4, 30, 40))
+    conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.01}  # not the same points in a wrong order
+    assert kp.decode(dl, il, {**conf, "align_min_ratio": None}, image=small) is None
+    found = kp.decode(dl, il, conf, image=small)
+    assert found is not None and np.linalg.norm(found[0] - gt, axis=1).max() < 0.2
+    assert kp.layout_ratio(found[0], layout) >= kp.default_conf["min_ratio"]
+    # Without alignment the loose ratio does not apply.
+    assert kp.decode(dl, il, {**conf, "align": False}, image=small) is None
+
+
 def test_tuned_key_names_the_alignment():
     assert kp.tuned_key("layout", True, True, True) == "layout_verify_align_stereo"
     assert kp.tuned_key("layout", True) == "layout_verify"
@@ -517,3 +554,23 @@ def test_decode_agrees_with_a_loop_over_triples(conf):
             found += 1
             agreed += int(np.array_equal(a[0], b[0]) and np.isclose(a[1], b[1], rtol=1e-12))
     assert found >= 6 and agreed == found
+
+
+def test_decode_all_gives_the_same_with_worker_processes():
+    """The export's and evaluation's decoding split over processes returns what one
+    process returns, view by view and in order (ring evidence and alignment on)."""
+    from markerpose.train import keypoints as tk
+
+    rng = np.random.default_rng(5)
+    n = 2 * tk._DECODE_CHUNK + 7
+    det = rng.normal(0, 3, (n, 65, 30, 40))
+    det[:, 64] += 6.0
+    ids = rng.normal(0, 1, (n, 4, 30, 40))
+    images = rng.integers(0, 256, (n, 240, 320), dtype=np.uint8)
+    conf = {"ids": "layout", "verify": True, "align": True, "threshold": 0.02, "min_score": 0.0}
+    one, two = (tk.decode_all(det, ids, images, conf, workers=w) for w in (1, 2))
+    assert len(one) == len(two) == n and sum(o is not None for o in one) >= n // 2
+    for a, b in zip(one, two):
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert np.array_equal(a[0], b[0]) and a[1] == b[1]

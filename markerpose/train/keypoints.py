@@ -14,6 +14,7 @@ are kept, and ``resume`` continues from the last.
 from __future__ import annotations
 
 import itertools
+import multiprocessing as mp
 import time
 from pathlib import Path
 
@@ -124,18 +125,49 @@ def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.n
     return np.concatenate(dets), np.concatenate(ids)
 
 
-def decode_all(det: np.ndarray, id_logits: np.ndarray, images: np.ndarray, decode_conf: dict | None = None,
-               desc: str | None = None) -> list:
-    """:func:`~markerpose.keypoints.decode` of every image of a stack: the heads' logits
-    and the (N, 240, 320) uint8 inputs (which ``verify`` looks at); a progress bar
-    labelled ``desc`` when given."""
-    c = {**kp.default_conf, **(decode_conf or {})}
+DECODE_WORKERS = 2  # processes decoding a stack of views (export, evaluation): one per core here
+_DECODE_CHUNK = 25  # views per job
+_DECODE_JOB: tuple = ()  # (det, ID logits, images, conf) of the running decode_all, inherited by its workers
+
+
+def _decode_views(bounds: tuple[int, int]) -> list:
+    det, id_logits, images, conf = _DECODE_JOB
+    c = {**kp.default_conf, **(conf or {})}
     needs_image = c["verify"] or c["align"]
-    views = tqdm(range(len(det)), desc=desc, unit="img", leave=False) if desc else range(len(det))
     return [
-        kp.decode(det[j], id_logits[j], decode_conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
-        for j in views
+        kp.decode(det[j], id_logits[j], conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
+        for j in range(*bounds)
     ]
+
+
+def decode_all(det, id_logits, images, decode_conf: dict | None = None, desc: str | None = None,
+               workers: int | None = None) -> list:
+    """:func:`~markerpose.keypoints.decode` of every image of a stack: the heads' logits
+    and the (N, 240, 320) uint8 inputs (which ``verify`` looks at), as arrays or lists; a
+    progress bar labelled ``desc`` when given. ``workers`` processes (default
+    :data:`DECODE_WORKERS`) share the views; the result does not depend on their number."""
+    global _DECODE_JOB
+    n = len(det)
+    workers = DECODE_WORKERS if workers is None else workers
+    jobs = [(k, min(k + _DECODE_CHUNK, n)) for k in range(0, n, _DECODE_CHUNK)]
+    out: list = []
+    _DECODE_JOB = (det, id_logits, images, decode_conf)
+    try:
+        with tqdm(total=n, desc=desc, unit="img", leave=False, disable=desc is None) as bar:
+            if workers > 1 and len(jobs) > 1:
+                # Forked (the views are inherited, not pickled). No cv2.setNumThreads in the
+                # workers: it deadlocks on the thread pool a forked child inherits.
+                with mp.get_context("fork").Pool(min(workers, len(jobs))) as pool:
+                    for res in pool.imap(_decode_views, jobs):
+                        out += res
+                        bar.update(len(res))
+            else:
+                for job in jobs:
+                    out += _decode_views(job)
+                    bar.update(job[1] - job[0])
+    finally:
+        _DECODE_JOB = ()
+    return out
 
 
 def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="cpu", desc: str | None = None,
@@ -154,7 +186,8 @@ def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="
         return list(preds)
     zoomed = {} if zoomed is None else zoomed
     new = [k for k in again if k not in zoomed]
-    for b in range(0, len(new), 32):  # batch by batch: thousands of 640x480 logits are GBs
+    batches = range(0, len(new), 32)  # batch by batch: thousands of 640x480 logits are GBs
+    for b in tqdm(batches, desc=desc and f"{desc}: network at {zoom:g}x", unit="batch", leave=False, disable=desc is None):
         chunk = new[b : b + 32]
         big = np.stack([cv2.resize(images[k], None, fx=zoom, fy=zoom, interpolation=cv2.INTER_LINEAR) for k in chunk])
         det, ids = logits(net, big, device=device)
@@ -217,6 +250,8 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
         dc = {**DECODINGS[decoding], **dict(zip(grid, values))}
         if dc["ids"] == "layout":  # the scoring these thresholds hold for travels with them
             dc["ratio_full"] = kp.default_conf["ratio_full"]
+        if dc.get("align"):
+            dc.update(align_top=kp.default_conf["align_top"], align_min_ratio=kp.default_conf["align_min_ratio"])
         # The best triple does not depend on min_score: decode once, then threshold.
         every = decode_all(det, id_logits, data["image"], {**dc, "min_score": 0.0}, desc=f"tune {decoding}")
         for ms in min_scores:
@@ -498,7 +533,8 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         diag = candidate_recall(det, id_logits, data, net.conf)
         for mode, dc in confs.items():
             t0 = time.perf_counter()
-            preds = look_again(net.net, data["image"], decode_all(det, id_logits, data["image"], dc), dc)
+            preds = look_again(net.net, data["image"], decode_all(det, id_logits, data["image"], dc, desc=f"{name} {mode}"), dc,
+                               desc=f"{name} {mode} look")
             res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n,
                                "by_ring_size": by_ring_size(preds, data)}
     return res
@@ -574,4 +610,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "VAL_NEGATIVES", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
+__all__ = ["DECODE_WORKERS", "DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "VAL_NEGATIVES", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
