@@ -542,12 +542,12 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
         for j in order[: max(1, int(c["align_top"]))]:
             k = rows[j]
             q, cc = align_triple(image, p[k], marker)
-            rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0
-            if cc is not None and (c["ids"] != "layout" or rq >= c["min_ratio"]):
+            rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0  # "head": r = 1 throughout
+            if cc is not None and rq >= c["min_ratio"]:
                 found = float(s[k] * _ratio_weight(rq, c["ratio_full"]))
                 if c["verify"]:
                     found *= float(ring_evidence(image, q[None], marker)[0])
-            elif c["ids"] != "layout" or r[k] >= c["min_ratio"]:  # the unrefined triple stands
+            elif r[k] >= c["min_ratio"]:  # the unrefined triple stands
                 q, found = p[k], float(value[j])
             else:
                 continue
