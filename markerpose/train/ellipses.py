@@ -180,7 +180,7 @@ def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc
     }
 
 
-def cached(path: Path, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
+def cached(path: Path, *, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
     """Load a rendered stage-2 set from ``path`` (.npz) or render and save it."""
     key = {"n": n, "seed": seed, "conf": conf, "kind": "ellipses"}
     return data_cache(path, key, lambda: generate(n, seed, conf, workers, desc))
@@ -268,8 +268,8 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/ellipses", resume
     data_dir = Path(data_dir)
     c["device"] = dev = c["device"] or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(c["seed"])
-    train = cached(data_dir / f"es_train_{c['seed']}_{c['train_size']}.npz", c["train_size"], c["seed"], None, c["workers"], "render train")
-    val = cached(data_dir / f"es_val_{c['val_size']}.npz", c["val_size"], 1, None, c["workers"], "render val")
+    train = cached(data_dir / f"es_train_{c['seed']}_{c['train_size']}.npz", n=c["train_size"], seed=c["seed"], workers=c["workers"], desc="render train")
+    val = cached(data_dir / f"es_val_{c['val_size']}.npz", n=c["val_size"], seed=1, workers=c["workers"], desc="render val")
     net = es.build_network().to(dev)
     bce = torch.nn.BCEWithLogitsLoss()
     n, bs = len(train["image"]), c["batch_size"]
@@ -309,7 +309,7 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
     res = {}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
-        data = cached(Path(data_dir) / f"es_test_{name}.npz", n, seed, conf, workers, f"render {name}")
+        data = cached(Path(data_dir) / f"es_test_{name}.npz", n=n, seed=seed, conf=conf, workers=workers, desc=f"render {name}")
         t0 = time.perf_counter()
         probs = predict(model.net, data["image"])
         seconds = (time.perf_counter() - t0) / n

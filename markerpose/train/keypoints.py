@@ -104,7 +104,7 @@ def generate(n: int, seed: int, conf: dict | None = None, workers: int = 2, desc
     }
 
 
-def cached(path: Path, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
+def cached(path: Path, *, n: int, seed: int, conf: dict | None = None, workers: int = 2, desc: str = "render") -> dict:
     """Load a rendered stage-1 set from ``path`` (.npz) or render and save it."""
     return data_cache(path, {"n": n, "seed": seed, "conf": conf}, lambda: generate(n, seed, conf, workers, desc))
 
@@ -411,11 +411,11 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     data_dir = Path(data_dir)
     c["device"] = c["device"] or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(c["seed"])
-    train = cached(data_dir / f"kp_train_{c['seed']}_{c['train_size']}.npz", c["train_size"], c["seed"], None, c["workers"], "render train")
+    train = cached(data_dir / f"kp_train_{c['seed']}_{c['train_size']}.npz", n=c["train_size"], seed=c["seed"], workers=c["workers"], desc="render train")
     if c["steep_size"]:
-        steep = cached(data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz", c["steep_size"], c["seed"] + 100, STEEP, c["workers"], "render steep")
+        steep = cached(data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz", n=c["steep_size"], seed=c["seed"] + 100, conf=STEEP, workers=c["workers"], desc="render steep")
         train = {k: np.concatenate([train[k], steep[k]]) for k in train}
-    val = cached(data_dir / f"kp_val_{c['val_size']}.npz", c["val_size"], 1, None, c["workers"], "render val")
+    val = cached(data_dir / f"kp_val_{c['val_size']}.npz", n=c["val_size"], seed=1, workers=c["workers"], desc="render val")
     net = kp.build_network(c["width"], c["stem_width"]).to(c["device"])
     dev = c["device"]
     w = c["background_weight"]
@@ -468,8 +468,8 @@ VAL_NEGATIVES = 3000
 def validation_sets(data_dir: str | Path = "runs/data", val_size: int = 400, negatives: int = VAL_NEGATIVES, workers: int = 2) -> dict:
     """The validation set (seed 1) joined with marker-free views (seed 2): what the
     decoding thresholds are tuned on. Never the test sets."""
-    val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", val_size, 1, None, workers, "render val")
-    neg = cached(Path(data_dir) / f"kp_valneg_{negatives}.npz", negatives, 2, {"negative": True}, workers, "render val negatives")
+    val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", n=val_size, seed=1, workers=workers, desc="render val")
+    neg = cached(Path(data_dir) / f"kp_valneg_{negatives}.npz", n=negatives, seed=2, conf={"negative": True}, workers=workers, desc="render val negatives")
     return {k: np.concatenate([val[k], neg[k]]) for k in val}
 
 
@@ -526,7 +526,7 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
     res: dict = {mode: {} for mode in confs}
     for name in sets or TEST_SETS:
         seed, n, conf = TEST_SETS[name]
-        data = cached(Path(data_dir) / f"kp_test_{name}.npz", n, seed, conf, workers, f"render {name}")
+        data = cached(Path(data_dir) / f"kp_test_{name}.npz", n=n, seed=seed, conf=conf, workers=workers, desc=f"render {name}")
         t0 = time.perf_counter()
         det, id_logits = logits(net.net, data["image"])
         t_net = time.perf_counter() - t0
