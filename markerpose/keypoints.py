@@ -95,7 +95,7 @@ default_conf = {
     # v0.14 network, 400 views + 3000 marker-free) aligning all three orders let more
     # marker-free views through, the tuned min_score rose from 0.07 to 0.10 and the
     # first look found 93.4 % instead of 95.4 % (with the second look 97.36 against
-    # 97.4 %), for 2.2x the decoding time.
+    # 97.4 %), for ~1.5x the decoding time.
     "align_orders": 1,
 }
 
