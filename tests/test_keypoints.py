@@ -514,6 +514,32 @@ def test_align_tries_the_other_orders_of_a_steep_triple():
     assert found is not None and np.linalg.norm(found[0] - gt, axis=1).max() < 0.3
 
 
+def test_align_cc_power_scales_the_aligned_score_by_the_correlation():
+    """align_cc_power p: the aligned triple's score times its ECC correlation to the p
+    (0: unchanged), the points unchanged."""
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    img, truth = render_view(rig.left, look_at_pose([0, 0, 500], 40, 30, 10), imaging=Imaging(alpha=0.5), seed=3)
+    small, scale = kp.to_input(img)
+    gt = (truth.centers + 0.5) / scale - 0.5
+    det, _ = kp.make_targets(np.round(gt), np.ones(3, np.int8))
+    dl = np.zeros((65, 30, 40))
+    dl[64] = 10.0
+    cy, cx = np.nonzero(det != 64)
+    dl[det[cy, cx], cy, cx] = 20.0
+    il = np.zeros((4, 30, 40))
+    conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.0}
+    plain = kp.decode(dl, il, conf, image=small)
+    squared = kp.decode(dl, il, {**conf, "align_cc_power": 2}, image=small)
+    cand, _ = kp.candidates(dl, il, kp.default_conf["threshold"], 10, kp.default_conf["nms_radius"])
+    start = cand[:, :2][np.argmin(np.linalg.norm(cand[:, None, :2] - gt[None], axis=2), axis=0)]
+    _, cc = kp.align_triple(small, start)
+    assert cc is not None and 0.5 < cc < 1
+    np.testing.assert_allclose(squared[0], plain[0])
+    assert squared[1] == pytest.approx(plain[1] * cc**2, rel=1e-9)
+
+
 def test_tuned_key_names_the_alignment():
     assert kp.tuned_key("layout", True, True, True) == "layout_verify_align_stereo"
     assert kp.tuned_key("layout", True) == "layout_verify"
