@@ -85,6 +85,17 @@ def test_decode_repairs_colliding_ids():
     np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
 
 
+def _point_logits(points):
+    """Network outputs with a sharp peak at each of three points (network-input px) and
+    no ID information: the decoder must name the rings by the layout."""
+    det, _ = kp.make_targets(points, np.ones(3, np.int8))
+    dl = np.zeros((65, 30, 40))
+    dl[64] = 10.0
+    cy, cx = np.nonzero(det != 64)
+    dl[det[cy, cx], cy, cx] = 20.0
+    return dl, np.zeros((4, 30, 40))
+
+
 def _view(tilt_deg: float, tilt_axis_deg: float, roll_deg: float, dist: float = 600.0, f: float = 300.0):
     """Ring centres of the default marker seen by a pinhole camera (y down), marker facing it."""
     def rot(axis, a):
@@ -446,12 +457,7 @@ def test_decode_with_align_needs_the_image_and_refines():
     img, truth = render_view(rig.left, look_at_pose([0, 0, 500], 30, 60, 40), imaging=Imaging(alpha=0.5), seed=2)
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
-    det, _ = kp.make_targets(np.round(gt), np.ones(3, np.int8))  # centres on whole pixels
-    dl = np.zeros((65, 30, 40))
-    dl[64] = 10.0
-    cy, cx = np.nonzero(det != 64)
-    dl[det[cy, cx], cy, cx] = 20.0
-    il = np.zeros((4, 30, 40))
+    dl, il = _point_logits(np.round(gt))  # centres on whole pixels
     conf = {"ids": "layout", "verify": True, "min_score": 0.0, "align": True}
     with pytest.raises(ValueError, match="align"):
         kp.decode(dl, il, {**conf, "verify": False})
@@ -475,12 +481,7 @@ def test_align_recovers_a_steep_triple_whose_ratio_the_cells_put_under_min_ratio
     start = np.round(gt + np.random.default_rng(0).uniform(-2, 2, (3, 2)))
     layout = mp.Marker().centers2d
     assert kp.layout_ratio(start, layout) < kp.default_conf["min_ratio"] <= kp.layout_ratio(gt, layout)
-    det, _ = kp.make_targets(start, np.ones(3, np.int8))
-    dl = np.zeros((65, 30, 40))
-    dl[64] = 10.0
-    cy, cx = np.nonzero(det != 64)
-    dl[det[cy, cx], cy, cx] = 20.0
-    il = np.zeros((4, 30, 40))
+    dl, il = _point_logits(start)
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.01}  # not the same points in a wrong order
     assert kp.decode(dl, il, {**conf, "align_min_ratio": None}, image=small) is None
     found = kp.decode(dl, il, conf, image=small)
@@ -502,12 +503,7 @@ def test_align_tries_the_other_orders_of_a_steep_triple():
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
     start = np.round(gt + np.random.default_rng(1).uniform(-2.5, 2.5, (3, 2)))
-    det, _ = kp.make_targets(start, np.ones(3, np.int8))
-    dl = np.zeros((65, 30, 40))
-    dl[64] = 10.0
-    cy, cx = np.nonzero(det != 64)
-    dl[det[cy, cx], cy, cx] = 20.0
-    il = np.zeros((4, 30, 40))
+    dl, il = _point_logits(start)
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.01}
     assert kp.decode(dl, il, {**conf, "align_orders": 1}, image=small) is None
     found = kp.decode(dl, il, {**conf, "align_orders": 3}, image=small)
@@ -523,12 +519,7 @@ def test_align_cc_power_scales_the_aligned_score_by_the_correlation():
     img, truth = render_view(rig.left, look_at_pose([0, 0, 500], 40, 30, 10), imaging=Imaging(alpha=0.5), seed=3)
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
-    det, _ = kp.make_targets(np.round(gt), np.ones(3, np.int8))
-    dl = np.zeros((65, 30, 40))
-    dl[64] = 10.0
-    cy, cx = np.nonzero(det != 64)
-    dl[det[cy, cx], cy, cx] = 20.0
-    il = np.zeros((4, 30, 40))
+    dl, il = _point_logits(np.round(gt))
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.0}
     plain = kp.decode(dl, il, conf, image=small)
     squared = kp.decode(dl, il, {**conf, "align_cc_power": 2}, image=small)
