@@ -293,11 +293,13 @@ def test_operating_points_from_the_checkpoint(tmp_path):
     torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
     new_align = kp.KeypointNet(path, {"verify": True, "align": True}).conf
     assert new_align["align_top"] == 3 and new_align["align_min_ratio"] == 0.3
-    # ... and before v0.15 each triple in its best order alone.
-    assert new_align["align_orders"] == 1
-    decode["layout_verify_align"]["align_orders"] = 3
+    # ... and before v0.15 each triple in its best order alone, scored without the correlation.
+    assert new_align["align_orders"] == 1 and new_align["align_cc_power"] == 0.0
+    assert kp.default_conf["align_cc_power"] != 0.0
+    decode["layout_verify_align"].update(align_orders=3, align_cc_power=2.0)
     torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    assert kp.KeypointNet(path, {"verify": True, "align": True}).conf["align_orders"] == 3
+    v15 = kp.KeypointNet(path, {"verify": True, "align": True}).conf
+    assert v15["align_orders"] == 3 and v15["align_cc_power"] == 2.0
 
 
 def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
@@ -520,7 +522,7 @@ def test_align_cc_power_scales_the_aligned_score_by_the_correlation():
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
     dl, il = _point_logits(np.round(gt))
-    conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.0}
+    conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.0, "align_cc_power": 0}
     plain = kp.decode(dl, il, conf, image=small)
     squared = kp.decode(dl, il, {**conf, "align_cc_power": 2}, image=small)
     cand, _ = kp.candidates(dl, il, kp.default_conf["threshold"], 10, kp.default_conf["nms_radius"])

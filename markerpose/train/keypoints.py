@@ -23,6 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import keypoints as kp
+from ..nets import fuse_batchnorm
 from .augment import augment
 from .data import cached as data_cache
 from .data import render_many
@@ -485,8 +486,9 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
 
     dest = export_checkpoint(checkpoint, dest, keep=("width", "stem_width"))
     slim = torch.load(dest, weights_only=True)
-    net = kp.build_network(slim["width"], slim.get("stem_width"))
+    net = kp.build_network(slim["width"], slim.get("stem_width")).eval()
     net.load_state_dict(slim["state_dict"])
+    fuse_batchnorm(net)
     val = validation_sets(data_dir, val_size, negatives)
     slim["decode"], firsts, zoomed = {}, {}, {}
     heads = logits(net, val["image"])  # one forward pass serves every variant
@@ -605,8 +607,9 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     w0, h0 = kp.INPUT_SIZE
     for w in widths:
         net = kp.build_network(*(w if isinstance(w, tuple) else (w,))).eval()
-        out[w] = {"pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)), "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)),
-                  "params": int(sum(p.numel() for p in net.parameters()))}
+        params = int(sum(p.numel() for p in net.parameters()))  # as trained and shipped
+        fuse_batchnorm(net)  # as KeypointNet runs it
+        out[w] = {"pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)), "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)), "params": params}
     return out
 
 
