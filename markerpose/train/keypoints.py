@@ -191,7 +191,7 @@ def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="
     for b in tqdm(batches, desc=desc and f"{desc}: network at {zoom:g}x", unit="batch", leave=False, disable=desc is None):
         chunk = new[b : b + 32]
         big = np.stack([cv2.resize(images[k], None, fx=zoom, fy=zoom, interpolation=cv2.INTER_LINEAR) for k in chunk])
-        det, ids = logits(net, big, device=device)
+        det, ids = logits(net, big, batch=2, device=device)  # 640x480: ~10 % faster per view in pairs than in 32s here
         zoomed.update({k: (big[j], det[j], ids[j]) for j, k in enumerate(chunk)})
     big, det, ids = zip(*(zoomed[k] for k in again))  # lists, not stacked copies
     found = decode_all(det, ids, big, kp.look_conf(decode_conf), desc=desc)
