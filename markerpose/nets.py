@@ -9,7 +9,6 @@ def fuse_batchnorm(net):
     ``nn.Identity``). Inference only: the outputs stay the same to float precision, the
     per-pixel norm pass over every feature map is gone. Returns ``net``, changed in place.
     """
-    import torch
     from torch import nn
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
@@ -19,10 +18,7 @@ def fuse_batchnorm(net):
         for k in range(len(seq) - 1):
             conv, bn = seq[k], seq[k + 1]
             if isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d):
-                fused = fuse_conv_bn_eval(conv, bn)
-                channels_last = conv.weight.is_contiguous(memory_format=torch.channels_last)
-                fused.weight.data = fused.weight.data.contiguous(memory_format=torch.channels_last if channels_last else torch.contiguous_format)
-                seq[k], seq[k + 1] = fused, nn.Identity()
+                seq[k], seq[k + 1] = fuse_conv_bn_eval(conv, bn), nn.Identity()  # keeps the weights' memory format
     return net
 
 
