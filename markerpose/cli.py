@@ -149,7 +149,7 @@ def cmd_train_keypoints(args):
         dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size, negatives=args.val_negatives)
         print(f"exported the weights to {dest} ({(time.perf_counter() - t0) / 60:.1f} min)")
         return
-    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size,
+    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size,
            negatives=args.val_negatives)
 
 
@@ -359,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
     tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")
     tk.add_argument("--val-negatives", type=int, default=None, help="marker-free validation images the export tunes the false-positive budget on (default 3000)")
+    tk.add_argument("--window", type=int, nargs=2, default=[192, 144], metavar=("W", "H"),
+                    help="training windows of the 320x240 images, multiples of 8 (default 192 144; 320 240: whole images)")
     tk.add_argument("--small-boost", type=float, default=1.0, help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)")
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)

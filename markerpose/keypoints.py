@@ -563,6 +563,10 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
             t = k // 6  # the triple; its handedness-consistent orders, best first
             tried = 6 * t + np.argsort(-per_triple[t], kind="stable")[: max(1, int(c["align_orders"]))]
             for o in tried[per_triple[t, tried % 6] >= 0]:
+                if s[o] < c["min_score"]:
+                    # Every factor below is at most 1, so this order cannot reach min_score:
+                    # its alignment (the costly part) could not change the result.
+                    continue
                 q, cc = align_triple(image, p[o], marker)
                 rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0  # "head": r = 1 throughout
                 if cc is not None and rq >= c["min_ratio"]:

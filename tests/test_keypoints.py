@@ -622,3 +622,33 @@ def test_decode_all_gives_the_same_with_worker_processes():
         assert (a is None) == (b is None)
         if a is not None:
             assert np.array_equal(a[0], b[0]) and a[1] == b[1]
+
+
+def test_align_skips_triples_that_cannot_reach_min_score(monkeypatch):
+    """A triple whose network score is under min_score is not aligned (alignment, the
+    correlation and the evidence only scale a score down), and the result is what
+    decoding at min_score 0 and thresholding afterwards gives."""
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    img, truth = render_view(rig.left, look_at_pose([0, 0, 500], 30, 60, 40), imaging=Imaging(alpha=0.5), seed=2)
+    small, scale = kp.to_input(img)
+    gt = (truth.centers + 0.5) / scale - 0.5
+    dl, il = _point_logits(np.round(gt))
+    det, _ = kp.make_targets(np.round(gt) + [150, 0], np.ones(3, np.int8))  # a weaker ghost of the triangle
+    cy, cx = np.nonzero(det != 64)
+    dl[det[cy, cx], cy, cx] = 8.0  # location score ~0.12 against ~1
+    calls = []
+    real = kp.align_triple
+    monkeypatch.setattr(kp, "align_triple", lambda *a, **k: calls.append(1) or real(*a, **k))
+    conf = {"ids": "layout", "verify": True, "align": True, "align_top": 3}
+    every = kp.decode(dl, il, {**conf, "min_score": 0.0}, image=small)
+    n_all = len(calls)
+    calls.clear()
+    floor = 0.5  # above the ghost's score, under the marker's
+    kept = kp.decode(dl, il, {**conf, "min_score": floor}, image=small)
+    assert every is not None and every[1] >= floor and n_all == 3 and 1 <= len(calls) < n_all
+    np.testing.assert_array_equal(kept[0], every[0])
+    assert kept[1] == every[1]
+    calls.clear()
+    assert kp.decode(dl, il, {**conf, "min_score": 1.01}, image=small) is None and not calls

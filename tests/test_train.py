@@ -140,6 +140,25 @@ def test_training_window_keeps_the_marker_and_shifts_its_points():
     assert lab[2] in (1, -1) and (lab[:2] != 1).all()
 
 
+def test_training_window_option():
+    """--window W H reaches the training conf as given; windows that are not multiples of 8
+    within 320x240 are refused before any rendering; crop honours the size."""
+    from markerpose import cli
+    from markerpose.train import keypoints as tk
+
+    args = cli.build_parser().parse_args(["train", "keypoints", "--window", "160", "128"])
+    assert tuple(args.window) == (160, 128)
+    assert tuple(cli.build_parser().parse_args(["train", "keypoints"]).window) == tk.default_conf["window"]
+    assert tk.check_window([160, 128]) == (160, 128) and tk.check_window(None) is None
+    for bad in ((150, 128), (160, 0), (328, 240), (320, 248)):
+        with pytest.raises(ValueError, match="multiples of 8"):
+            tk.check_window(bad)
+    with pytest.raises(ValueError, match="multiples of 8"):
+        tk.main({"window": (100, 100)}, "unused", data_dir="unused")
+    out, _, _ = tk.crop(np.zeros((240, 320), np.uint8), np.full((3, 2), 150.0, np.float32), np.ones(3, np.int8), np.random.default_rng(0), (160, 128))
+    assert out.shape == (128, 160)
+
+
 def test_stage1_detection_by_ring_size():
     """eval keypoints' breakdown: views binned by the ring's diameter in input px, misses counted."""
     from markerpose.train.keypoints import by_ring_size

@@ -253,8 +253,9 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
             dc["ratio_full"] = kp.default_conf["ratio_full"]
         if dc.get("align"):
             dc.update({k: kp.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power")})
-        # The best triple does not depend on min_score: decode once, then threshold.
-        every = decode_all(det, id_logits, data["image"], {**dc, "min_score": 0.0}, desc=f"tune {decoding}")
+        # The best triple does not depend on min_score: decode once at the grid's lowest
+        # (which spares aligning triples that cannot reach it), then threshold.
+        every = decode_all(det, id_logits, data["image"], {**dc, "min_score": min(min_scores)}, desc=f"tune {decoding}")
         for ms in min_scores:
             kept = [f if f is not None and f[1] >= ms else None for f in every]
             m = score(kept, data)
@@ -283,10 +284,11 @@ def tune_second_look(net, data: dict, decode_conf: dict, zoom: float = 2.0, max_
         max_false_positive = SINGLE_VIEW_FP
     if first is None:
         first = predict(net, data["image"], decode_conf, device=device)
-    again = look_again(net, data["image"], first, {**decode_conf, "second_look": zoom, "look_min_score": 0.0}, device, desc="tune second look",
+    grid = TUNING_GRID["layout_verify"]["min_score"]
+    again = look_again(net, data["image"], first, {**decode_conf, "second_look": zoom, "look_min_score": min(grid)}, device, desc="tune second look",
                        zoomed=zoomed)
     best = None
-    for ms in TUNING_GRID["layout_verify"]["min_score"]:
+    for ms in grid:
         m = score([f if f is not None else a if a is not None and a[1] >= ms else None for f, a in zip(first, again)], data)
         key = (np.nan_to_num(m["false_positive"]) <= max_false_positive, np.nan_to_num(m["detected"]), -np.nan_to_num(m["false_positive"]))
         if best is None or key > best[0]:
@@ -372,6 +374,17 @@ def crop(image: np.ndarray, points: np.ndarray, labels: np.ndarray, rng, size=(1
     return out, p, lab
 
 
+def check_window(window) -> tuple[int, int] | None:
+    """A training window (width, height) as a tuple, or None (whole images); ValueError
+    unless both are positive multiples of 8 (the network's cells) within 320x240."""
+    if window is None:
+        return None
+    w, h = (int(v) for v in window)
+    if not (0 < w <= kp.INPUT_SIZE[0] and 0 < h <= kp.INPUT_SIZE[1] and w % 8 == 0 and h % 8 == 0):
+        raise ValueError(f"the training window must be two multiples of 8 within {kp.INPUT_SIZE[0]}x{kp.INPUT_SIZE[1]}, got {w}x{h}")
+    return w, h
+
+
 def epoch_order(data: dict, rng, small_boost: float = 1.0) -> np.ndarray:
     """The training views of one epoch, as indices into ``data``: a permutation when
     ``small_boost`` is 1; otherwise as many views, drawn with replacement, those with a
@@ -409,6 +422,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     import torch
 
     c = {**default_conf, **(conf or {})}
+    c["window"] = check_window(c["window"])
     data_dir = Path(data_dir)
     c["device"] = c["device"] or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(c["seed"])
