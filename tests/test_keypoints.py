@@ -300,6 +300,11 @@ def test_operating_points_from_the_checkpoint(tmp_path):
     torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
     v15 = kp.KeypointNet(path, {"verify": True, "align": True}).conf
     assert v15["align_orders"] == 3 and v15["align_cc_power"] == 2.0
+    # ... and before v0.18 with the move limit from the stage-1 points' spacing.
+    assert v15["align_move_rule"] == "spacing" and kp.default_conf["align_move_rule"] == "nearest"
+    decode["layout_verify_align"]["align_move_rule"] = "nearest"
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    assert kp.KeypointNet(path, {"verify": True, "align": True}).conf["align_move_rule"] == "nearest"
 
 
 def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
@@ -440,6 +445,31 @@ def test_align_triple_refines_centres_a_pixel_off(alpha, blur, tilt, z):
     q, cc = kp.align_triple(small, start)
     assert cc is not None and cc > 0.9
     assert np.linalg.norm(q - gt, axis=1).max() < 0.15
+
+
+def test_align_move_rule_nearest_keeps_a_point_off_towards_its_neighbour():
+    """A small, steep marker whose stage-1 point is ~2.5 input px off towards a neighbour
+    (closer than 0.4 of the shrunken distance between the points allows): "spacing"
+    drops the right alignment, "nearest" keeps it, within 0.3 px of the truth. A start
+    whose points sit on their neighbours' rings is still dropped by "nearest"."""
+    from markerpose.synth import Imaging, look_at_pose, render_view
+
+    rig = mp.StereoRig.default()
+    img, truth = render_view(rig.left, look_at_pose([0, 0, 700], 55, 60, 20), imaging=Imaging(alpha=0.6, motion_blur=5.0), seed=3)
+    small, scale = kp.to_input(img)
+    gt = (truth.centers + 0.5) / scale - 0.5
+    spacing = kp._min_spacing(gt)
+    a, b = min(((0, 1), (0, 2), (1, 2)), key=lambda ab: np.linalg.norm(gt[ab[0]] - gt[ab[1]]))
+    start = gt.copy()
+    start[a] += 0.42 * (gt[b] - gt[a])  # towards its nearest neighbour
+    assert 0.42 * spacing > 0.4 * kp._min_spacing(start)  # "spacing" must drop the right alignment
+    q, cc = kp.align_triple(small, start, move_rule="spacing")
+    assert cc is None and np.array_equal(q, start)
+    q, cc = kp.align_triple(small, start, move_rule="nearest")
+    assert cc is not None and cc > 0.9
+    assert np.linalg.norm(q - gt, axis=1).max() < 0.3
+    with pytest.raises(ValueError, match="move_rule"):
+        kp.align_triple(small, start, move_rule="nope")
 
 
 def test_align_triple_gives_up_cleanly():

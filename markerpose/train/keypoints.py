@@ -252,7 +252,7 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
         if dc["ids"] == "layout":  # the scoring these thresholds hold for travels with them
             dc["ratio_full"] = kp.default_conf["ratio_full"]
         if dc.get("align"):
-            dc.update({k: kp.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power")})
+            dc.update({k: kp.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power", "align_move_rule")})
         # The best triple does not depend on min_score: decode once at the grid's lowest
         # (which spares aligning triples that cannot reach it), then threshold.
         every = decode_all(det, id_logits, data["image"], {**dc, "min_score": min(min_scores)}, desc=f"tune {decoding}")
