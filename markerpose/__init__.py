@@ -5,5 +5,5 @@ from .marker import Marker, write_target
 from .pipeline import MarkerPose
 from .results import Detection, Estimate
 
-__version__ = "0.17.0"
+__version__ = "0.18.0"
 __all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "Detection", "Estimate", "write_target", "__version__"]
