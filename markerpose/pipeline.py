@@ -59,6 +59,9 @@ default_conf = {
     "transfer_shape_tol": 0.6,
     "transfer_attempts": 2,  # ... and how many loose triples are tried
     "transfer_sources": 4,  # transfer: one view's triples refined and carried over, at most
+    "transfer_min_evidence": 0.1,  # transfer (v0.18): sources whose ring evidence in their view
+    #                                is below this are not refined (None: every source, as up
+    #                                to v0.17); decoy triples on marker-free pairs cost refits
     "view_triples": 4,  # single view (detect) and transfer: layout triples tried per view
     "plate_tol": 0.05,  # single view (detect) and transfer: largest misfit of the refined rings'
     #                     ellipses to one pose of the marker (relative radius; true markers
@@ -359,7 +362,7 @@ class MarkerPose:
             )
             est = self._first_accepted([gl, gr], [[(pl, s), (pr, s)] for pl, pr, s in triples], t0)
             if est is None and self.conf["transfer"]:
-                est = self._transferred([gl, gr], list(self.rig.cameras), cand, t0)
+                est = self._transferred([gl, gr], list(self.rig.cameras), cand, t0, zoom)
             if est is not None:
                 return est
         self.timings["total"] = time.perf_counter() - t0
@@ -397,7 +400,7 @@ class MarkerPose:
                     return None
         return self._checked_estimate(found, t0, t1)
 
-    def _transferred(self, grays: list, cameras: list, cand: list, t0: float) -> Estimate | None:
+    def _transferred(self, grays: list, cameras: list, cand: list, t0: float, zoom: float = 1.0) -> Estimate | None:
         """Recover a marker one camera sees too steeply for stage 1 to place its rings within
         the matching tolerances. Only when triples match loosely (marker-free pairs almost
         never have one, so they cost nothing here): one view's triple — a side of a loosely
@@ -405,7 +408,9 @@ class MarkerPose:
         if its three rings refine, its pose (:func:`~markerpose.matching.transfer`) says
         where the rings are in the other view and what ellipses they make there; their
         edges are fitted from those ellipses (or, failing that, the rings are refined at the
-        predicted centres) and checked like any matched triple."""
+        predicted centres) and checked like any matched triple. With
+        ``transfer_min_evidence``, a source whose ring evidence (in the input of the look
+        ``zoom`` that found the candidates) is below it is skipped."""
         from . import classical
 
         m = self.marker
@@ -424,6 +429,9 @@ class MarkerPose:
                 continue
             if len(seen) == self.conf["transfer_sources"]:
                 break
+            gate = self.conf["transfer_min_evidence"]
+            if gate is not None and self._keypoints.evidence(grays[a], pts[None], zoom)[0] < gate:
+                continue
             seen.append((a, pts))
             b = 1 - a
             t = time.perf_counter()

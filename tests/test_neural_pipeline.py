@@ -162,6 +162,10 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.02  # mm
     assert np.rad2deg(mp.geometry.rotation_angle(est.R, T[:3, :3])) < 0.05
+    # The transfer's sources are gated by ring evidence (v0.18): the default gate lets
+    # the marker's own triple through (above); a gate no evidence reaches stops every source.
+    assert mp.pipeline.default_conf["transfer_min_evidence"] == 0.1
+    assert mp.MarkerPose(rig, transfer_min_evidence=1.01, **strict).estimate(*f.images) is None
 
 
 def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypatch):
