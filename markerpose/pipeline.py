@@ -423,16 +423,19 @@ class MarkerPose:
         sources = [(a, p, s) for pl, pr, s in loose for a, p in ((0, pl), (1, pr))]
         for a in (0, 1):
             sources += [(a, p, s) for p, s in view_triples(cand[a], m.centers2d, max_triples=self.conf["view_triples"])]
-        seen = []
+        unique: list = []
         for a, pts, s in sources:
-            if any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2 in seen):
-                continue
-            if len(seen) == self.conf["transfer_sources"]:
-                break
-            gate = self.conf["transfer_min_evidence"]
-            if gate is not None and self._keypoints.evidence(grays[a], pts[None], zoom)[0] < gate:
-                continue
-            seen.append((a, pts))
+            if not any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2, _ in unique):
+                unique.append((a, pts, s))
+        gate = self.conf["transfer_min_evidence"]
+        if gate is not None:  # one evidence look per view for all of its sources
+            keep = np.ones(len(unique), bool)
+            for view in (0, 1):
+                idx = [k for k, (a, _, _) in enumerate(unique) if a == view]
+                if idx:
+                    keep[idx] = self._keypoints.evidence(grays[view], np.stack([unique[k][1] for k in idx]), zoom) >= gate
+            unique = [u for u, k in zip(unique, keep) if k]
+        for a, pts, s in unique[: self.conf["transfer_sources"]]:
             b = 1 - a
             t = time.perf_counter()
             det_a = self._refine([grays[a]], [cameras[a]], [(pts, s)])[0]

@@ -450,8 +450,7 @@ def test_align_triple_refines_centres_a_pixel_off(alpha, blur, tilt, z):
 def test_align_move_rule_nearest_keeps_a_point_off_towards_its_neighbour():
     """A small, steep marker whose stage-1 point is ~2.5 input px off towards a neighbour
     (closer than 0.4 of the shrunken distance between the points allows): "spacing"
-    drops the right alignment, "nearest" keeps it, within 0.3 px of the truth. A start
-    whose points sit on their neighbours' rings is still dropped by "nearest"."""
+    drops the right alignment, "nearest" keeps it, within 0.3 px of the truth."""
     from markerpose.synth import Imaging, look_at_pose, render_view
 
     rig = mp.StereoRig.default()
