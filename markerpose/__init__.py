@@ -3,7 +3,8 @@
 from .camera import Camera, StereoRig
 from .marker import Marker, write_target
 from .pipeline import MarkerPose
+from .presets import PRESETS
 from .results import Detection, Estimate
 
-__version__ = "0.18.0"
-__all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "Detection", "Estimate", "write_target", "__version__"]
+__version__ = "0.19.0"
+__all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "PRESETS", "Detection", "Estimate", "write_target", "__version__"]

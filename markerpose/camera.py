@@ -9,6 +9,14 @@ Rig files are OpenCV FileStorage (YAML or XML) with the keys
 ``K1 dist1 K2 dist2 R t`` and optionally ``image_size`` (width, height) —
 the layout of the original MarkerPose project's ``StereoParams.xml``.
 All file reading and writing of rigs lives in this module.
+
+Values that would load but cannot work are refused where the objects are built
+(``Camera`` / ``StereoRig``), with a one-line ``ValueError`` naming the field, and
+``StereoRig.load`` prefixes the file and key: K must be an upper-triangular intrinsic
+matrix with entries within ``MAX_K_ENTRY`` px and condition number within ``MAX_K_COND``;
+distortion coefficients finite and within ``MAX_DIST_COEFF``; ``image_size`` two whole
+numbers in 1..``MAX_IMAGE_SIDE``; R a proper rotation; the baseline |t| within
+``MIN_BASELINE``..``MAX_BASELINE`` mm.
 """
 
 from __future__ import annotations
@@ -19,6 +27,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+
+
+# Sanity limits for rigs: values outside them load but cannot work (overflow, division
+# by ~0, singular matrices far from the code that reads the rig), so they are refused.
+MAX_IMAGE_SIDE = 100_000  # px, per side
+MAX_K_ENTRY = 1e8  # px: |fx|, |fy|, |skew|, |cx|, |cy|
+MAX_K_COND = 1e12  # condition number of K (a typical K has ~3e3)
+MAX_DIST_COEFF = 1e6  # |k1|, |k2|, |p1|, |p2|, |k3|
+MIN_BASELINE = 1e-3  # mm
+MAX_BASELINE = 1e9  # mm
+ROTATION_TOL = 1e-6
 
 
 def _as_matrix(value, shape, name) -> np.ndarray:
@@ -48,7 +67,72 @@ def _as_dist(value, name="dist") -> np.ndarray:
         raise ValueError(f"{name}: expected 4 or 5 distortion coefficients (k1 k2 p1 p2 [k3]), got {d.size}")
     if not np.all(np.isfinite(d)):
         raise ValueError(f"{name}: contains non-finite values")
+    if np.any(np.abs(d) > MAX_DIST_COEFF):
+        raise ValueError(
+            f"{name}: coefficient magnitude above {MAX_DIST_COEFF:g} is not a lens distortion, got {d.tolist()}"
+        )
     return d
+
+
+def _as_intrinsics(value, name="K") -> np.ndarray:
+    """(3, 3) pinhole intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, numerically invertible."""
+    K = _as_matrix(value, (3, 3), name)
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0):
+        raise ValueError(
+            f"{name}: not an intrinsic matrix (need fx, fy > 0, K[1,0] = 0 and last row 0 0 1), got {K.tolist()}"
+        )
+    if np.abs(K).max() > MAX_K_ENTRY:
+        raise ValueError(f"{name}: entries must be at most {MAX_K_ENTRY:g} px in magnitude, got {K.tolist()}")
+    with np.errstate(all="ignore"):
+        cond = np.linalg.cond(K)
+    if not cond <= MAX_K_COND:
+        raise ValueError(
+            f"{name}: numerically singular (condition number {cond:.3g} > {MAX_K_COND:g}), got {K.tolist()}"
+        )
+    return K
+
+
+def _as_image_size(value, name="image_size") -> tuple[int, int]:
+    """(width, height) as Python ints in 1..MAX_IMAGE_SIDE; the values must be whole numbers."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected two numbers (width, height), got {value!r}") from None
+    if a.size != 2:
+        raise ValueError(f"{name}: expected two numbers (width, height), got shape {a.shape}")
+    a = a.ravel()
+    if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+        raise ValueError(f"{name}: width and height must be whole numbers of pixels, got {a.tolist()}")
+    if np.any(a <= 0):
+        # worded unlike its neighbours: callers match "<name> must be positive"
+        raise ValueError(f"{name} must be positive (width, height), got {tuple(int(v) for v in a)}")
+    if np.any(a > MAX_IMAGE_SIDE):
+        raise ValueError(f"{name}: width and height must be at most {MAX_IMAGE_SIDE} px, got {a.tolist()}")
+    return int(a[0]), int(a[1])
+
+
+def _as_rotation(value, name="R") -> np.ndarray:
+    """(3, 3) proper rotation: R @ R.T = I (atol ROTATION_TOL) and det(R) = +1."""
+    R = _as_matrix(value, (3, 3), name)
+    # Entries of a rotation are in [-1, 1]; checking that first also keeps R @ R.T from overflowing.
+    ok = np.abs(R).max() <= 1 + 1e-3
+    ok = ok and np.allclose(R @ R.T, np.eye(3), atol=ROTATION_TOL)  # default rtol
+    ok = ok and abs(np.linalg.det(R) - 1) <= 1e-3  # orthonormal: det is ±1, so this refuses reflections
+    if not ok:
+        raise ValueError(f"{name}: not a rotation matrix (R @ R.T != I or det(R) != 1)")
+    return R
+
+
+def _as_translation(value, name="t") -> np.ndarray:
+    """(3,) translation, mm, with a baseline |t| in MIN_BASELINE..MAX_BASELINE."""
+    t = _as_matrix(value, (3,), name)
+    m = float(np.abs(t).max())
+    b = m * float(np.linalg.norm(t / m)) if m > 0 else 0.0  # scaled: no overflow for huge t
+    if not b >= MIN_BASELINE:
+        raise ValueError(f"{name}: baseline |t| = {b:.3g} mm is below {MIN_BASELINE:g} mm (the two cameras coincide)")
+    if not b <= MAX_BASELINE:
+        raise ValueError(f"{name}: baseline |t| = {b:.3g} mm is above {MAX_BASELINE:g} mm")
+    return t
 
 
 @dataclass
@@ -66,15 +150,10 @@ class Camera:
     image_size: tuple[int, int] | None = None
 
     def __post_init__(self):
-        self.K = _as_matrix(self.K, (3, 3), "K")
-        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1 or np.any(self.K[2, :2] != 0):
-            raise ValueError(f"K: not an intrinsic matrix (need fx, fy > 0 and last row 0 0 1), got {self.K.tolist()}")
+        self.K = _as_intrinsics(self.K, "K")
         self.dist = _as_dist(self.dist)
         if self.image_size is not None:
-            w, h = (int(v) for v in self.image_size)
-            if w <= 0 or h <= 0:
-                raise ValueError(f"image_size must be positive (width, height), got {self.image_size}")
-            self.image_size = (w, h)
+            self.image_size = _as_image_size(self.image_size)
 
     # --- projection ---------------------------------------------------------------
     def distort(self, xn: np.ndarray) -> np.ndarray:
@@ -176,7 +255,10 @@ class StereoRig:
     Attributes:
         left, right: the cameras.
         R: (3, 3) rotation left→right.
-        t: (3,) translation left→right, mm.
+        t: (3,) translation left→right, mm; the baseline |t| must be in
+            ``MIN_BASELINE..MAX_BASELINE`` (1e-3..1e9 mm), so the default zeros are refused.
+
+    Invalid values (also ``Camera``'s: K, dist, image_size) raise ``ValueError`` naming the field.
     """
 
     left: Camera
@@ -185,10 +267,8 @@ class StereoRig:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self):
-        self.R = _as_matrix(self.R, (3, 3), "R")
-        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
-            raise ValueError("R: not a rotation matrix (R @ R.T != I or det(R) < 0)")
-        self.t = _as_matrix(self.t, (3,), "t")
+        self.R = _as_rotation(self.R, "R")
+        self.t = _as_translation(self.t, "t")
 
     @property
     def cameras(self) -> tuple[Camera, Camera]:
@@ -270,19 +350,20 @@ class StereoRig:
                     else:
                         raise ValueError(f"{path}: key '{key}' is not a matrix")
                 vals[key] = m
-            size = None
             node = fs.getNode("image_size")
             if not node.empty() and not node.isNone():
+                arr = None
                 if node.isMap():
-                    m = node.mat()
+                    try:
+                        m = node.mat()
+                    except cv2.error:  # a map that is not an opencv-matrix
+                        m = None
                     arr = None if m is None else m.ravel()
                 elif node.isSeq():
                     arr = np.array([node.at(i).real() for i in range(node.size())])
-                else:
-                    arr = None
                 if arr is None or arr.size != 2:
                     raise ValueError(f"{path}: key 'image_size' must hold two numbers (width, height)")
-                size = (int(arr[0]), int(arr[1]))
+                vals["image_size"] = arr
         finally:
             fs.release()
 
@@ -292,24 +373,19 @@ class StereoRig:
             except ValueError as e:
                 raise ValueError(f"{path}: key '{key}' is malformed: {e}") from None
 
-        K1 = build("K1", _as_matrix, (3, 3), "K1")
-        K2 = build("K2", _as_matrix, (3, 3), "K2")
+        # Every key is validated on its own (the same checks Camera / StereoRig run), so
+        # that an error names the key it comes from.
+        K1 = build("K1", _as_intrinsics, "K1")
+        K2 = build("K2", _as_intrinsics, "K2")
         d1 = build("dist1", _as_dist, "dist1")
         d2 = build("dist2", _as_dist, "dist2")
-        R = build("R", _as_matrix, (3, 3), "R")
-        t = build("t", _as_matrix, (3,), "t")
+        R = build("R", _as_rotation, "R")
+        t = build("t", _as_translation, "t")
+        size = build("image_size", _as_image_size, "image_size") if "image_size" in vals else None
         try:
-            left = Camera(K1, d1, size)
-        except ValueError as e:
-            raise ValueError(f"{path}: key 'K1' is malformed: {e}") from None
-        try:
-            right = Camera(K2, d2, size)
-        except ValueError as e:
-            raise ValueError(f"{path}: key 'K2' is malformed: {e}") from None
-        try:
-            return cls(left, right, R, t)
-        except ValueError as e:
-            raise ValueError(f"{path}: key 'R' is malformed: {e}") from None
+            return cls(Camera(K1, d1, size), Camera(K2, d2, size), R, t)
+        except ValueError as e:  # not expected: the keys passed the same checks above
+            raise ValueError(f"{path}: {e}") from None
 
     def save(self, path: str | Path) -> Path:
         """Write the rig as OpenCV FileStorage; the format follows the suffix (.yaml/.yml/.xml)."""

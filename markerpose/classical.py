@@ -39,8 +39,8 @@ How it works, and why:
    quadratic form) rectifies the centres into marker units of one outer radius. A
    rotation+scale (no reflection) fit to the marker's layout then scores every ordered
    triple; the sign of the signed area rejects mirror images outright.
-5. **Stereo** (:func:`detect_stereo`): among the best triples of each view, the pair
-   whose same-ID centres satisfy the epipolar constraint wins, so a marker-like
+5. **Stereo**: the pipeline pairs the best triples of the two views by the epipolar
+   constraint (:func:`markerpose.stages.match.pair_triples`), so a marker-like
    distractor seen in one view only cannot produce a pose.
 
 All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
@@ -48,14 +48,14 @@ All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
-from .camera import Camera, StereoRig
-from .geometry import epipolar_distance, layout_affine
+from .camera import Camera
+from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd
+from .images import as_gray
 from .marker import Marker
 from .results import Detection
 
@@ -115,8 +115,6 @@ default_conf: dict = {
     "size_ratio_max": 1.6,  # largest / smallest outer major axis among the three
     "triple_shape_tol": 0.5,  # log-shapes of the three outer ellipses agree within this
     "max_triples": 8,  # triples kept per view (stereo matching considers these)
-    # --- stereo -------------------------------------------------------------------------
-    "epipolar_tol": 3.0,  # max symmetric epipolar distance of a same-ID pair, px
 }
 
 
@@ -161,66 +159,12 @@ def _merge_conf(conf: dict | None) -> dict:
 
 
 def to_gray(image, name: str = "image") -> np.ndarray:
-    """Validate an image and return it as float32 grey levels (H, W) on the 0..255 scale.
-
-    Accepts uint8 gray (H, W), (H, W, 1) or BGR (H, W, 3); float32 on the 0..255 scale is
-    accepted too (noise-free renders). Raises ValueError naming the problem otherwise.
-    """
-    if image is None:
-        raise ValueError(f"{name} is None")
-    if not isinstance(image, np.ndarray):
-        raise ValueError(f"{name} must be a numpy array, got {type(image).__name__}")
-    if image.dtype not in (np.uint8, np.float32):
-        raise ValueError(f"{name} must be uint8 (or float32 on the 0..255 scale), got dtype {image.dtype}")
-    if image.size == 0:
-        raise ValueError(f"{name} is empty (shape {image.shape})")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[..., 0]
-    if image.ndim == 3:
-        if image.shape[2] != 3:
-            raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got {image.shape[2]} channels")
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-    elif image.ndim != 2:
-        raise ValueError(f"{name} must be gray (H, W) or BGR (H, W, 3), got shape {image.shape}")
-    if min(image.shape) < 16:
-        raise ValueError(f"{name} is too small: {image.shape}, need at least 16 x 16")
-    out = np.ascontiguousarray(image, dtype=np.float32)
-    if image.dtype == np.float32 and not np.all(np.isfinite(out)):
-        raise ValueError(f"{name} contains non-finite values")
-    return out
+    """An input image (:func:`markerpose.images.as_gray`; float32 on the 0..255 scale is
+    accepted too) as float32 grey levels (H, W)."""
+    return np.ascontiguousarray(as_gray(image, name, allow_float=True), dtype=np.float32)
 
 
 # --- ellipse helpers ------------------------------------------------------------------------
-def _rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
-    """RotatedRect → (centre (2,), Q (2, 2)) with (x - c)^T Q (x - c) = 1."""
-    (cx, cy), (w, h), ang = rect
-    a, b = max(w, 1e-6) / 2.0, max(h, 1e-6) / 2.0
-    t = np.deg2rad(ang)
-    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
-    return np.array([cx, cy], float), R @ np.diag([1 / a**2, 1 / b**2]) @ R.T
-
-
-def _cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
-    """(centre, Q) → RotatedRect ((cx, cy), (w, h), angle_deg), width = major axis along angle."""
-    lam, V = np.linalg.eigh(Q)  # ascending: lam[0] ↔ major axis
-    a, b = 1 / np.sqrt(lam[0]), 1 / np.sqrt(lam[1])
-    ang = np.degrees(np.arctan2(V[1, 0], V[0, 0])) % 180.0
-    return ((float(c[0]), float(c[1])), (float(2 * a), float(2 * b)), float(ang))
-
-
-def _sqrtm_spd(Q: np.ndarray, power: float = 0.5) -> np.ndarray:
-    lam, V = np.linalg.eigh(Q)
-    return (V * lam**power) @ V.T
-
-
-def _cq_to_conic(c: np.ndarray, Q: np.ndarray) -> np.ndarray:
-    C = np.zeros((3, 3))
-    C[:2, :2] = Q
-    C[:2, 2] = C[2, :2] = -Q @ c
-    C[2, 2] = c @ Q @ c - 1.0
-    return C
-
-
 def fit_ellipse(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
     """Direct least-squares ellipse fit (Fitzgibbon; Halir-Flusser's stable form).
 
@@ -283,8 +227,8 @@ def concentric_center(outer_cq, inner_cq) -> np.ndarray | None:
     matching eigenvector is H (0, 0, 1): the projected centre, free of the perspective bias
     of the ellipse centres. (Exact for a pinhole; lens distortion across one ring is small.)
     """
-    Co = _cq_to_conic(*outer_cq)
-    Ci = _cq_to_conic(*inner_cq)
+    Co = cq_to_conic(*outer_cq)
+    Ci = cq_to_conic(*inner_cq)
     try:
         w, v = np.linalg.eig(np.linalg.solve(Co, Ci))
     except np.linalg.LinAlgError:
@@ -351,7 +295,7 @@ def _log_shape(Q: np.ndarray) -> np.ndarray:
 def _inset(rect, d: float) -> np.ndarray:
     """Quadratic form of a RotatedRect whose axes are grown by ``d`` px (negative: shrunk)."""
     (cx, cy), (w, h), ang = rect
-    return _rect_to_cq(((cx, cy), (max(w + d, 0.5), max(h + d, 0.5)), ang))[1]
+    return rect_to_cq(((cx, cy), (max(w + d, 0.5), max(h + d, 0.5)), ang))[1]
 
 
 def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -378,7 +322,7 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray
 
 def _contrast_check(gray, c, Q, rho, gap, offset, n=32):
     """Fraction of rays where the ring band is darker than the hole and the surround."""
-    L = _sqrtm_spd(Q, -0.5)
+    L = sqrtm_spd(Q, -0.5)
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     u = L @ np.stack([np.cos(t), np.sin(t)])  # (2, n) ellipse points relative to c
     lams = np.array([0.5 * rho, 0.5 * (1 + rho), 1 + 0.5 * gap])
@@ -467,7 +411,7 @@ def _find_rings_gray(gray: np.ndarray, marker: Marker, c: dict, noise: float) ->
                 lam, V = np.linalg.eigh(Qi)
                 semi = 1 / np.sqrt(lam)  # the hole's semi-axes along V's columns
                 Qo = (V / ((semi - 0.5) / rho) ** 2) @ V.T
-                rect = _cq_to_rect(ci, Qo)
+                rect = cq_to_rect(ci, Qo)
                 major = max(rect[1])
                 if c["min_outer_px"] <= major <= max_outer and min(rect[1]) / major >= c["min_axis_ratio"]:
                     ring = Ring(
@@ -494,7 +438,7 @@ def _ellipse_of_contour(contour, area, c):
     ea = np.pi * w_ * h_ / 4.0
     if abs(abs(area) / ea - 1.0) > c["fill_tol"] + 2.0 / min(w_, h_):
         return None
-    cen, Q = _rect_to_cq(rect)
+    cen, Q = rect_to_cq(rect)
     return cen, Q, rect
 
 
@@ -619,7 +563,7 @@ def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
         weights (K,), the 75th percentile of their 10-90 % edge widths in px).
     """
     cen, Q = cq
-    L = _sqrtm_spd(Q, -0.5)
+    L = sqrtm_spd(Q, -0.5)
     eig = np.linalg.eigvalsh(Q)
     a, b = 1 / np.sqrt(eig[0]), 1 / np.sqrt(eig[1])
     perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
@@ -740,7 +684,7 @@ def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
     """
     cen, Q = frame
     d = P - cen
-    W = _sqrtm_spd(Q)
+    W = sqrtm_spd(Q)
     q = d @ W.T  # unit-circle frame
     lam = np.hypot(q[:, 0], q[:, 1])
     t = np.arctan2(q[:, 1], q[:, 0])
@@ -898,8 +842,8 @@ def refine_ring(
     return replace(
         ring,
         center=center,
-        outer=_cq_to_rect(*outer_cq),
-        inner=_cq_to_rect(*inner_cq) if inn is not None else ring.inner,
+        outer=cq_to_rect(*outer_cq),
+        inner=cq_to_rect(*inner_cq) if inn is not None else ring.inner,
         refined=True,
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
@@ -956,7 +900,7 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         if not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"]):
             return rings
         shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
-        out.append(replace(r, center=cen + shift, outer=_cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q)))
+        out.append(replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q)))
     return out
 
 
@@ -1018,7 +962,7 @@ def find_triples(
         dshape = max(np.linalg.norm(shp[a] - shp[b]) for a, b in ((0, 1), (0, 2), (1, 2)))
         if dshape > c["triple_shape_tol"]:
             continue
-        W = _sqrtm_spd(Qs[list(tri)].mean(0))
+        W = sqrtm_spd(Qs[list(tri)].mean(0))
         q = (p - p.mean(0)) @ W.T
         z = q[:, 0] + 1j * q[:, 1]
         alpha = np.vdot(wm, z) / np.vdot(wm, wm)
@@ -1038,7 +982,23 @@ def find_triples(
     return out[: c["max_triples"]]
 
 
-def _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera) -> Detection:
+def view_triples(image: np.ndarray, marker: Marker = Marker(), conf: dict | None = None) -> tuple:
+    """One view's ring candidates and its marker-like triples (paper §3.4, steps 1-4).
+
+    Returns:
+        (gray (H, W) float32, noise sigma, rings, triples as :func:`find_triples` returns them).
+    """
+    c = _merge_conf(conf)
+    gray = to_gray(image)
+    noise = noise_sigma(gray)
+    rings = _find_rings_gray(gray, marker, c, noise)
+    return gray, noise, rings, find_triples(rings, marker, c)
+
+
+def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera) -> Detection:
+    """The Detection of the triple ``tri`` of ``rings``: sub-pixel edges (and the blurred-ring
+    fit) with ``subpixel``, else the contour ellipses' centres (the paper)."""
+    c = _merge_conf(conf)
     chosen = [rings[k] for k in tri]
     if subpixel:
         chosen = [refine_ring(gray, r, marker, c, noise, others=chosen, camera=camera) for r in chosen]
@@ -1068,15 +1028,11 @@ def detect(
         :class:`~markerpose.results.Detection` (centres (3, 2) by ID, outer ellipses) or
         None when no marker-like triple is found.
     """
-    c = _merge_conf(conf)
-    gray = to_gray(image)
-    noise = noise_sigma(gray)
-    rings = _find_rings_gray(gray, marker, c, noise)
-    triples = find_triples(rings, marker, c)
+    gray, noise, rings, triples = view_triples(image, marker, conf)
     if not triples:
         return None
     cost, tri = triples[0]
-    return _detection(gray, rings, tri, cost, marker, subpixel, c, noise, camera)
+    return refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera)
 
 
 def _shift_ring(ring: Ring, d: np.ndarray) -> Ring:
@@ -1120,9 +1076,7 @@ def refine_points(
     pts = np.asarray(points, np.float64).reshape(3, 2)
     if not np.isfinite(pts).all():
         raise ValueError(f"points must be finite, got {pts.tolist()}")
-    d01, d02 = np.linalg.norm(pts[1] - pts[0]), np.linalg.norm(pts[2] - pts[0])
-    r_est = max(d01 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[1]), 1e-9),
-                d02 * marker.outer_radius / max(np.linalg.norm(marker.centers2d[2]), 1e-9), 4.0)
+    r_est = max(ring_diameter(pts, marker) / 2, 4.0)
     half = int(np.ceil(2.2 * r_est)) + 4
     noise = noise_sigma(gray)
     rings: list[Ring | None] = []
@@ -1181,63 +1135,13 @@ def refine_ellipses(
             continue
         (cx, cy), (w, h), ang = rect
         inner = ((cx, cy), (w * rho, h * rho), ang)
-        rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=_rect_to_cq(rect), _inner_cq=_rect_to_cq(inner)))
+        rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner)))
     present = [r for r in rings if r is not None]
     out = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
     out = refine_blurred(gray, out, marker, c, noise)
     centers = np.array([[np.nan, np.nan] if r is None else r.center for r in out], np.float64).reshape(-1, 2)
     ok = np.array([r is not None and r.refined for r in out], bool)
     return centers, ok, [None if r is None else r.outer for r in out]
-
-
-def detect_stereo(
-    left: np.ndarray,
-    right: np.ndarray,
-    rig: StereoRig,
-    marker: Marker = Marker(),
-    subpixel: bool = True,
-    conf: dict | None = None,
-) -> tuple[Detection, Detection] | None:
-    """The marker in both views, the pair of triples chosen by the epipolar constraint.
-
-    Args:
-        left, right: uint8 gray or BGR images of the rig's left and right cameras.
-        rig: the calibrated stereo rig (its cameras also undistort the edge points).
-        marker, subpixel, conf: as in :func:`detect`.
-    Returns:
-        (left Detection, right Detection), or None when no pair of marker-like triples
-        has all three same-ID centres within conf["epipolar_tol"] px of their epipolar lines.
-    """
-    c = _merge_conf(conf)
-    gl, gr = to_gray(left, "left image"), to_gray(right, "right image")
-    for g, cam, name in ((gl, rig.left, "left"), (gr, rig.right, "right")):
-        if cam.image_size is not None and (g.shape[1], g.shape[0]) != tuple(cam.image_size):
-            raise ValueError(
-                f"{name} image is {g.shape[1]}x{g.shape[0]} but the rig's {name} camera is "
-                f"{cam.image_size[0]}x{cam.image_size[1]}"
-            )
-    nl, nr = noise_sigma(gl), noise_sigma(gr)
-    rl, rr = _find_rings_gray(gl, marker, c, nl), _find_rings_gray(gr, marker, c, nr)
-    tl, tr = find_triples(rl, marker, c), find_triples(rr, marker, c)
-    if not tl or not tr:
-        return None
-    best = None
-    for (cl, il), (cr, ir) in itertools.product(tl, tr):
-        pl = np.array([rl[k].center for k in il])
-        pr = np.array([rr[k].center for k in ir])
-        d = np.diag(epipolar_distance(rig, pl, pr))
-        if d.max() > c["epipolar_tol"]:
-            continue
-        cost = cl + cr + float((d / c["epipolar_tol"]) @ (d / c["epipolar_tol"]))
-        if best is None or cost < best[0]:
-            best = (cost, il, ir, cl, cr)
-    if best is None:
-        return None
-    _, il, ir, cl, cr = best
-    return (
-        _detection(gl, rl, il, cl, marker, subpixel, c, nl, rig.left),
-        _detection(gr, rr, ir, cr, marker, subpixel, c, nr, rig.right),
-    )
 
 
 __all__ = [
@@ -1252,8 +1156,9 @@ __all__ = [
     "concentric_center",
     "find_triples",
     "detect",
-    "detect_stereo",
     "refine_ellipses",
     "refine_points",
     "refine_blurred",
+    "refine_triple",
+    "view_triples",
 ]

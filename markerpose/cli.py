@@ -4,11 +4,18 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from . import __version__
+from .presets import ORDER
+
+EXIT_NOT_FOUND = 1
+EXIT_BAD_INPUT = 2
 
 
 def _rig(path):
@@ -58,6 +65,11 @@ def cmd_render(args):
 
     import cv2
 
+    if args.repeat < 1:
+        raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
     rig, marker = _rig(args.rig), _marker(args)
     T = look_at_pose([args.x, args.y, args.distance], args.tilt, args.tilt_axis, args.roll)
     imaging = Imaging(alpha=args.alpha, motion_blur=args.motion_blur, motion_angle=args.motion_angle)
@@ -66,7 +78,6 @@ def cmd_render(args):
         t0 = time.perf_counter()
         frame = render_stereo(rig, T, marker, imaging, seed=args.seed + k)
         times.append(time.perf_counter() - t0)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out / "left.png"), frame.images[0])
     cv2.imwrite(str(out / "right.png"), frame.images[1])
@@ -83,27 +94,30 @@ def cmd_render(args):
               f"(first call {times[0]:.3f} s, builds the cached ray grid)")
 
 
-def cmd_estimate(args):
+def read_image(path) -> np.ndarray:
+    """An image file as a numpy array, or ValueError naming the file (no OpenCV warning)."""
     import cv2
 
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"cannot read image {path}: no such file")
+    img = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"cannot read image {path}: not an image format OpenCV can decode")
+    return img
+
+
+def cmd_estimate(args):
     from .pipeline import MarkerPose
 
-    opts = {"pose": args.pose}
-    if args.detector == "neural":
-        opts["refine"] = args.refine
-    tracker = MarkerPose(_rig(args.rig), _marker(args), detector=args.detector, **opts)
-    images = []
-    for p in (args.left, args.right):
-        img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise SystemExit(f"error: cannot read image {p}")
-        images.append(img)
+    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
+    images = [read_image(p) for p in (args.left, args.right)]
     est = tracker.estimate(*images)
     if est is None:
         print(json.dumps({"found": False}))
-        return 1
+        return EXIT_NOT_FOUND
     print(json.dumps({"found": True, "T_left_marker": est.T.tolist(), "points3d": est.points3d.tolist(),
-                      "centers": est.centers.tolist()}, indent=1))
+                      "centers": est.centers.tolist(), "residual_px": est.residual_px}, indent=1))
     return 0
 
 
@@ -287,6 +301,7 @@ def _eval_args(p, what: str):
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="markerpose", description="Stereo 6-DoF tracking of a three-ring marker (MarkerPose).")
+    p.add_argument("--version", action="version", version=f"markerpose {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
     d = sub.add_parser("demo", help="the paper's robot experiments on synthetic frames; tables vs the paper")
@@ -323,9 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("left")
     e.add_argument("right")
     e.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
-    e.add_argument("--detector", default="neural", choices=["neural", "classical"])
-    e.add_argument("--refine", default="ellipsegnet", choices=["ellipsegnet", "classical", "none"], help="neural: sub-pixel stage")
-    e.add_argument("--pose", default="rigid", choices=["paper", "rigid"])
+    e.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
+    e.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
 
@@ -335,7 +349,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--empty-pairs", type=int, default=4, help="marker-free pairs (time while the marker is out of view)")
     b.add_argument("--repeats", type=int, default=3, help="passes over the pairs (the first warms up)")
     b.add_argument("--threads", type=int, help="torch threads (default: all cores)")
-    b.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
+    b.add_argument("--configs", nargs="*", help="preset names (default: all available)")
     b.add_argument("--json", help="also write the figures as JSON")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
@@ -345,7 +359,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--trials", type=int, help="robot-path placements (default 8)")
     x.add_argument("--pairs", type=int, help="random pairs per darkness / blur level (default 48)")
     x.add_argument("--seed", type=int, help="base seed (default 0)")
-    x.add_argument("--configs", nargs="*", help="configuration names (default: the headline ones that can run)")
+    x.add_argument("--configs", nargs="*", help="preset names (default: the headline ones that can run)")
     x.add_argument("--out", default="markerpose-experiments", help="output folder (default: markerpose-experiments)")
     x.add_argument("--quiet", action="store_true")
     x.set_defaults(func=cmd_experiments)
@@ -382,7 +396,7 @@ def build_parser() -> argparse.ArgumentParser:
     ep = esub.add_parser("pipeline", help="end to end on held-out stereo pairs: detection, centres, pose, per configuration")
     ep.add_argument("--pairs", type=int, default=200, help="pairs per set")
     ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25, marker_free (the default) and far (0.8-1.6 m)")
-    ep.add_argument("--configs", nargs="*", help="configuration names (default: all available)")
+    ep.add_argument("--configs", nargs="*", help="preset names (default: all available)")
     ep.add_argument("--single-view", action="store_true", help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs")
     ep.add_argument("--workers", type=int, default=1, help="processes running sets at once (one torch thread each; figures unchanged)")
     ep.add_argument("--json", help="also write the figures as JSON")
@@ -392,12 +406,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    """Run a command. Exit codes: 0 done, 1 the marker was not found (``estimate``), 2 bad
+    input (a one-line message, no traceback), 130 interrupted."""
     args = build_parser().parse_args(argv)
     try:
         rc = args.func(args)
-    except (ValueError, FileNotFoundError) as exc:
+        sys.stdout.flush()
+    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError) as exc:
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_BAD_INPUT
+    except BrokenPipeError:  # e.g. `markerpose estimate ... | head -3`: the reader has gone
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
     return int(rc or 0)
 
 

@@ -26,7 +26,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .nets import fuse_batchnorm
+from .geometry import ring_diameter
+from .nets import fuse_batchnorm, load_checkpoint, load_weights
 
 PATCH = 120
 ENC_WIDTHS = (16, 16, 32, 32, 64, 64, 64, 64)
@@ -95,9 +96,7 @@ def window_side(points: np.ndarray, marker, conf: dict | None = None) -> int:
     c = {**default_conf, **(conf or {})}
     if c["patch"] == "fixed":
         return PATCH
-    p = np.asarray(points, np.float64)
-    d = [np.linalg.norm(p[i] - p[0]) * marker.outer_diameter / np.linalg.norm(marker.centers2d[i]) for i in (1, 2)]
-    return int(np.clip(round(c["patch_scale"] * max(d)), c["min_side"], c["max_side"]))
+    return int(np.clip(round(c["patch_scale"] * ring_diameter(points, marker)), c["min_side"], c["max_side"]))
 
 
 def extract_patch(gray: np.ndarray, center, side: int, size: int = PATCH) -> tuple[np.ndarray, np.ndarray]:
@@ -224,19 +223,15 @@ class EllipseNet:
         import torch
 
         path = Path(weights) if weights is not None else self.default_weights
-        if not path.is_file():
-            raise ValueError(f"ellipse weights not found: {path} (train them with `markerpose train ellipses`)")
-        ckpt = torch.load(path, map_location=device, weights_only=True)
-        if "state_dict" not in ckpt:
-            raise ValueError(f"{path} is not a markerpose EllipSegNet checkpoint: no 'state_dict'")
+        ckpt = load_checkpoint(path, "ellipses", device)
         self.conf = {**default_conf, **(conf or {})}
         for key, allowed in (("patch", PATCH_MODES), ("fit", FITS)):
             if self.conf[key] not in allowed:
                 raise ValueError(f"unknown {key} {self.conf[key]!r}; choose from {allowed}")
         self.net = build_network().to(device).eval()
-        self.net.load_state_dict(ckpt["state_dict"])
+        load_weights(self.net, ckpt["state_dict"], path)
         fuse_batchnorm(self.net)
-        # Channels-last convolutions run faster on this CPU (same outputs to ~1e-6).
+        # Channels-last convolutions run faster on the CPU (same outputs to ~1e-6).
         self.net = self.net.to(memory_format=torch.channels_last)
         self.device = device
 

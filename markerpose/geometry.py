@@ -1,10 +1,13 @@
-"""Pure geometry on numpy arrays: triangulation, pose from three points, conics.
+"""Pure geometry on numpy arrays: triangulation, pose from three points, conics, the
+marker's layout in an image and its plate poses in one view.
 
 No I/O here. Units: mm and radians. Frames: the left camera is the world;
 ``T_left_marker`` maps marker coordinates to left-camera coordinates.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import cv2
 import numpy as np
@@ -14,7 +17,7 @@ from .camera import StereoRig
 POSE_METHODS = ("paper", "rigid")
 
 
-# --- triangulation ------------------------------------------------------------------
+# --- the marker's layout in an image -----------------------------------------------------
 def layout_affine(points: np.ndarray, layout: np.ndarray) -> np.ndarray:
     """The linear part A of the affine map taking the marker's layout (3, 2) to three
     image points ((3, 2), or (T, 3, 2) for many at once): ``p_j - p_0 = A (l_j - l_0)``.
@@ -24,6 +27,56 @@ def layout_affine(points: np.ndarray, layout: np.ndarray) -> np.ndarray:
     B = np.column_stack([L[1] - L[0], L[2] - L[0]])
     return np.stack([P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :]], -1) @ np.linalg.inv(B)
 
+
+def signed_areas(p: np.ndarray) -> np.ndarray:
+    """Signed areas of triangles p0 p1 p2 ((..., 3, 2), y down): negative for the real marker."""
+    d1, d2 = p[..., 1, :] - p[..., 0, :], p[..., 2, :] - p[..., 0, :]
+    return 0.5 * (d1[..., 0] * d2[..., 1] - d2[..., 0] * d1[..., 1])
+
+
+def signed_area(p: np.ndarray) -> float:
+    """Signed area of the triangle p0 p1 p2 ((3, 2), y down): negative for the real marker."""
+    return float(signed_areas(np.asarray(p, np.float64)))
+
+
+def layout_ratios(p: np.ndarray, layout: np.ndarray) -> np.ndarray:
+    """How far image triangles ``p`` (..., 3, 2) are from views of the marker triangle
+    ``layout`` (3, 2, mm), in the same ID order: the ratio of the singular values of the
+    affine map between the two (1 = a similarity; a plane tilted by θ seen from afar gives
+    cos θ; 0 for a degenerate triangle). Orders that put a ring in the wrong place give
+    small ratios."""
+    sv = np.linalg.svd(layout_affine(p, layout), compute_uv=False)  # (..., 2), largest first
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(sv[..., 0] > 0, sv[..., 1] / sv[..., 0], 0.0)
+
+
+def layout_ratio(p: np.ndarray, layout: np.ndarray) -> float:
+    """:func:`layout_ratios` of one triangle (3, 2)."""
+    return float(layout_ratios(p, layout))
+
+
+_TRIPLES: dict = {}  # n → triple_orders(n)
+
+
+def triple_orders(n: int) -> np.ndarray:
+    """Every triple of ``n`` points in each of its six ID orders, as indices (6 C(n, 3), 3):
+    row 6 t + o is triple t (in ``itertools.combinations`` order) in order o (in
+    ``itertools.permutations`` order); column j is the point taking ID j."""
+    if n not in _TRIPLES:
+        trios = np.array(list(itertools.combinations(range(n), 3)), int).reshape(-1, 3)
+        _TRIPLES[n] = trios[:, list(itertools.permutations(range(3)))].reshape(-1, 3)
+    return _TRIPLES[n]
+
+
+def ring_diameter(points: np.ndarray, marker) -> float:
+    """Apparent outer diameter (px) of the rings at three image points c0, c1, c2 (3, 2),
+    judged from their spacing: the larger of |c1 - c0| and |c2 - c0| scaled by the
+    marker's diameter over the printed distance."""
+    p = np.asarray(points, np.float64)
+    return max(np.linalg.norm(p[i] - p[0]) * marker.outer_diameter / np.linalg.norm(marker.centers2d[i]) for i in (1, 2))
+
+
+# --- triangulation ------------------------------------------------------------------
 
 def triangulate(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of corresponding distorted pixels, as the paper does.
@@ -169,20 +222,42 @@ def conic_center(C: np.ndarray) -> np.ndarray:
     return -np.linalg.solve(C[:2, :2], C[:2, 2])
 
 
+def rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV RotatedRect ((cx, cy), (w, h), angle_deg) → (centre (2,), Q (2, 2)) with
+    (x - c)^T Q (x - c) = 1."""
+    (cx, cy), (w, h), ang = rect
+    a, b = max(w, 1e-6) / 2.0, max(h, 1e-6) / 2.0
+    t = np.deg2rad(ang)
+    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+    return np.array([cx, cy], float), R @ np.diag([1 / a**2, 1 / b**2]) @ R.T
+
+
+def cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
+    """(centre, Q) → RotatedRect ((cx, cy), (w, h), angle_deg), width = major axis along angle."""
+    lam, V = np.linalg.eigh(Q)  # ascending: lam[0] ↔ major axis
+    a, b = 1 / np.sqrt(lam[0]), 1 / np.sqrt(lam[1])
+    ang = np.degrees(np.arctan2(V[1, 0], V[0, 0])) % 180.0
+    return ((float(c[0]), float(c[1])), (float(2 * a), float(2 * b)), float(ang))
+
+
+def cq_to_conic(c: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """(3, 3) conic ``x^T C x = 0`` of the ellipse (x - c)^T Q (x - c) = 1."""
+    C = np.zeros((3, 3))
+    C[:2, :2] = Q
+    C[:2, 2] = C[2, :2] = -Q @ c
+    C[2, 2] = c @ Q @ c - 1.0
+    return C
+
+
 def ellipse_to_conic(center, axes, angle_deg) -> np.ndarray:
     """Conic of an ellipse given as OpenCV's RotatedRect ((cx, cy), (w, h), angle in degrees)."""
-    cx, cy = center
-    a, b = axes[0] / 2.0, axes[1] / 2.0
-    th = np.deg2rad(angle_deg)
-    c, s = np.cos(th), np.sin(th)
-    Rm = np.array([[c, -s], [s, c]])
-    A = Rm @ np.diag([1 / a**2, 1 / b**2]) @ Rm.T
-    ctr = np.array([cx, cy])
-    C = np.zeros((3, 3))
-    C[:2, :2] = A
-    C[:2, 2] = C[2, :2] = -A @ ctr
-    C[2, 2] = ctr @ A @ ctr - 1.0
-    return C
+    return cq_to_conic(*rect_to_cq((center, axes, angle_deg)))
+
+
+def sqrtm_spd(Q: np.ndarray, power: float = 0.5) -> np.ndarray:
+    """``Q`` (symmetric positive definite) to a real ``power`` (0.5: its square root)."""
+    lam, V = np.linalg.eigh(Q)
+    return (V * lam**power) @ V.T
 
 
 def imaged_circle_centers(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, radius: float) -> np.ndarray:
@@ -216,3 +291,65 @@ def perspective_bias(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, rad
 def plane_homography(K: np.ndarray, T_cam_plane: np.ndarray) -> np.ndarray:
     """(3, 3) homography from plane coordinates (x, y, 1) (z = 0) to ideal pixels: ``K [r1 r2 t]``."""
     return K @ np.column_stack([T_cam_plane[:3, 0], T_cam_plane[:3, 1], T_cam_plane[:3, 3]])
+
+
+# --- the marker's plate in one view ----------------------------------------------------
+def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float) -> list[tuple[float, np.ndarray]]:
+    """The marker's poses in one view from three ring centres, best explained first.
+
+    P3P gives up to four poses that put the marker's centres on the three centres' rays;
+    each is scored by how well its projected outer circles fit the rings' fitted ellipses
+    (the ellipses' shapes tell the plate's tilt, which three points leave ambiguous). The
+    score tells the marker from three ring-like things that merely lie in a
+    marker-like triangle: their ellipses do not fit one plate.
+
+    Args:
+        camera: the view's :class:`~markerpose.camera.Camera`.
+        centers: (3, 2) ring centres c0, c1, c2 in its (distorted) pixels.
+        ellipses: the rings' outer ellipses (OpenCV RotatedRects, None for a missing one),
+            or None: every pose then scores 0, in P3P's order.
+        model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
+        radius: the rings' outer radius, mm.
+    Returns:
+        list of (misfit, T_cam_marker (4, 4)), smallest misfit first; the misfit is the mean
+        relative radial distance of the projected circles from the ellipses (0 = exact).
+    """
+    model = np.asarray(model, np.float64)
+    xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
+    n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
+    conics = [None if e is None else ellipse_to_conic(*e) for e in (ellipses or [])]
+    poses = []
+    for rv, tv in zip(rvecs[:n], tvecs[:n]):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
+        if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
+            continue  # degenerate, or behind the camera
+        misfit = []
+        edges = ring_edges(camera, T, model, radius) if conics else []
+        for C, edge in zip(conics, edges):
+            if C is None:
+                continue
+            h = np.column_stack([edge, np.ones(len(edge))])
+            lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
+            misfit.append(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
+        m = float(np.mean(misfit)) if misfit else 0.0
+        if np.isfinite(m):
+            poses.append((m, T))
+    poses.sort(key=lambda p: p[0])
+    return poses
+
+
+def ring_edges(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float, n: int = 24) -> np.ndarray:
+    """(3, n, 2) distorted pixels of ``n`` points on each ring's outer circle in a view
+    where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm)."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
+    T = np.asarray(T_cam_marker, np.float64)
+    pts = (np.asarray(model, np.float64)[:, None, :] + circle[None]).reshape(-1, 3)
+    return camera.project(pts @ T[:3, :3].T + T[:3, 3]).reshape(len(model), n, 2)
+
+
+def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float) -> list:
+    """The rings' outer ellipses (OpenCV RotatedRects) in a view where the marker has pose
+    ``T_cam_marker``: ellipses fitted to the projected circles (lens distortion included)."""
+    return [cv2.fitEllipse(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]

@@ -1,6 +1,6 @@
 """The three-ring planar marker: its geometry, in millimetres, in the marker frame.
 
-Marker frame (DESIGN §2): origin at the centre of ring c0, c1 on +x, c2 on +y,
+Marker frame (docs/design.md §1): origin at the centre of ring c0, c1 on +x, c2 on +y,
 z = x × y out of the printed face. Every ring is a black disk of diameter
 ``outer_diameter`` with a concentric white disk of diameter ``inner_diameter``.
 The printed plate is the rings' bounding box grown by ``margin`` on every side.
@@ -45,7 +45,7 @@ class Marker:
         if min(d01, d02, np.linalg.norm(c[2] - c[1])) <= self.outer_diameter:
             raise ValueError("rings overlap: centre distances must exceed outer_diameter")
         # Handedness: c0 -> c1 -> c2 must turn counter-clockwise in the marker frame so that
-        # z = x × y points out of the printed face (DESIGN §2).
+        # z = x × y points out of the printed face.
         a, b = c[1] - c[0], c[2] - c[0]
         if a[0] * b[1] - a[1] * b[0] <= 0:
             raise ValueError("c0 -> c1 -> c2 must be counter-clockwise (c2 on the +y side)")

@@ -13,7 +13,9 @@ class Detection:
 
     Attributes:
         centers: (3, 2) sub-pixel centres of c0, c1, c2 (ordered by ID) in the
-            input image's own (distorted) pixel coordinates.
+            input image's own (distorted) pixel coordinates: the centres of the fitted
+            outer ellipses (one view cannot correct their perspective bias; a stereo
+            :class:`Estimate` does).
         ellipses: optional per-ring ellipse as OpenCV RotatedRect tuples
             ((cx, cy), (w, h), angle_deg), ordered by ID.
         score: detector-specific confidence (higher is better).
@@ -37,13 +39,21 @@ class Estimate:
     Attributes:
         T: (4, 4) T_left_marker, mm.
         points3d: (3, 3) c0, c1, c2 in the left-camera frame, mm.
-        centers: (2, 3, 2) [view][id][x, y] sub-pixel centres in the input images.
+        centers: (2, 3, 2) [view][id][x, y] sub-pixel centres in the input images: with
+            bias correction (the default), where the rings' 3D centres project; without
+            it, the fitted ellipses' centres (``detections[k].centers``).
+        detections: the two views' :class:`Detection` (the fitted ellipses' centres).
+        residual_px: RMS distance (px) of the six centres from the marker's centres
+            projected under the pose.
+        source: how it was obtained: "detected" (cold detection).
     """
 
     T: np.ndarray
     points3d: np.ndarray
     centers: np.ndarray
     detections: tuple = field(default=(), repr=False)
+    residual_px: float | None = None
+    source: str = "detected"
 
     @property
     def R(self) -> np.ndarray:

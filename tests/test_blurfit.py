@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from markerpose import geometry as geo
 from markerpose import Marker, StereoRig
 from markerpose import blurfit
 from markerpose import classical as C
@@ -75,14 +76,14 @@ def _truth_rects(truth):
     for C3 in truth.outer_conics:
         A, b = C3[:2, :2], C3[:2, 2]
         c0 = -np.linalg.solve(A, b)
-        out.append(C._cq_to_rect(c0, A / -(C3[2, 2] + b @ c0)))
+        out.append(geo.cq_to_rect(c0, A / -(C3[2, 2] + b @ c0)))
     return out
 
 
 def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
     rig, img, truth = blurred_view
     gray = C.to_gray(img)
-    start = [C._rect_to_cq(r) for r in _truth_rects(truth)]
+    start = [geo.rect_to_cq(r) for r in _truth_rects(truth)]
     start = [(c + np.array([0.8, -0.6]), Q) for c, Q in start]  # off like an edge fit
     fit = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray))
     assert fit is not None
@@ -121,7 +122,7 @@ def test_fit_refuses_rings_outside_the_image():
 
 
 def test_pipeline_option_switches_the_blur_fit():
-    # MarkerPose(rig, blur_fit=False) keeps the edge fit; the default refits: closer to the truth.
+    # MarkerPose(rig, refine={"blur_fit": False}) keeps the edge fit; the default refits: closer to the truth.
     from markerpose import MarkerPose
 
     rig = StereoRig.default()
@@ -129,7 +130,7 @@ def test_pipeline_option_switches_the_blur_fit():
     f = synth.render_stereo(rig, T, imaging=synth.Imaging(alpha=0.6, motion_blur=25, motion_angle=110), seed=4)
     err = {}
     for on in (True, False):
-        est = MarkerPose(rig, detector="classical", blur_fit=on).estimate(*f.images)
+        est = MarkerPose(rig, detector="classical", refine={"blur_fit": on}).estimate(*f.images)
         assert est is not None
         err[on] = max(np.linalg.norm(d.centers - v.outer_centers, axis=1).max() for d, v in zip(est.detections, f.views))
     assert err[True] < 0.15 and err[True] < err[False], err

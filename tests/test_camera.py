@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
 
 import cv2
@@ -11,6 +12,12 @@ import pytest
 
 from markerpose import Camera, StereoRig
 from markerpose.camera import build_default_rig
+
+try:  # only the property-based test needs it
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+except ImportError:  # pragma: no cover
+    given = None
 
 FIXTURES = Path(__file__).parent / "fixtures"
 RIG_KEYS = ("K1", "dist1", "K2", "dist2", "R", "t")
@@ -142,6 +149,61 @@ class TestCameraInit:
     def test_bad_image_size(self, size):
         with pytest.raises(ValueError, match="image_size must be positive"):
             Camera(np.diag([1000.0, 1000.0, 1.0]), image_size=size)
+
+    @pytest.mark.parametrize(
+        "size, detail",
+        [
+            ((1e12, 1e12), "at most 100000 px"),
+            ((100001, 480), "at most 100000 px"),
+            ((np.nan, 480), "whole numbers of pixels"),
+            ((640, np.inf), "whole numbers of pixels"),
+            ((640.5, 480), "whole numbers of pixels"),
+            ((0, 0), "must be positive"),
+            ((-640, -480), "must be positive"),
+            ((640, 480, 3), "expected two numbers"),
+            ((640,), "expected two numbers"),
+            ((), "expected two numbers"),
+            ([[640, 480], [1]], "expected two numbers"),
+        ],
+    )
+    def test_unworkable_image_size(self, size, detail):
+        with pytest.raises(ValueError, match=rf"^image_size\b.*{re.escape(detail)}") as e:
+            Camera(np.diag([1000.0, 1000.0, 1.0]), image_size=size)
+        assert "\n" not in str(e.value)
+
+    def test_image_size_whole_floats_and_limits_accepted(self):
+        assert Camera(np.diag([1000.0, 1000.0, 1.0]), image_size=(640.0, np.float32(480))).image_size == (640, 480)
+        assert Camera(np.diag([1000.0, 1000.0, 1.0]), image_size=[100000, 1]).image_size == (100000, 1)
+
+    @pytest.mark.parametrize(
+        "K, detail",
+        [
+            (np.zeros((3, 3)), "K: not an intrinsic matrix"),
+            (np.array([[1.0, 1, 0], [1, 1, 0], [0, 0, 1]]), "K: not an intrinsic matrix"),  # singular, K[1,0] != 0
+            (np.array([[1000.0, 0, 320], [5, 1000, 240], [0, 0, 1]]), "K: not an intrinsic matrix"),  # K[1,0] != 0
+            (np.diag([1e-300, 1e-300, 1.0]), "K: numerically singular"),
+            (np.diag([1000.0, 1e-13, 1.0]), "K: numerically singular"),
+            (np.diag([1e300, 1e300, 1.0]), "K: entries must be at most"),
+            (np.array([[1000.0, 0, 1e9], [0, 1000, 240], [0, 0, 1]]), "K: entries must be at most"),
+            (np.diag([np.inf, 1000.0, 1.0]), "K: contains non-finite"),
+        ],
+        ids=["zeros", "singular", "lower-triangle", "tiny-f", "tiny-fy", "huge-f", "huge-cx", "inf-f"],
+    )
+    def test_unworkable_K(self, K, detail):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match=f"^{detail}"):
+                Camera(K)
+
+    def test_K_extremes_that_still_work_accepted(self):
+        # A normalised camera, a principal point outside the image (a crop) and a long lens.
+        for K in [np.eye(3), np.array([[2500.0, 0, -300], [0, 2500, 2000], [0, 0, 1]]), np.diag([1e7, 1e7, 1.0])]:
+            np.testing.assert_array_equal(Camera(K).K, K)
+
+    @pytest.mark.parametrize("dist, detail", [([1e300, 0, 0, 0, 0], "above 1e+06"), ([0, 0, np.nan, 0], "non-finite")])
+    def test_unworkable_dist(self, dist, detail):
+        with pytest.raises(ValueError, match=rf"^dist: .*{re.escape(detail)}"):
+            Camera(np.diag([1000.0, 1000.0, 1.0]), dist)
 
 
 # --- Camera: projection -----------------------------------------------------------------
@@ -356,6 +418,49 @@ class TestStereoRig:
         with pytest.raises(ValueError, match="t: expected 3 values"):
             StereoRig(rig.left, rig.right, rig.R, np.zeros(4))
 
+    @pytest.mark.parametrize(
+        "R, msg",
+        [
+            (np.full((3, 3), np.nan), "R: contains non-finite"),
+            (np.full((3, 3), 1e300), "R: not a rotation"),  # no overflow warning on the way
+            (np.zeros((3, 3)), "R: not a rotation"),
+            (np.array([[0.0, 1, 0], [1, 0, 0], [0, 0, 1]]), "R: not a rotation"),  # a permutation, det -1
+            (-np.eye(3), "R: not a rotation"),  # point reflection, det -1
+            (np.array([[1.0, 1e-3, 0], [0, 1, 0], [0, 0, 1]]), "R: not a rotation"),  # not orthonormal
+        ],
+    )
+    def test_unworkable_R(self, rig, R, msg):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match=msg):
+                StereoRig(rig.left, rig.right, R, rig.t)
+
+    @pytest.mark.parametrize(
+        "t, detail",
+        [
+            (np.zeros(3), "baseline |t| = 0 mm is below 0.001 mm"),
+            ([1e-9, 0, 0], "baseline |t| = 1e-09 mm is below 0.001 mm"),
+            ([-5e-4, 5e-4, 0], "is below 0.001 mm"),
+            ([1e300, 1e300, 1e300], "is above 1e+09 mm"),
+            ([1.7e308, 1.7e308, 0], "is above 1e+09 mm"),  # |t| itself overflows
+            ([np.nan, 0, 0], "contains non-finite"),
+            ([0, -np.inf, 0], "contains non-finite"),
+        ],
+    )
+    def test_unworkable_t(self, rig, t, detail):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            with pytest.raises(ValueError, match=f"^t: .*{re.escape(detail)}"):
+                StereoRig(rig.left, rig.right, rig.R, t)
+
+    def test_short_baseline_at_the_floor_accepted(self, rig):
+        assert StereoRig(rig.left, rig.right, rig.R, [1e-3, 0, 0]).baseline == pytest.approx(1e-3)
+
+    def test_default_t_is_refused(self, rig):
+        # The dataclass default t = 0 would put both cameras at the same place.
+        with pytest.raises(ValueError, match="t: baseline"):
+            StereoRig(rig.left, rig.right)
+
 
 # --- FileStorage I/O -----------------------------------------------------------------------
 class TestRigFiles:
@@ -466,6 +571,82 @@ class TestRigFiles:
         with pytest.raises(ValueError, match="image_size"):
             StereoRig.load(tmp_path / "size.yaml")
 
+    @pytest.mark.parametrize(
+        "key, value, detail",
+        [
+            # zero or tiny baseline (was: RuntimeWarning: invalid value encountered in divide, later)
+            ("t", np.zeros((3, 1)), "t: baseline |t| = 0 mm is below 0.001 mm"),
+            ("t", np.array([[1e-9], [0], [0]]), "t: baseline |t| = 1e-09 mm is below 0.001 mm"),
+            ("t", np.full((3, 1), 1e300), "t: baseline |t| = 1.73e+300 mm is above 1e+09 mm"),
+            ("t", np.array([[np.inf], [0], [0]]), "t: contains non-finite"),
+            # singular / non-sensible K (was: LinAlgError: Singular matrix, later, not naming K1)
+            ("K1", np.zeros((3, 3)), "K1: not an intrinsic matrix"),
+            ("K2", np.array([[1.0, 1, 0], [1, 1, 0], [0, 0, 1]]), "K2: not an intrinsic matrix"),
+            ("K1", np.array([[2500.0, 0, 640], [0, 2500, 512], [0, 0, 0]]), "K1: not an intrinsic matrix"),
+            ("K2", np.diag([-2500.0, 2500.0, 1.0]), "K2: not an intrinsic matrix"),
+            ("K1", np.diag([1e-300, 1e-300, 1.0]), "K1: numerically singular"),
+            ("K2", np.diag([1e300, 1e300, 1.0]), "K2: entries must be at most 1e+08 px"),
+            ("K1", np.diag([np.nan, 2500.0, 1.0]), "K1: contains non-finite"),
+            # absurd image_size (was: accepted, or a bare "cannot convert float NaN to integer" /
+            # OverflowError, or reported as key 'K1')
+            ("image_size", np.array([[1e12, 1e12]]), "image_size: width and height must be at most 100000 px"),
+            ("image_size", np.array([[np.nan, 1024]]), "image_size: width and height must be whole numbers"),
+            ("image_size", np.array([[1280, np.inf]]), "image_size: width and height must be whole numbers"),
+            ("image_size", np.array([[1280.5, 1024]]), "image_size: width and height must be whole numbers"),
+            ("image_size", np.array([[-1280, 1024]]), "image_size must be positive"),
+            ("image_size", np.array([[0, 0]]), "image_size must be positive"),
+            # R, dist
+            ("R", np.full((3, 3), np.nan), "R: contains non-finite"),
+            ("R", np.full((3, 3), 1e300), "R: not a rotation"),
+            ("R", -np.eye(3), "R: not a rotation"),
+            ("dist1", np.array([[np.nan, 0, 0, 0, 0]]), "dist1: contains non-finite"),
+            ("dist2", np.array([[0, 0, 0, 0, -np.inf]]), "dist2: contains non-finite"),
+            ("dist2", np.array([[1e300, 0, 0, 0, 0]]), "dist2: coefficient magnitude above 1e+06"),
+        ],
+    )
+    @pytest.mark.parametrize("suffix", [".yaml", ".xml"])
+    def test_unworkable_value(self, rig, tmp_path, key, value, detail, suffix):
+        """Rigs that used to load and fail later fail at load time: one line, the file, the key."""
+        mats = _rig_matrices(rig)
+        mats["image_size"] = np.array([[1280, 1024]])
+        mats[key] = value
+        path = _write_rig(tmp_path / f"rig{suffix}", mats)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # and no RuntimeWarning on the way
+            with pytest.raises(ValueError) as e:
+                StereoRig.load(path)
+        msg = str(e.value)
+        assert msg.startswith(f"{path}: key '{key}' is malformed: {detail}"), msg
+        assert "\n" not in msg
+
+    @pytest.mark.parametrize(
+        "text, detail",
+        [
+            ("[ 1280, .nan ]", "whole numbers"),
+            ("[ 1e12, 1e12 ]", "at most 100000 px"),
+            ("[ 1280.5, 1024 ]", "whole numbers"),
+            ("[ -1280, 1024 ]", "must be positive"),
+        ],
+    )
+    def test_unworkable_image_size_sequence(self, tmp_path, text, detail):
+        text = (FIXTURES / "StereoParams.yaml").read_text().replace("[ 1280, 1024 ]", text)
+        (tmp_path / "size.yaml").write_text(text)
+        with pytest.raises(ValueError, match=rf"size\.yaml: key 'image_size' is malformed: image_size.*{detail}"):
+            StereoRig.load(tmp_path / "size.yaml")
+
+    def test_image_size_that_is_a_plain_map(self, tmp_path):
+        """Regression: a map that is not an opencv-matrix leaked a cv2.error."""
+        text = (FIXTURES / "StereoParams.yaml").read_text().replace("[ 1280, 1024 ]", "{ w: 1280, h: 1024 }")
+        (tmp_path / "map.yaml").write_text(text)
+        with pytest.raises(ValueError, match="key 'image_size' must hold two numbers"):
+            StereoRig.load(tmp_path / "map.yaml")
+
+    def test_perturbed_rig_loads_or_raises_value_error(self, rig, tmp_path_factory):
+        """Property: garbage numbers in a valid rig file never escape as another exception."""
+        if given is None:
+            pytest.skip("hypothesis is not installed")
+        _check_perturbed_rigs(rig, tmp_path_factory.mktemp("fuzz"))
+
     def test_missing_file(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="rig file not found"):
             StereoRig.load(tmp_path / "nope.yaml")
@@ -500,3 +681,38 @@ class TestRigFiles:
         with pytest.raises(ValueError, match=r"\.yaml, \.yml or \.xml"):
             rig.save(tmp_path / "rig.json")
         assert not (tmp_path / "rig.json").exists()
+
+
+# --- property-based: garbage in a valid rig file ---------------------------------------------
+GARBAGE = [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e300, -1e300, 1e-300, 5e-324, 1.7976931348623157e308, 1e12, -1.0, 1e-9]
+FUZZ_KEYS = (*RIG_KEYS, "image_size")
+
+
+def _check_perturbed_rigs(rig: StereoRig, tmp: Path) -> None:
+    base = _rig_matrices(rig)
+    base["image_size"] = np.array([[1280.0, 1024.0]])
+    value = st.one_of(st.sampled_from(GARBAGE), st.floats(allow_nan=True, allow_infinity=True))
+    edit = st.tuples(st.sampled_from(FUZZ_KEYS), st.integers(0, 8), value)
+
+    @settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+    @given(edits=st.lists(edit, min_size=1, max_size=3), suffix=st.sampled_from([".yaml", ".xml"]))
+    def check(edits, suffix):
+        mats = {k: np.array(v, dtype=np.float64) for k, v in base.items()}
+        for key, i, v in edits:
+            mats[key].flat[i % mats[key].size] = v
+        path = _write_rig(tmp / f"rig{suffix}", mats)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            try:
+                loaded = StereoRig.load(path)
+            except ValueError as e:  # any other exception type (or a warning) fails the test
+                assert str(e).startswith(f"{path}: ") and "\n" not in str(e), str(e)
+                return
+            for a in (loaded.left.K, loaded.right.K, loaded.left.dist, loaded.right.dist, loaded.R, loaded.t):
+                assert np.all(np.isfinite(a))
+            assert 1e-3 <= loaded.baseline <= 1e9
+            assert np.all(np.isfinite(loaded.P1)) and np.all(np.isfinite(loaded.P2))
+            w, h = loaded.left.image_size
+            assert 0 < w <= 100000 and 0 < h <= 100000
+
+    check()

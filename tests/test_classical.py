@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+
+import markerpose as mp
 import pytest
 
+from markerpose import geometry as geo
 from markerpose import Marker, StereoRig
 from markerpose import classical as C
 from markerpose.geometry import circle_conic, conic_center, epipolar_distance, plane_homography, project_conic
@@ -117,7 +120,7 @@ def test_fit_ellipse_exact_on_points():
     pts = (R @ np.stack([a * np.cos(t), b * np.sin(t)])).T + c
     cen, Q = C.fit_ellipse(pts)
     np.testing.assert_allclose(cen, c, atol=1e-9)
-    (cx, cy), (w, h), ang = C._cq_to_rect(cen, Q)
+    (cx, cy), (w, h), ang = geo.cq_to_rect(cen, Q)
     np.testing.assert_allclose([w, h, ang], [2 * a, 2 * b, 33.0], atol=1e-8)
     assert C.fit_ellipse(pts[:5]) is None
     assert C.fit_ellipse(np.column_stack([t, 2 * t])) is None  # collinear
@@ -316,9 +319,16 @@ def test_bad_conf_raises(rig):
     with pytest.raises(ValueError, match="edge_method"):
         C.detect(img, conf={"edge_method": "gradient"})
     with pytest.raises(ValueError, match="right image"):
-        C.detect_stereo(img, np.zeros((100, 100, 4), np.uint8), rig)
-    with pytest.raises(ValueError, match="left image is 480x400 but the rig's left camera is 1280x1024"):
-        C.detect_stereo(img, img, rig)
+        detect_stereo(img, np.zeros((100, 100, 4), np.uint8), rig)
+    with pytest.raises(ValueError, match="left image is 480x400 but the rig was calibrated for 1280x1024"):
+        detect_stereo(img, img, rig)
+
+
+def detect_stereo(left, right, rig, subpixel=True):
+    """Both views' detections of the classical detector (paper §3.4 pairing), no shape check."""
+    tracker = mp.MarkerPose(rig, detector="classical", refine={"subpixel": subpixel}, verify={"max_shape_error": np.inf})
+    est = tracker.estimate(left, right)
+    return None if est is None else est.detections
 
 
 def test_default_conf_is_not_mutated():
@@ -414,7 +424,7 @@ def test_stereo_picks_the_epipolar_consistent_triple(rig):
     np.testing.assert_allclose(single.centers, fake, atol=0.1)
     assert np.diag(epipolar_distance(rig, truth[0], fake)).max() > 20  # ... and it is off the epipolar lines
     # ... but the pair of views rejects it.
-    pair = C.detect_stereo(f.images[0], right, rig)
+    pair = detect_stereo(f.images[0], right, rig)
     assert pair is not None
     for v in range(2):
         np.testing.assert_allclose(pair[v].centers, truth[v], atol=0.03)
@@ -425,20 +435,20 @@ def test_stereo_picks_the_epipolar_consistent_triple(rig):
 def test_stereo_none_when_one_view_lacks_the_marker(rig):
     T = synth.look_at_pose(np.array([0.0, 20.0, 560.0]), 20, 0, 0)
     f = render(rig, T, seed=6)
-    assert C.detect_stereo(*f.images, rig) is not None
+    assert detect_stereo(*f.images, rig) is not None
     empty = np.full_like(f.images[1], 90)
-    assert C.detect_stereo(f.images[0], empty, rig) is None
+    assert detect_stereo(f.images[0], empty, rig) is None
     # A fake marker alone in the right view is not epipolar-consistent either.
     fake_only, _ = paste_fake_marker(empty, (900, 300))
     assert C.detect(fake_only) is not None
-    assert C.detect_stereo(f.images[0], fake_only, rig) is None
+    assert detect_stereo(f.images[0], fake_only, rig) is None
 
 
 def test_stereo_subpixel_false_is_the_paper_configuration(rig):
     T = synth.look_at_pose(np.array([10.0, 10.0, 500.0]), 30, 45, 10)
     f = render(rig, T, seed=9)
-    paper = C.detect_stereo(*f.images, rig, subpixel=False)
-    sub = C.detect_stereo(*f.images, rig)
+    paper = detect_stereo(*f.images, rig, subpixel=False)
+    sub = detect_stereo(*f.images, rig)
     for v in range(2):
         e_p = np.linalg.norm(paper[v].centers - f.views[v].outer_centers, axis=1)
         e_s = np.linalg.norm(sub[v].centers - f.views[v].outer_centers, axis=1)
@@ -508,7 +518,7 @@ def test_edge_weights_steady_the_centre_under_motion_blur():
 def test_blur_fit_leaves_rings_whose_sizes_do_not_fit_their_spacing():
     """The blurred-ring fit runs only for three ellipses the size their spacing implies."""
     from markerpose.classical import _sizes_fit_spacing
-    from markerpose.matching import ring_ellipses
+    from markerpose.geometry import ring_ellipses
     from markerpose.synth import look_at_pose
 
     rig = StereoRig.default()

@@ -6,20 +6,20 @@ from markerpose.experiments import bench, endtoend
 
 
 def test_bench_runs_and_reports_every_configuration():
-    res = bench.main({"pairs": 1, "blurred_pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["classical (paper)", "classical + sub-pixel"]}, progress=False)
-    assert set(res["configs"]) == {"classical (paper)", "classical + sub-pixel"}
-    assert res["reference"] == "classical (paper)"
-    assert res["configs"]["classical (paper)"]["speed_vs_reference"] == 1.0
-    assert res["configs"]["classical + sub-pixel"]["found"] == 1.0
-    assert res["configs"]["classical + sub-pixel"]["marker_free_ms"] > 0
-    assert res["configs"]["classical + sub-pixel"]["blur_25_ms"] > 0
-    assert res["configs"]["classical + sub-pixel"]["false_poses"] == 0
-    assert "classical + sub-pixel" in bench.report(res)
+    res = bench.main({"pairs": 1, "blurred_pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["paper-classical", "classical-subpixel"]}, progress=False)
+    assert set(res["configs"]) == {"paper-classical", "classical-subpixel"}
+    assert res["reference"] == "paper-classical"
+    assert res["configs"]["paper-classical"]["speed_vs_reference"] == 1.0
+    assert res["configs"]["classical-subpixel"]["found"] == 1.0
+    assert res["configs"]["classical-subpixel"]["marker_free_ms"] > 0
+    assert res["configs"]["classical-subpixel"]["blur_25_ms"] > 0
+    assert res["configs"]["classical-subpixel"]["false_poses"] == 0
+    assert "classical-subpixel" in bench.report(res)
 
 
 def test_end_to_end_counts_detections_and_errors():
-    res = endtoend.main({"pairs": 2, "sets": ("standard",), "configs": ["classical + sub-pixel + bias + rigid"], "single_view": True}, progress=False)
-    s = res["sets"]["standard"]["classical + sub-pixel + bias + rigid"]
+    res = endtoend.main({"pairs": 2, "sets": ("standard",), "configs": ["classical"], "single_view": True}, progress=False)
+    s = res["sets"]["standard"]["classical"]
     assert s["pairs"] == 2 and s["detected"] == 1.0 and s["returned_wrong"] == 0.0
     assert s["single_views"] == 4 and s["single_view_detected"] == 1.0
     assert "Each view alone" in endtoend.report(res)
@@ -31,7 +31,7 @@ def test_end_to_end_workers_give_the_same_figures(tmp_path):
     """--workers runs the sets in processes; the figures are those of one process."""
     import json
 
-    conf = {"pairs": 2, "sets": ("marker_free", "standard"), "configs": ["classical + sub-pixel + bias + rigid"]}
+    conf = {"pairs": 2, "sets": ("marker_free", "standard"), "configs": ["classical"]}
     one = endtoend.main(conf, progress=False)
     two = endtoend.main({**conf, "workers": 2}, tmp_path / "e2e.json", progress=False)  # reported in SETS order
     assert json.loads((tmp_path / "e2e.json").read_text())["sets"].keys() == {"standard", "marker_free"}
@@ -75,8 +75,8 @@ def test_marker_free_set_counts_false_poses_and_detections():
     s = endtoend.summarize_marker_free([r, {"false_pose": False, "false_views": 0}])
     assert s == {"pairs": 2, "false_poses": 0.5, "single_views": 4, "single_view_false": 0.25}
 
-    res = endtoend.main({"pairs": 2, "sets": ("marker_free",), "configs": ["classical + sub-pixel + bias + rigid"], "single_view": True}, progress=False)
-    s = res["sets"]["marker_free"]["classical + sub-pixel + bias + rigid"]
+    res = endtoend.main({"pairs": 2, "sets": ("marker_free",), "configs": ["classical"], "single_view": True}, progress=False)
+    s = res["sets"]["marker_free"]["classical"]
     assert s["pairs"] == 2 and s["false_poses"] == 0.0 and s["single_views"] == 4
     assert "false poses" in endtoend.report(res)
 
@@ -111,16 +111,16 @@ def test_experiments_write_report_plots_and_json(tmp_path):
 
     from markerpose.experiments import reproduce
 
-    conf = {"trials": 1, "pairs": 2, "alphas": (1.0,), "detection_alphas": (1.0, 0.0625), "blurs": (0.0, 25.0), "configs": ("classical (paper)", "classical + sub-pixel + bias + rigid")}
+    conf = {"trials": 1, "pairs": 2, "alphas": (1.0,), "detection_alphas": (1.0, 0.0625), "blurs": (0.0, 25.0), "configs": ("paper-classical", "classical")}
     res = reproduce.main(conf, tmp_path, progress=False)
     for f in ("report.md", "results.json", "displacement.png", "rotation.png", "detection.png", "accuracy.png"):
         assert (tmp_path / f).stat().st_size > 0
-    t1 = res["tables"]["classical + sub-pixel + bias + rigid"]["table1"]
+    t1 = res["tables"]["classical"]["table1"]
     assert t1["failed"] == 0 and t1["mae"]["mean"] < 0.01  # mm: sub-pixel + bias on perfect synthetic data
-    paper_t1 = res["tables"]["classical (paper)"]["table1"]
+    paper_t1 = res["tables"]["paper-classical"]["table1"]
     assert paper_t1["mae"]["mean"] > t1["mae"]["mean"]
     assert set(res["levels"]["alpha"]) == {"1.0", "0.0625"} and set(res["levels"]["blur"]) == {"0.0", "25.0"}
-    assert res["levels"]["alpha"]["1.0"]["classical (paper)"]["detection"]["n"] == 2
+    assert res["levels"]["alpha"]["1.0"]["paper-classical"]["detection"]["n"] == 2
     text = (tmp_path / "report.md").read_text()
     assert "Table 1" in text and "Table 5" in text and "0.0461" in text  # the paper's number beside ours
     assert json.loads((tmp_path / "results.json").read_text())["conf"]["trials"] == 1
@@ -161,5 +161,42 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     T, T_true = np.array(out["T_left_marker"]), np.array(truth["T_left_marker"])
     assert out["found"] and np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.05  # mm
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)  # the rigid fit by default
-    with pytest.raises(SystemExit, match="cannot read image"):
-        cli.main(["estimate", str(tmp_path / "missing.png"), str(tmp_path / "right.png")])
+    assert 0 < out["residual_px"] < 0.1
+    # User errors: one line on stderr, exit 2; "not found" is exit 1 with {"found": false}.
+    capsys.readouterr()
+    assert cli.main(["estimate", str(tmp_path / "missing.png"), str(tmp_path / "right.png")]) == 2
+    err = capsys.readouterr().err
+    assert "cannot read image" in err and "missing.png" in err and err.count("\n") == 1
+    (tmp_path / "junk.png").write_bytes(b"not an image")
+    assert cli.main(["estimate", str(tmp_path / "junk.png"), str(tmp_path / "right.png")]) == 2
+    assert "cannot read image" in capsys.readouterr().err
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "gray.png"), np.full((1024, 1280), 90, np.uint8))
+    assert cli.main(["estimate", str(tmp_path / "gray.png"), str(tmp_path / "gray.png"), "--preset", "paper-classical"]) == 1
+    assert json.loads(capsys.readouterr().out) == {"found": False}
+
+
+def test_cli_user_errors_are_one_line(tmp_path, capsys):
+    from markerpose import __version__, cli
+
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["--version"])
+    assert exc.value.code == 0 and __version__ in capsys.readouterr().out
+    assert cli.main(["render", "--out", str(tmp_path / "r"), "--repeat", "0"]) == 2
+    assert "--repeat must be >= 1" in capsys.readouterr().err
+    (tmp_path / "file").write_text("x")
+    assert cli.main(["render", "--out", str(tmp_path / "file")]) == 2
+    assert "not a folder" in capsys.readouterr().err
+    assert cli.main(["estimate", "a.png", "b.png", "--rig", str(tmp_path / "nope.yaml")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_cli_output_into_a_closed_pipe_is_quiet(tmp_path):
+    """``markerpose ... | head -1`` ends without a traceback."""
+    import subprocess
+    import sys
+
+    cmd = f"{sys.executable} -m markerpose.cli --help | head -1"
+    r = subprocess.run(cmd, shell=True, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "Traceback" not in r.stderr and r.stdout.startswith("usage")

@@ -4,7 +4,11 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose import decode as dec
+from markerpose import evidence as evidence_mod
+from markerpose import geometry as geo
 from markerpose import keypoints as kp
+from markerpose.train import keypoints as tk
 
 torch = pytest.importorskip("torch")
 
@@ -59,36 +63,36 @@ MARKER_PTS = np.array([[100.3, 150.2], [140.7, 160.1], [88.2, 90.6]])  # c0, c1,
 
 def test_targets_round_trip_through_decode():
     labels = np.ones(3, np.int8)
-    det, ids = kp.make_targets(MARKER_PTS, labels)
+    det, ids = tk.make_targets(MARKER_PTS, labels)
     assert det.shape == (30, 40) and ids.shape == (30, 40)
     assert (det != 64).sum() == 3 and (ids != 3).sum() == 3
-    pts, score = kp.decode(*_logits_from_targets(det, ids), {"ids": "head"})
+    pts, score = dec.decode(*_logits_from_targets(det, ids), {"ids": "head"})
     # The targets keep the nearest pixel; decoding returns it.
     np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
     assert score > 0.9
 
 
 def test_targets_ignore_and_absent():
-    det, ids = kp.make_targets(MARKER_PTS, np.array([1, -1, 0], np.int8))
+    det, ids = tk.make_targets(MARKER_PTS, np.array([1, -1, 0], np.int8))
     assert (det == -100).sum() == 1 and (ids == -100).sum() == 1
     assert (det < 64).sum() - (det == -100).sum() == 1  # only c0 is a target
     assert ids[int(MARKER_PTS[0, 1] + 0.5) // 8, int(MARKER_PTS[0, 0] + 0.5) // 8] == 0
 
 
 def test_decode_repairs_colliding_ids():
-    det, ids = kp.make_targets(MARKER_PTS, np.ones(3, np.int8))
+    det, ids = tk.make_targets(MARKER_PTS, np.ones(3, np.int8))
     dl, il = _logits_from_targets(det, ids)
     # The ID head calls both c1 and c2 "c1", but is unsure about the c2 point.
     cy, cx = int(MARKER_PTS[2, 1] + 0.5) // 8, int(MARKER_PTS[2, 0] + 0.5) // 8
     il[:, cy, cx] = [0.0, 2.0, 1.5, -5.0]
-    pts, _ = kp.decode(dl, il, {"ids": "head"})
+    pts, _ = dec.decode(dl, il, {"ids": "head"})
     np.testing.assert_allclose(pts, np.floor(MARKER_PTS + 0.5), atol=1e-6)
 
 
 def _point_logits(points):
     """Network outputs with a sharp peak at each of three points (network-input px) and
     no ID information: the decoder must name the rings by the layout."""
-    det, _ = kp.make_targets(points, np.ones(3, np.int8))
+    det, _ = tk.make_targets(points, np.ones(3, np.int8))
     dl = np.zeros((65, 30, 40))
     dl[64] = 10.0
     cy, cx = np.nonzero(det != 64)
@@ -119,68 +123,68 @@ def test_layout_ratio_tells_the_rings_apart():
         for axis in (0, 45, 90, 135):
             for roll in (0, 100, 230):
                 p = _view(tilt, axis, roll)
-                assert kp.signed_area(p) < 0
-                right = kp.layout_ratio(p, layout)
-                wrong = [kp.layout_ratio(p[np.roll([0, 1, 2], k)], layout) for k in (1, 2)]
+                assert geo.signed_area(p) < 0
+                right = geo.layout_ratio(p, layout)
+                wrong = [geo.layout_ratio(p[np.roll([0, 1, 2], k)], layout) for k in (1, 2)]
                 assert right > 0.5  # cos 55° = 0.57, less perspective
                 assert max(wrong) < right, (tilt, axis, roll, right, wrong)
-    assert abs(kp.layout_ratio(_view(0, 0, 40), layout) - 1.0) < 1e-3
+    assert abs(geo.layout_ratio(_view(0, 0, 40), layout) - 1.0) < 1e-3
 
 
 def test_decode_by_layout_needs_no_id_head():
     """With ids="layout" an uninformative ID head still gives the right order; with the
     paper's ids="head" it gives nothing."""
     p = _view(35, 60, 290)
-    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    det, ids = tk.make_targets(p, np.ones(3, np.int8))
     dl, il = _logits_from_targets(det, ids)
     il[:] = 0.0  # the ID head says nothing
-    pts, _ = kp.decode(dl, il, {"ids": "layout"})
+    pts, _ = dec.decode(dl, il, {"ids": "layout"})
     np.testing.assert_allclose(pts, np.floor(p + 0.5), atol=1e-6)
-    assert kp.decode(dl, il, {"ids": "head", "min_id_prob": 0.3}) is None
+    assert dec.decode(dl, il, {"ids": "head", "min_id_prob": 0.3}) is None
     with pytest.raises(ValueError, match="ids"):
-        kp.decode(dl, il, {"ids": "magic"})
+        dec.decode(dl, il, {"ids": "magic"})
 
 
 def test_steep_marker_is_not_scored_down_to_its_ratio():
     """Layout IDs: a marker tilted by ~60° (layout ratio ~0.45) keeps its ID order and
     scores min(1, ratio / ratio_full) of a frontal view, not the ratio itself (v0.12)."""
     p = _view(62, 30, 100, dist=250.0)
-    r = kp.layout_ratio(p, mp.Marker().centers2d)
+    r = geo.layout_ratio(p, mp.Marker().centers2d)
     assert 0.35 < r < 0.5
-    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    det, ids = tk.make_targets(p, np.ones(3, np.int8))
     dl, il = _logits_from_targets(det, ids)
-    soft, old = kp.decode(dl, il, {"ids": "layout"}), kp.decode(dl, il, {"ids": "layout", "ratio_full": None})
+    soft, old = dec.decode(dl, il, {"ids": "layout"}), dec.decode(dl, il, {"ids": "layout", "ratio_full": None})
     np.testing.assert_allclose(soft[0], np.floor(p + 0.5), atol=1e-6)
     np.testing.assert_array_equal(soft[0], old[0])
-    assert soft[1] / old[1] == pytest.approx(min(1.0, r / kp.default_conf["ratio_full"]) / r, rel=1e-3)
+    assert soft[1] / old[1] == pytest.approx(min(1.0, r / dec.default_conf["ratio_full"]) / r, rel=1e-3)
 
 
 def test_decode_by_layout_rejects_wrong_shapes():
     """Three ring-like points in a line or in the mirror image are not the marker."""
-    det, ids = kp.make_targets(np.array([[100.0, 100.0], [130.0, 100.0], [160.0, 101.0]]), np.ones(3, np.int8))
-    assert kp.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
+    det, ids = tk.make_targets(np.array([[100.0, 100.0], [130.0, 100.0], [160.0, 101.0]]), np.ones(3, np.int8))
+    assert dec.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
     mirrored = MARKER_PTS.copy()
     mirrored[:, 0] = 319 - mirrored[:, 0]
-    det, ids = kp.make_targets(mirrored, np.ones(3, np.int8))
-    assert kp.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
+    det, ids = tk.make_targets(mirrored, np.ones(3, np.int8))
+    assert dec.decode(*_logits_from_targets(det, ids), {"ids": "layout"}) is None
 
 
 def test_decode_rejects_mirror_image_and_empty():
     mirrored = MARKER_PTS.copy()
     mirrored[:, 0] = 319 - mirrored[:, 0]
-    assert kp.signed_area(MARKER_PTS) < 0 < kp.signed_area(mirrored)
-    det, ids = kp.make_targets(mirrored, np.ones(3, np.int8))
-    assert kp.decode(*_logits_from_targets(det, ids)) is None
-    det, ids = kp.make_targets(MARKER_PTS, np.zeros(3, np.int8))
-    assert kp.decode(*_logits_from_targets(det, ids)) is None
-    det, ids = kp.make_targets(MARKER_PTS, np.array([1, 1, 0], np.int8))
-    assert kp.decode(*_logits_from_targets(det, ids)) is None  # two rings are not a marker
+    assert geo.signed_area(MARKER_PTS) < 0 < geo.signed_area(mirrored)
+    det, ids = tk.make_targets(mirrored, np.ones(3, np.int8))
+    assert dec.decode(*_logits_from_targets(det, ids)) is None
+    det, ids = tk.make_targets(MARKER_PTS, np.zeros(3, np.int8))
+    assert dec.decode(*_logits_from_targets(det, ids)) is None
+    det, ids = tk.make_targets(MARKER_PTS, np.array([1, 1, 0], np.int8))
+    assert dec.decode(*_logits_from_targets(det, ids)) is None  # two rings are not a marker
 
 
 def test_nms_keeps_separated_maxima():
     s = np.zeros((40, 60))
     s[10, 10], s[10, 12], s[30, 50] = 0.9, 0.8, 0.5
-    out = kp.nms(s, radius=4, threshold=0.1, k=5)
+    out = dec.nms(s, radius=4, threshold=0.1, k=5)
     np.testing.assert_array_equal(out[:, :2], [[10, 10], [50, 30]])
 
 
@@ -189,9 +193,9 @@ def test_default_nms_keeps_the_close_rings_of_a_steep_marker():
     decoding radius keeps both maxima (v0.8's radius of 4 kept one)."""
     s = np.zeros((40, 60))
     s[10, 10], s[10, 13] = 0.9, 0.8
-    r = kp.default_conf["nms_radius"]
-    np.testing.assert_array_equal(kp.nms(s, r, 0.1, 5)[:, :2], [[10, 10], [13, 10]])
-    assert len(kp.nms(s, 4, 0.1, 5)) == 1
+    r = dec.default_conf["nms_radius"]
+    np.testing.assert_array_equal(dec.nms(s, r, 0.1, 5)[:, :2], [[10, 10], [13, 10]])
+    assert len(dec.nms(s, 4, 0.1, 5)) == 1
 
 
 def test_input_and_full_resolution_mapping():
@@ -238,8 +242,8 @@ def test_neural_pipeline_is_none_or_right():
     from markerpose.synth import Imaging, look_at_pose, render_stereo
 
     rig = mp.StereoRig.default()
-    tracker = mp.MarkerPose(rig, detector="neural", refine="classical", pose="rigid")
-    coarse = mp.MarkerPose(rig, detector="neural", refine="none")
+    tracker = mp.MarkerPose(rig, preset="neural-classical-refine")
+    coarse = mp.MarkerPose(rig, refine={"method": "none"})
     for seed, (x, tilt, roll) in enumerate(((10, 25, 200), (-20, 10, 30), (30, 40, 100))):
         T = look_at_pose([x, 5, 520], tilt, 10, roll)
         frame = render_stereo(rig, T, imaging=Imaging(alpha=0.7), seed=11 + seed)
@@ -247,7 +251,7 @@ def test_neural_pipeline_is_none_or_right():
         assert est is None or np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
         est = coarse.estimate(*frame.images)
         assert est is None or np.linalg.norm(est.t - T[:3, 3]) < 10.0
-        assert set(tracker.timings) >= {"stage1", "refine"}
+        assert set(tracker.timings) >= {"propose", "match", "refine", "verify", "solve", "total"}
     assert tracker.estimate(np.full_like(frame.images[0], 80), frame.images[1]) is None
 
 
@@ -255,7 +259,7 @@ def test_candidate_recall_separates_finding_from_labelling():
     from markerpose.train.keypoints import candidate_recall
 
     p = _view(20, 0, 30)
-    det, ids = kp.make_targets(p, np.ones(3, np.int8))
+    det, ids = tk.make_targets(p, np.ones(3, np.int8))
     dl, il = _logits_from_targets(det, ids)
     data = {"points": p[None].astype(np.float32), "labels": np.ones((1, 3), np.int8), "scale": np.ones((1, 2), np.float32)}
     r = candidate_recall(dl[None], il[None], data, {})
@@ -267,44 +271,68 @@ def test_candidate_recall_separates_finding_from_labelling():
     assert candidate_recall(dl[None], il[None], data, {})["candidates_found"] == 0.0
 
 
+def _save_kp(path, decode, width=0.25, **extra):
+    """A stage-1 weights file as ``markerpose train keypoints --export`` writes it."""
+    from markerpose.nets import FORMAT
+
+    torch.save({"format": {"network": "keypoints", "version": FORMAT}, "state_dict": kp.build_network(width).state_dict(),
+                "width": width, "decode": decode, **extra}, path)
+
+
 def test_operating_points_from_the_checkpoint(tmp_path):
     """Thresholds tuned at export: per ID mode, single-view or stereo; the caller's win."""
     path = tmp_path / "kp.pt"
     decode = {"layout": {"min_score": 0.5}, "layout_stereo": {"min_score": 0.2}, "head": {"min_score": 0.6}}
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    _save_kp(path, decode)
     assert kp.KeypointNet(path).conf["min_score"] == 0.5
     assert kp.KeypointNet(path, stereo=True).conf["min_score"] == 0.2
     assert kp.KeypointNet(path, {"ids": "head"}, stereo=True).conf["min_score"] == 0.6  # no stereo point: single-view
     assert kp.KeypointNet(path, {"min_score": 0.1}, stereo=True).conf["min_score"] == 0.1
+    assert kp.KeypointNet(path, {"ratio_full": 0.6}).conf["ratio_full"] == 0.6
     with pytest.raises(ValueError, match="ids"):
         kp.KeypointNet(path, {"ids": "nope"})
-    # Thresholds tuned before ratio_full existed keep the scoring they were tuned with.
-    assert kp.KeypointNet(path).conf["ratio_full"] is None
-    decode["layout"]["ratio_full"] = 0.5
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    assert kp.KeypointNet(path).conf["ratio_full"] == 0.5
-    assert kp.KeypointNet(path, {"ratio_full": 0.6}).conf["ratio_full"] == 0.6
-    # Alignment thresholds tuned before v0.14 aligned the best triple alone.
-    decode["layout_verify_align"] = {"ids": "layout", "verify": True, "align": True, "ratio_full": 0.5, "min_score": 0.06}
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    old_align = kp.KeypointNet(path, {"verify": True, "align": True}).conf
-    assert old_align["align_top"] == 1 and old_align["align_min_ratio"] is None
-    decode["layout_verify_align"].update(align_top=3, align_min_ratio=0.3)
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    new_align = kp.KeypointNet(path, {"verify": True, "align": True}).conf
-    assert new_align["align_top"] == 3 and new_align["align_min_ratio"] == 0.3
-    # ... and before v0.15 each triple in its best order alone, scored without the correlation.
-    assert new_align["align_orders"] == 1 and new_align["align_cc_power"] == 0.0
-    assert kp.default_conf["align_cc_power"] != 0.0
-    decode["layout_verify_align"].update(align_orders=3, align_cc_power=2.0)
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    v15 = kp.KeypointNet(path, {"verify": True, "align": True}).conf
-    assert v15["align_orders"] == 3 and v15["align_cc_power"] == 2.0
-    # ... and before v0.18 with the move limit from the stage-1 points' spacing.
-    assert v15["align_move_rule"] == "spacing" and kp.default_conf["align_move_rule"] == "nearest"
-    decode["layout_verify_align"]["align_move_rule"] = "nearest"
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
-    assert kp.KeypointNet(path, {"verify": True, "align": True}).conf["align_move_rule"] == "nearest"
+
+
+def test_weight_files_that_cannot_work_fail_at_load(tmp_path):
+    """Every broken or foreign weights file is a ValueError naming the file, at load."""
+    from markerpose.ellipses import EllipseNet, build_network as es_net
+    from markerpose.nets import FORMAT
+
+    good = tmp_path / "good.pt"
+    _save_kp(good, {})
+    raw = good.read_bytes()
+    cases = {
+        "empty.pt": (b"", "not a readable PyTorch weights file"),
+        "truncated.pt": (raw[: len(raw) // 2], "not a readable PyTorch weights file"),
+        "random.pt": (np.random.default_rng(0).bytes(4096), "not a readable PyTorch weights file"),
+    }
+    for name, (data, match) in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(ValueError, match=match):
+            kp.KeypointNet(tmp_path / name)
+    other = tmp_path / "ellipses.pt"  # the other network's file
+    torch.save({"format": {"network": "ellipses", "version": FORMAT}, "state_dict": es_net().state_dict()}, other)
+    with pytest.raises(ValueError, match="not a markerpose keypoints weights file of format"):
+        kp.KeypointNet(other)
+    with pytest.raises(ValueError, match="not a markerpose ellipses weights file of format"):
+        EllipseNet(good)
+    wide = tmp_path / "wide.pt"  # weights of another width than the file says
+    _save_kp(wide, {}, width=0.25)
+    ck = torch.load(wide, weights_only=True)
+    ck["width"] = 0.5
+    torch.save(ck, wide)
+    with pytest.raises(ValueError, match="the weights do not fit the network"):
+        kp.KeypointNet(wide)
+    old = tmp_path / "old.pt"  # exported before the format entry: its thresholds are not trusted
+    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": {}}, old)
+    with pytest.raises(ValueError, match="without a format entry"):
+        kp.KeypointNet(old)
+    zipped = tmp_path / "list.pt"  # a readable file that is not a dict
+    torch.save([1, 2, 3], zipped)
+    with pytest.raises(ValueError, match="holds a list"):
+        kp.KeypointNet(zipped)
+    # The shipped files pass.
+    assert kp.KeypointNet().conf["width"] > 0 and EllipseNet() is not None
 
 
 def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
@@ -312,7 +340,7 @@ def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
     with the tuned look threshold; a zoom below 1 is an error."""
     path = tmp_path / "kp.pt"
     decode = {"layout": {}, "layout_verify": {"min_score": 0.05}, "layout_verify_look": {"look_min_score": 0.3}}
-    torch.save({"state_dict": kp.build_network(0.25).state_dict(), "width": 0.25, "decode": decode}, path)
+    _save_kp(path, decode)
     assert kp.KeypointNet(path, {"verify": True}).conf["look_min_score"] is None
     net = kp.KeypointNet(path, {"verify": True, "second_look": 2.0})
     assert net.conf["look_min_score"] == 0.3 and net.conf["min_score"] == 0.05
@@ -323,7 +351,7 @@ def test_second_look_runs_only_where_nothing_was_found(tmp_path, monkeypatch):
 
     def nothing(batch):  # every cell "no centre": no candidate, no marker
         shapes.append(batch.shape)
-        hc, wc = batch.shape[1] // kp.CELL, batch.shape[2] // kp.CELL
+        hc, wc = batch.shape[1] // dec.CELL, batch.shape[2] // dec.CELL
         det = np.zeros((len(batch), 65, hc, wc), np.float32)
         det[:, 64] = 20.0
         return det, np.zeros((len(batch), 4, hc, wc), np.float32)
@@ -411,7 +439,7 @@ def test_ring_evidence_tells_the_printed_marker_from_ring_decoys():
     _drawn_rings(img, decoys, m.outer_radius * s, m.inner_radius * s, 0.05, 0.8)
     rng = np.random.default_rng(0)
     img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1).astype(np.float32)
-    ev = kp.ring_evidence(img, np.stack([marker, decoys, marker[[0, 2, 1]], marker + [180, -40]]), m)
+    ev = evidence_mod.ring_evidence(img, np.stack([marker, decoys, marker[[0, 2, 1]], marker + [180, -40]]), m)
     assert ev.shape == (4,) and np.all((ev >= 0) & (ev <= 1))
     assert ev[0] > 0.6, ev
     assert ev[1] < 0.2 and ev[3] < 0.2 and ev[2] < ev[0] / 2, ev
@@ -419,15 +447,15 @@ def test_ring_evidence_tells_the_printed_marker_from_ring_decoys():
     dl = np.zeros((65, 30, 40))
     dl[64] = 10.0
     for pts, logit in ((marker, 12.0), (decoys, 20.0)):
-        det, _ = kp.make_targets(pts, np.ones(3, np.int8))
+        det, _ = tk.make_targets(pts, np.ones(3, np.int8))
         cy, cx = np.nonzero(det != 64)
         dl[det[cy, cx], cy, cx] = logit
     il = np.zeros((4, 30, 40))  # an ID head that says nothing
     no, yes = ({"ids": "layout", "verify": v, "min_score": 0.0} for v in (False, True))
-    assert np.abs(kp.decode(dl, il, no)[0] - marker).max() > 20  # a triple with decoys in it
-    np.testing.assert_allclose(kp.decode(dl, il, yes, m, img)[0], np.floor(marker + 0.5), atol=1e-3)
+    assert np.abs(dec.decode(dl, il, no)[0] - marker).max() > 20  # a triple with decoys in it
+    np.testing.assert_allclose(dec.decode(dl, il, yes, m, img)[0], np.floor(marker + 0.5), atol=1e-3)
     with pytest.raises(ValueError, match="image"):
-        kp.decode(dl, il, {"verify": True})
+        dec.decode(dl, il, {"verify": True})
 
 
 # --- alignment (ours) ----------------------------------------------------------------------
@@ -442,7 +470,7 @@ def test_align_triple_refines_centres_a_pixel_off(alpha, blur, tilt, z):
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
     start = gt + np.random.default_rng(1).uniform(-1.35, 1.35, (3, 2))
-    q, cc = kp.align_triple(small, start)
+    q, cc = dec.align_triple(small, start)
     assert cc is not None and cc > 0.9
     assert np.linalg.norm(q - gt, axis=1).max() < 0.15
 
@@ -457,25 +485,25 @@ def test_align_move_rule_nearest_keeps_a_point_off_towards_its_neighbour():
     img, truth = render_view(rig.left, look_at_pose([0, 0, 700], 55, 60, 20), imaging=Imaging(alpha=0.6, motion_blur=5.0), seed=3)
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
-    spacing = kp._min_spacing(gt)
+    spacing = dec._min_spacing(gt)
     a, b = min(((0, 1), (0, 2), (1, 2)), key=lambda ab: np.linalg.norm(gt[ab[0]] - gt[ab[1]]))
     start = gt.copy()
     start[a] += 0.42 * (gt[b] - gt[a])  # towards its nearest neighbour
-    assert 0.42 * spacing > 0.4 * kp._min_spacing(start)  # "spacing" must drop the right alignment
-    q, cc = kp.align_triple(small, start, move_rule="spacing")
+    assert 0.42 * spacing > 0.4 * dec._min_spacing(start)  # "spacing" must drop the right alignment
+    q, cc = dec.align_triple(small, start, move_rule="spacing")
     assert cc is None and np.array_equal(q, start)
-    q, cc = kp.align_triple(small, start, move_rule="nearest")
+    q, cc = dec.align_triple(small, start, move_rule="nearest")
     assert cc is not None and cc > 0.9
     assert np.linalg.norm(q - gt, axis=1).max() < 0.3
     with pytest.raises(ValueError, match="move_rule"):
-        kp.align_triple(small, start, move_rule="nope")
+        dec.align_triple(small, start, move_rule="nope")
 
 
 def test_align_triple_gives_up_cleanly():
     """No marker to align to, or a degenerate start: the points come back unchanged with None."""
     pts = np.array([[100.0, 120.0], [130.0, 120.0], [100.0, 72.0]])
     for image, start in ((np.full((240, 320), 0.4, np.float32), pts), (np.zeros((240, 320), np.float32), np.zeros((3, 2)))):
-        q, cc = kp.align_triple(image, start)
+        q, cc = dec.align_triple(image, start)
         assert cc is None and np.array_equal(q, start)
 
 
@@ -491,9 +519,9 @@ def test_decode_with_align_needs_the_image_and_refines():
     dl, il = _point_logits(np.round(gt))  # centres on whole pixels
     conf = {"ids": "layout", "verify": True, "min_score": 0.0, "align": True}
     with pytest.raises(ValueError, match="align"):
-        kp.decode(dl, il, {**conf, "verify": False})
-    plain = kp.decode(dl, il, {**conf, "align": False}, image=small)
-    aligned = kp.decode(dl, il, conf, image=small)
+        dec.decode(dl, il, {**conf, "verify": False})
+    plain = dec.decode(dl, il, {**conf, "align": False}, image=small)
+    aligned = dec.decode(dl, il, conf, image=small)
     e_plain = np.linalg.norm(plain[0] - gt, axis=1).max()
     e_aligned = np.linalg.norm(aligned[0] - gt, axis=1).max()
     assert e_aligned < 0.15 < e_plain, (e_plain, e_aligned)
@@ -511,15 +539,15 @@ def test_align_recovers_a_steep_triple_whose_ratio_the_cells_put_under_min_ratio
     gt = (truth.centers + 0.5) / scale - 0.5
     start = np.round(gt + np.random.default_rng(0).uniform(-2, 2, (3, 2)))
     layout = mp.Marker().centers2d
-    assert kp.layout_ratio(start, layout) < kp.default_conf["min_ratio"] <= kp.layout_ratio(gt, layout)
+    assert geo.layout_ratio(start, layout) < dec.default_conf["min_ratio"] <= geo.layout_ratio(gt, layout)
     dl, il = _point_logits(start)
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.01}  # not the same points in a wrong order
-    assert kp.decode(dl, il, {**conf, "align_min_ratio": None}, image=small) is None
-    found = kp.decode(dl, il, conf, image=small)
+    assert dec.decode(dl, il, {**conf, "align_min_ratio": None}, image=small) is None
+    found = dec.decode(dl, il, conf, image=small)
     assert found is not None and np.linalg.norm(found[0] - gt, axis=1).max() < 0.2
-    assert kp.layout_ratio(found[0], layout) >= kp.default_conf["min_ratio"]
+    assert geo.layout_ratio(found[0], layout) >= dec.default_conf["min_ratio"]
     # Without alignment the loose ratio does not apply.
-    assert kp.decode(dl, il, {**conf, "align": False}, image=small) is None
+    assert dec.decode(dl, il, {**conf, "align": False}, image=small) is None
 
 
 def test_align_tries_the_other_orders_of_a_steep_triple():
@@ -536,8 +564,8 @@ def test_align_tries_the_other_orders_of_a_steep_triple():
     start = np.round(gt + np.random.default_rng(1).uniform(-2.5, 2.5, (3, 2)))
     dl, il = _point_logits(start)
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.01}
-    assert kp.decode(dl, il, {**conf, "align_orders": 1}, image=small) is None
-    found = kp.decode(dl, il, {**conf, "align_orders": 3}, image=small)
+    assert dec.decode(dl, il, {**conf, "align_orders": 1}, image=small) is None
+    found = dec.decode(dl, il, {**conf, "align_orders": 3}, image=small)
     assert found is not None and np.linalg.norm(found[0] - gt, axis=1).max() < 0.3
 
 
@@ -552,11 +580,11 @@ def test_align_cc_power_scales_the_aligned_score_by_the_correlation():
     gt = (truth.centers + 0.5) / scale - 0.5
     dl, il = _point_logits(np.round(gt))
     conf = {"ids": "layout", "verify": True, "align": True, "min_score": 0.0, "align_cc_power": 0}
-    plain = kp.decode(dl, il, conf, image=small)
-    squared = kp.decode(dl, il, {**conf, "align_cc_power": 2}, image=small)
-    cand, _ = kp.candidates(dl, il, kp.default_conf["threshold"], 10, kp.default_conf["nms_radius"])
+    plain = dec.decode(dl, il, conf, image=small)
+    squared = dec.decode(dl, il, {**conf, "align_cc_power": 2}, image=small)
+    cand, _ = dec.candidates(dl, il, dec.default_conf["threshold"], 10, dec.default_conf["nms_radius"])
     start = cand[:, :2][np.argmin(np.linalg.norm(cand[:, None, :2] - gt[None], axis=2), axis=0)]
-    _, cc = kp.align_triple(small, start)
+    _, cc = dec.align_triple(small, start)
     assert cc is not None and 0.5 < cc < 1
     np.testing.assert_allclose(squared[0], plain[0])
     assert squared[1] == pytest.approx(plain[1] * cc**2, rel=1e-9)
@@ -571,28 +599,28 @@ def test_tuned_key_names_the_alignment():
 def test_triple_orders_cover_every_ordered_triple_once():
     import itertools
 
-    idx = kp.triple_orders(5)
+    idx = geo.triple_orders(5)
     assert idx.shape == (60, 3)
     assert [tuple(r) for r in idx] == [p for t in itertools.combinations(range(5), 3) for p in itertools.permutations(t)]
-    assert kp.triple_orders(2).shape == (0, 3)
+    assert geo.triple_orders(2).shape == (0, 3)
 
 
 def _decode_by_loop(det, ids, conf, image=None):
     """The decoding's choice of triple written as a plain loop over triples and orders
-    (``align`` off): the reference the vectorised :func:`kp.decode` must agree with.
+    (``align`` off): the reference the vectorised :func:`dec.decode` must agree with.
     Each triple's ID order is the one with the best score using the layout ratio itself;
     the triples compete with the ratio softened by ``ratio_full`` (layout IDs)."""
     import itertools
 
-    c = {**kp.default_conf, **conf}
-    cand, prob = kp.candidates(det, ids, c["threshold"], c["max_candidates"], c["nms_radius"])
+    c = {**dec.default_conf, **conf}
+    cand, prob = dec.candidates(det, ids, c["threshold"], c["max_candidates"], c["nms_radius"])
     best = None
     for trio in itertools.combinations(range(len(cand)), 3):
         order = None  # (points, score with the ratio, score with the softened ratio)
         for perm in itertools.permutations(trio):
             perm = list(perm)
             p, p_id = cand[perm, :2], prob[perm, [0, 1, 2]]
-            if kp.signed_area(p) >= 0:
+            if geo.signed_area(p) >= 0:
                 continue
             if c["ids"] == "head":
                 if p_id.min() < c["min_id_prob"]:
@@ -600,13 +628,13 @@ def _decode_by_loop(det, ids, conf, image=None):
                 s = np.prod(cand[perm, 2] * p_id) ** (1 / 3)
                 r = soft = 1.0
             else:
-                r = kp.layout_ratio(p, mp.Marker().centers2d)
+                r = geo.layout_ratio(p, mp.Marker().centers2d)
                 if r < c["min_ratio"]:
                     continue
                 s = np.prod(cand[perm, 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3)
                 soft = r if c["ratio_full"] is None else min(1.0, r / c["ratio_full"])
             if c["verify"]:
-                s *= kp.ring_evidence(image, p[None])[0]
+                s *= evidence_mod.ring_evidence(image, p[None])[0]
             if order is None or s * r > order[1]:
                 order = (p, s * r, s * soft)
         if order is not None and (best is None or order[2] > best[1]):
@@ -625,7 +653,7 @@ def test_decode_agrees_with_a_loop_over_triples(conf):
         det[64] += 6.0  # mostly "no centre", a few dozen peaks
         ids = rng.normal(0, 1, (4, 30, 40))
         conf_ = {**conf, "threshold": 0.02, "min_score": 0.0}
-        a, b = kp.decode(det, ids, conf_, image=image), _decode_by_loop(det, ids, conf_, image)
+        a, b = dec.decode(det, ids, conf_, image=image), _decode_by_loop(det, ids, conf_, image)
         assert (a is None) == (b is None)
         if a is not None:
             found += 1
@@ -664,20 +692,20 @@ def test_align_skips_triples_that_cannot_reach_min_score(monkeypatch):
     small, scale = kp.to_input(img)
     gt = (truth.centers + 0.5) / scale - 0.5
     dl, il = _point_logits(np.round(gt))
-    det, _ = kp.make_targets(np.round(gt) + [150, 0], np.ones(3, np.int8))  # a weaker ghost of the triangle
+    det, _ = tk.make_targets(np.round(gt) + [150, 0], np.ones(3, np.int8))  # a weaker ghost of the triangle
     cy, cx = np.nonzero(det != 64)
     dl[det[cy, cx], cy, cx] = 8.0  # location score ~0.12 against ~1
     calls = []
-    real = kp.align_triple
-    monkeypatch.setattr(kp, "align_triple", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = dec.align_triple
+    monkeypatch.setattr(dec, "align_triple", lambda *a, **k: calls.append(1) or real(*a, **k))
     conf = {"ids": "layout", "verify": True, "align": True, "align_top": 3}
-    every = kp.decode(dl, il, {**conf, "min_score": 0.0}, image=small)
+    every = dec.decode(dl, il, {**conf, "min_score": 0.0}, image=small)
     n_all = len(calls)
     calls.clear()
     floor = 0.5  # above the ghost's score, under the marker's
-    kept = kp.decode(dl, il, {**conf, "min_score": floor}, image=small)
+    kept = dec.decode(dl, il, {**conf, "min_score": floor}, image=small)
     assert every is not None and every[1] >= floor and n_all == 3 and 1 <= len(calls) < n_all
     np.testing.assert_array_equal(kept[0], every[0])
     assert kept[1] == every[1]
     calls.clear()
-    assert kp.decode(dl, il, {**conf, "min_score": 1.01}, image=small) is None and not calls
+    assert dec.decode(dl, il, {**conf, "min_score": 1.01}, image=small) is None and not calls

@@ -6,7 +6,8 @@ import pytest
 import markerpose as mp
 from markerpose.classical import refine_points
 from markerpose.geometry import rotation_angle
-from markerpose.matching import ring_ellipses, side_lengths, stereo_triples, transfer, view_poses, view_triples
+from markerpose.geometry import ring_ellipses, view_poses
+from markerpose.stages.match import side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
 
 
@@ -162,7 +163,7 @@ def test_view_triples_agrees_with_a_loop_over_triples():
     ID order, sets ranked by score (ties in candidate order)."""
     import itertools
 
-    from markerpose.keypoints import layout_ratio, signed_area
+    from markerpose.geometry import layout_ratio, signed_area
 
     layout = mp.Marker().centers2d
     rng = np.random.default_rng(5)

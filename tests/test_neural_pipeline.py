@@ -25,7 +25,7 @@ def rig():
 
 @pytest.fixture(scope="module")
 def tracker(rig):
-    return mp.MarkerPose(rig, detector="neural", refine="ellipsegnet")
+    return mp.MarkerPose(rig, detector="neural")
 
 
 def _ok_or_none(est, frame, tol_mm=0.5):
@@ -43,13 +43,13 @@ def test_neural_pose_is_accurate_and_agrees_with_classical(rig, tracker):
         assert err.max() < 0.3, err
     classical = mp.MarkerPose(rig, detector="classical").estimate(*f.images)
     assert np.linalg.norm(est.t - classical.t) < 0.05
-    assert set(tracker.timings) >= {"stage1", "refine", "geometry", "total"}
+    assert set(tracker.timings) >= {"propose", "match", "refine", "verify", "solve", "total"}
 
 
 @pytest.mark.parametrize("patch,fit", [("fixed", "ellipse"), ("adaptive", "moments")])
 def test_paper_configurations_run(rig, patch, fit):
     f = render_stereo(rig, look_at_pose([0, 0, 600], 20, 0, 30), seed=32)
-    est = mp.MarkerPose(rig, detector="neural", refine="ellipsegnet", patch=patch, fit=fit, pose="paper", bias_correction=False).estimate(*f.images)
+    est = mp.MarkerPose(rig, refine={"patch": patch, "fit": fit}, solve={"pose": "paper", "bias_correction": False}).estimate(*f.images)
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.5
 
 
@@ -84,10 +84,10 @@ def test_bad_input_raises_with_the_neural_detector(rig, tracker):
 
 
 def test_defaults_are_stereo_matching_and_edge_refit(rig, tracker):
-    assert tracker.conf["ids"] == "stereo" and tracker.conf["edge_refit"]
+    assert tracker.conf["match"]["method"] == "stereo" and tracker.refiner.edge_refit
     f = render_stereo(rig, look_at_pose([-20, 10, 600], 35, 120, 200), imaging=Imaging(alpha=0.6), seed=37)
     est = tracker.estimate(*f.images)
-    mask_only = mp.MarkerPose(rig, detector="neural", refine="ellipsegnet", edge_refit=False).estimate(*f.images)
+    mask_only = mp.MarkerPose(rig, refine={"edge_refit": False}).estimate(*f.images)
     assert est is not None and mask_only is not None
     err = np.concatenate([np.linalg.norm(est.detections[i].centers - f.views[i].outer_centers, axis=1) for i in range(2)])
     err_mask = np.concatenate([np.linalg.norm(mask_only.detections[i].centers - f.views[i].outer_centers, axis=1) for i in range(2)])
@@ -100,13 +100,13 @@ def test_defaults_are_stereo_matching_and_edge_refit(rig, tracker):
 @pytest.mark.parametrize("ids", ["stereo", "layout", "head"])
 def test_every_id_mode_on_a_clean_marker(rig, ids):
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
-    est = mp.MarkerPose(rig, detector="neural", ids=ids).estimate(*f.images)
+    est = mp.MarkerPose(rig, match={"method": ids}).estimate(*f.images)
     if ids == "head":  # the paper's ID head names all three rings right in ~1/4 of views here
         assert _ok_or_none(est, f)
         return
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05
     with pytest.raises(ValueError, match="ids"):
-        mp.MarkerPose(rig, detector="neural", ids="magic")
+        mp.MarkerPose(rig, match={"method": "magic"})
 
 
 def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
@@ -114,12 +114,12 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     point takes over; where that fails too, no pose (not one from a mask's centre)."""
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
     tr = mp.MarkerPose(rig, detector="neural")
-    real = tr._ellipses
+    real = tr.refiner.net
 
     def poor(grays, points, marker, with_ellipses=False):  # masks 5 px off, no ellipse
         return [(c + [4.0, -3.0], ok, [None] * 3) for c, ok, _ in real(grays, points, marker, True)]
 
-    tr._ellipses = poor
+    tr.refiner.net = poor
     est = tr.estimate(*f.images)
     assert est is not None
     err = np.concatenate([np.linalg.norm(est.detections[i].centers - f.views[i].outer_centers, axis=1) for i in range(2)])
@@ -134,7 +134,7 @@ def test_second_look_finds_a_marker_beyond_the_working_volume(rig):
     """At 1.9 m (rings ~6 px at stage 1's 320x240 input) the first pass finds no marker;
     the second look at 640x480 does, in the pair and in one view, to the usual accuracy."""
     f = render_stereo(rig, look_at_pose([-40, 20, 1900], 50, 30, 120), imaging=Imaging(alpha=0.6), seed=2)
-    off = mp.MarkerPose(rig, second_look=1.0)
+    off = mp.MarkerPose(rig, preset="default-no-second-look")
     assert off.estimate(*f.images) is None and off.detect(f.images[0]) is None
     on = mp.MarkerPose(rig)
     est = on.estimate(*f.images)
@@ -142,7 +142,7 @@ def test_second_look_finds_a_marker_beyond_the_working_volume(rig):
     det = on.detect(f.images[0])
     assert det is not None and np.abs(det.centers - f.views[0].outer_centers).max() < 0.1  # px
     with pytest.raises(ValueError, match="second_look"):
-        mp.MarkerPose(rig, second_look=0.5)
+        mp.MarkerPose(rig, propose={"second_look": 0.5})
 
 
 def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
@@ -156,16 +156,17 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = U @ Vt, [51.59, 2.506, 461.908]
     f = render_stereo(rig, T, imaging=Imaging(alpha=0.6), seed=0)
-    strict = {"detector": "neural", "second_look": 1.0, "match_epipolar_tol": 0.2, "shape_tol": 0.005}
-    assert mp.MarkerPose(rig, transfer=False, **strict).estimate(*f.images) is None
-    est = mp.MarkerPose(rig, **strict).estimate(*f.images)
+    strict = {"epipolar_tol": 0.2, "shape_tol": 0.005}
+    look = {"second_look": 1.0}
+    assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer": False}).estimate(*f.images) is None
+    est = mp.MarkerPose(rig, propose=look, match=strict).estimate(*f.images)
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.02  # mm
     assert np.rad2deg(mp.geometry.rotation_angle(est.R, T[:3, :3])) < 0.05
-    # The transfer's sources are gated by ring evidence (v0.18): the default gate lets
-    # the marker's own triple through (above); a gate no evidence reaches stops every source.
-    assert mp.pipeline.default_conf["transfer_min_evidence"] == 0.1
-    assert mp.MarkerPose(rig, transfer_min_evidence=1.01, **strict).estimate(*f.images) is None
+    # The transfer's sources are gated by ring evidence: the default gate lets the
+    # marker's own triple through (above); a gate no evidence reaches stops every source.
+    assert mp.pipeline.default_conf["match"]["transfer_min_evidence"] == 0.1
+    assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer_min_evidence": 1.01}).estimate(*f.images) is None
 
 
 def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypatch):
@@ -211,7 +212,7 @@ def test_plate_check_rejects_a_ring_refined_onto_the_wrong_edge(rig):
 
     f = render_stereo(rig, look_at_pose([10, 0, 550], 30, 40, 20), imaging=Imaging(alpha=0.8), seed=12)
     loose = {"max_shape_error": 50.0}
-    found = mp.MarkerPose(rig, **loose).estimate(*f.images)
+    found = mp.MarkerPose(rig, verify=loose).estimate(*f.images)
     assert found is not None
     left, right = found.detections
     c = right.centers[2]
@@ -222,10 +223,10 @@ def test_plate_check_rejects_a_ring_refined_onto_the_wrong_edge(rig):
     _, (w, h), ang = ell[2]
     ell[2] = (tuple(moved), (0.8 * w, 0.8 * h), ang)
     bad = replace(right, centers=np.vstack([right.centers[:2], moved]), ellipses=ell)
-    assert mp.MarkerPose(rig, plate_check=False, **loose)._accepted([left, bad], 0.0, 0.0) is not None
-    checked = mp.MarkerPose(rig, **loose)
-    assert checked._accepted([left, bad], 0.0, 0.0) is None
-    assert checked._accepted([left, right], 0.0, 0.0) is not None
+    assert mp.MarkerPose(rig, verify={**loose, "plate_check": False})._accepted([left, bad]) is not None
+    checked = mp.MarkerPose(rig, verify=loose)
+    assert checked._accepted([left, bad]) is None
+    assert checked._accepted([left, right]) is not None
 
 
 def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
@@ -233,17 +234,17 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     little evidence: the marker's triple first; on clutter with ring decoys, nothing."""
     f = render_stereo(rig, look_at_pose([0, 0, 650], 25, 70, 10), imaging=Imaging(alpha=0.6), seed=14)
     gray = f.images[0]
-    cand = tracker._keypoints.candidates([gray], 0.01, 16)[0]
-    triples = tracker._view_triples(gray, cand)
+    cand = tracker.proposer.candidates([gray])[0]
+    triples = tracker._view_triples(gray, cand, 1.0)
     assert triples and np.abs(triples[0][0] - f.views[0].outer_centers).max() < 8
-    assert tracker._keypoints.evidence(gray, f.views[0].outer_centers[None])[0] > 0.5
+    assert tracker.proposer.evidence(gray, f.views[0].outer_centers[None])[0] > 0.5
     rng = np.random.default_rng(3)
     clutter = mp.synth.clutter_background((1280, 1024), rng, ring_distractors=10, ring_ratio=0.4)
     empty = (clutter * 200).astype(np.uint8)
-    cand = tracker._keypoints.candidates([empty], 0.01, 16)[0]
-    kept = tracker._view_triples(empty, cand)
+    cand = tracker.proposer.candidates([empty])[0]
+    kept = tracker._view_triples(empty, cand, 1.0)
     if kept:  # whatever is tried has at least min_evidence
-        assert tracker._keypoints.evidence(empty, np.stack([p for p, _ in kept])).min() >= tracker.conf["min_evidence"]
-    every = mp.MarkerPose(rig, min_evidence=0.0)._view_triples(empty, cand)
+        assert tracker.proposer.evidence(empty, np.stack([p for p, _ in kept])).min() >= tracker.conf["match"]["min_evidence"]
+    every = mp.MarkerPose(rig, match={"min_evidence": 0.0})._view_triples(empty, cand, 1.0)
     assert len(kept) <= len(every)
     assert tracker.detect(empty) is None

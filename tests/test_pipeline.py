@@ -61,8 +61,8 @@ def test_bgr_input_equals_gray(rig, frame, detector):
 
 
 def test_rigid_pose_is_orthonormal_and_agrees_with_paper(rig, frame, detector):
-    paper = mp.MarkerPose(rig, detector=detector, pose="paper").estimate(*frame.images)
-    rigid = mp.MarkerPose(rig, detector=detector, pose="rigid").estimate(*frame.images)
+    paper = mp.MarkerPose(rig, detector=detector, solve={"pose": "paper"}).estimate(*frame.images)
+    rigid = mp.MarkerPose(rig, detector=detector, solve={"pose": "rigid"}).estimate(*frame.images)
     np.testing.assert_allclose(rigid.R @ rigid.R.T, np.eye(3), atol=1e-12)
     assert np.rad2deg(rotation_angle(paper.R, rigid.R)) < 0.5
     np.testing.assert_allclose(paper.points3d, rigid.points3d)
@@ -112,22 +112,31 @@ def test_image_size_must_match_the_calibration(rig, detector):
 
 def test_bad_configuration(rig):
     with pytest.raises(ValueError, match="weights not found"):
-        mp.MarkerPose(rig, detector="neural", keypoint_weights="/nonexistent/keypoints.pt")
-    with pytest.raises(ValueError, match="unknown refine"):
-        mp.MarkerPose(rig, detector="neural", refine="magic")
+        mp.MarkerPose(rig, propose={"weights": "/nonexistent/keypoints.pt"})
+    with pytest.raises(ValueError, match="unknown refine method"):
+        mp.MarkerPose(rig, refine={"method": "magic"})
     with pytest.raises(ValueError, match="unknown detector"):
         mp.MarkerPose(rig, detector="magic")
     with pytest.raises(ValueError, match="unknown pose"):
-        mp.MarkerPose(rig, pose="best")
-    with pytest.raises(ValueError, match="unknown option"):
+        mp.MarkerPose(rig, solve={"pose": "best"})
+    with pytest.raises(ValueError, match="unknown option 'speed'"):
         mp.MarkerPose(rig, speed=3)
+    # A flat option of earlier releases says where it went.
+    with pytest.raises(ValueError, match=r"unknown option 'bias_correction' \(now solve="):
+        mp.MarkerPose(rig, bias_correction=False)
+    with pytest.raises(ValueError, match=r"unknown verify setting\(s\) \['plate'\]"):
+        mp.MarkerPose(rig, verify={"plate": 1})
+    with pytest.raises(ValueError, match="takes a dict"):
+        mp.MarkerPose(rig, solve="paper")
+    with pytest.raises(ValueError, match="unknown preset 'best'"):
+        mp.MarkerPose(rig, preset="best")
     with pytest.raises(ValueError, match="StereoRig"):
         mp.MarkerPose("rig.yaml")
 
 
 def test_a_triple_without_the_marker_shape_is_rejected(rig, frame):
     """Regression guard: a wrong triple triangulates to a shape unlike the marker's → None."""
-    from markerpose.pipeline import shape_error
+    from markerpose.stages.verify import shape_error
 
     tracker = mp.MarkerPose(rig, detector="classical")
     est = tracker.estimate(*frame.images)
@@ -135,5 +144,5 @@ def test_a_triple_without_the_marker_shape_is_rejected(rig, frame):
     bad = est.points3d.copy()
     bad[2] += [0.0, 8.0, 0.0]  # c2 somewhere else: 40 mm → ~48 mm from c0
     assert shape_error(bad, tracker.marker.points3d) > 2.0
-    strict = mp.MarkerPose(rig, detector="classical", max_shape_error=1e-6)
+    strict = mp.MarkerPose(rig, detector="classical", verify={"max_shape_error": 1e-6})
     assert strict.estimate(*frame.images) is None  # the check is applied

@@ -98,6 +98,7 @@ def test_generation_does_not_depend_on_the_number_of_workers(monkeypatch):
 
 def test_training_loop_checkpoints_and_resumes(tmp_path):
     torch = pytest.importorskip("torch")
+    from markerpose import decode as dec
     from markerpose import keypoints as kp
     from markerpose.train import keypoints as tk
 
@@ -114,8 +115,8 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     for name in tk.DECODINGS:  # every variant, both operating points; the looks
         assert {name, name + "_stereo"} <= set(tuned), name
     assert {name + "_look" for name in tk.LOOKS} <= set(tuned)
-    assert all(tuned[k]["ratio_full"] == kp.default_conf["ratio_full"] for k in tuned if tuned[k].get("ids") == "layout")
-    assert all(tuned[k][key] == kp.default_conf[key] for k in tuned if tuned[k].get("align") for key in ("align_top", "align_orders", "align_cc_power"))
+    assert all(tuned[k]["ratio_full"] == dec.default_conf["ratio_full"] for k in tuned if tuned[k].get("ids") == "layout")
+    assert all(tuned[k][key] == dec.default_conf[key] for k in tuned if tuned[k].get("align") for key in ("align_top", "align_orders", "align_cc_power"))
     assert kp.KeypointNet(slim, {"verify": True, "align": True}).conf["min_score"] == tuned["layout_verify_align"]["min_score"]
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1
 

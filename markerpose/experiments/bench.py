@@ -1,14 +1,13 @@
-"""``markerpose bench``: speed of the whole stereo pipeline per configuration.
+"""``markerpose bench``: speed of the whole stereo pipeline per preset.
 
 Renders a few 1280x1024 stereo pairs of the marker in the working volume, then times
-every configuration on the same pairs, interleaved (pair 1 with every configuration,
-then pair 2, ...) so that the machine's state affects them alike. Reports the median
-time per pair, frames per second, the ratio to the reference configuration (the
-paper-faithful neural one when its weights exist, else the paper's classical one),
-the median time of each stage, the median time on pairs with 25 px of motion blur
-(where the rings are refitted under a blur model), the median time on marker-free
-pairs (what a tracker spends while the marker is out of view) and the process's peak
-memory.
+every preset on the same pairs, interleaved (pair 1 with every preset, then pair 2,
+...) so that the machine's state affects them alike. Reports the median time per pair,
+frames per second, the ratio to the reference preset (``paper`` when its networks are
+present, else ``paper-classical``), the median time of each stage, the median time on
+pairs with 25 px of motion blur (where the rings are refitted under a blur model), the
+median time on marker-free pairs (what a tracker spends while the marker is out of
+view) and the process's peak memory.
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ default_conf = {
     "repeats": 3,  # passes over the pairs (the first pass also warms up)
     "seed": 0,
     "threads": None,  # torch threads (None: torch's default, all cores)
-    "configs": None,  # names from experiments.configs; None = all available
+    "configs": None,  # preset names (markerpose.presets); None = all available
 }
 
 
@@ -64,8 +63,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     # Marker-free pairs: each view's clutter with ring distractors, the marker out of view.
     spec = {"alpha": (0.5, 1.0), "blur": 0.0}
     empty = [f for f, _ in marker_free_pairs(spec, c["empty_pairs"], rig, marker, np.random.default_rng(c["seed"] + 1))]
-    configs = available(c["configs"])
-    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
+    trackers = {name: MarkerPose(rig, marker, preset=name) for name in available(c["configs"])}
     times = {name: [] for name in trackers}
     stages = {name: {} for name in trackers}
     found = {name: 0 for name in trackers}
@@ -95,7 +93,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
                     for k, v in tr.timings.items():
                         stages[name].setdefault(k, []).append(v)
                 bar.update()
-    ref = "neural (paper)" if "neural (paper)" in trackers else "classical (paper)"
+    ref = "paper" if "paper" in trackers else "paper-classical"
     res = {"conf": dict(c), "reference": ref, "configs": {}}
     for name in trackers:
         med = float(np.median(times[name]))

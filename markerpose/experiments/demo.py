@@ -1,11 +1,12 @@
 """``markerpose demo``: the paper's robot experiments on the default rig, tables beside the paper's.
 
-``main(conf, out_dir) -> Path`` renders the displacement and rotation sequences,
-tracks them with every configuration in ``conf["configs"]``, prints the paper's
-Tables 1–4 with the published numbers beside ours plus the absolute errors the
-paper could not measure, and writes into ``out_dir``: ``report.md``,
-``results.json``, ``displacement.png`` (like Fig. 7), ``rotation.png`` (like
-Fig. 9) and annotated frames with the estimated axes drawn on both views.
+``main(conf, out_dir) -> Path`` renders the displacement and rotation sequences, tracks
+them with every preset in ``conf["configs"]`` (:mod:`markerpose.presets`; None: all
+whose networks are present), prints the paper's Tables 1–4 with the published numbers
+beside ours plus the absolute errors the paper could not measure, and writes into
+``out_dir``: ``report.md``, ``results.json``, ``displacement.png`` (like Fig. 7),
+``rotation.png`` (like Fig. 9) and frames annotated with the ``default`` preset's
+estimated axes on both views.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from .robot import PAPER, RobotScene, evaluate, render_sequences
 default_conf = {
     "seed": 0,
     "alpha": 1.0,
-    "configs": None,  # None: every configuration of experiments.configs whose weights exist
+    "configs": None,  # preset names; None: every preset whose networks are present
 }
 
 
@@ -122,10 +123,8 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-demo", prog
     seqs, seconds = render_sequences(rig, scene, marker, Imaging(alpha=conf["alpha"]), seed=conf["seed"], progress=progress)
     render_s = float(np.median(seconds[1:] or seconds))  # the first pair also builds the cached ray grids
     results, trackers = {}, {}
-    configs = conf["configs"] or available()
-    for name, c in configs.items():
-        c = dict(c)
-        trackers[name] = MarkerPose(rig, marker, detector=c.pop("detector"), **c)
+    for name in available(conf["configs"]):
+        trackers[name] = MarkerPose(rig, marker, preset=name)
         results[name] = evaluate(trackers[name], seqs, scene, marker, name=name, progress=progress)
     text = report_markdown(results, conf, render_s)
     (out / "report.md").write_text(text)

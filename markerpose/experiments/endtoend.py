@@ -5,8 +5,8 @@ the working volume (350-800 mm, tilt up to 60°, any in-plane rotation, all thre
 both views), under standard conditions (gain α in [0.25, 1], motion blur ≤ 9 px), in the
 dark (α = 0.0625) and with 25 px motion blur; and marker-free pairs (clutter with many
 single rings and dark disks, the marker out of both views), where any pose — and, with
-``single_view``, any detection in a view — is a false positive. Every configuration runs
-on the same pairs.
+``single_view``, any detection in a view — is a false positive. Every preset
+(:mod:`markerpose.presets`) runs on the same pairs.
 
 A pair is *detected* when all six centres (three per view) lie within ``tolerance_px``
 of the ground truth with the right IDs; a failure counts as a failure (error = inf),
@@ -44,7 +44,7 @@ SETS = {
 default_conf = {
     "pairs": 200,  # per set
     "sets": ("standard", "dark_0.0625", "blur_25", "marker_free"),
-    "configs": None,  # None: all available
+    "configs": None,  # preset names; None: all available
     "tolerance_px": 3.0,
     "single_view": False,  # also each view alone (MarkerPose.detect)
     "workers": 1,  # processes running sets at once
@@ -187,10 +187,10 @@ def summarize(rows: list[dict]) -> dict:
 
 
 def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0) -> dict:
-    """Every configuration of ``conf`` on one held-out set; returns {configuration: figures}."""
+    """Every preset of ``conf["configs"]`` on one held-out set; returns {preset: figures}."""
     c = {**default_conf, **conf}
     rig, marker = StereoRig.default(), Marker()
-    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in available(c["configs"]).items()}
+    trackers = {name: MarkerPose(rig, marker, preset=name) for name in available(c["configs"])}
     rows = {name: [] for name in trackers}
     views = {name: [] for name in trackers}
     conds = []
@@ -231,7 +231,7 @@ def _run_set_alone(args) -> tuple[str, dict]:
 
 
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
-    """Run every configuration on the held-out pairs; returns (and writes as JSON) the figures.
+    """Run every preset on the held-out pairs; returns (and writes as JSON) the figures.
 
     With ``conf["workers"]`` > 1 the sets run in that many processes at once, started in
     the order of ``conf["sets"]`` (put the slowest first; same pairs, same figures; each

@@ -15,7 +15,7 @@ _MARKERS = ("o", "s", "^", "D", "v")
 
 
 def plot_displacement(results: dict, step: float, path: Path) -> Path:
-    """Per-pair displacement of each centre for each configuration vs the reference (paper Fig. 7)."""
+    """Per-pair displacement of each centre for each preset vs the reference (paper Fig. 7)."""
     names = list(results)
     fig, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
     for c, ax in enumerate(axes):
@@ -37,7 +37,7 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
 
 
 def plot_rotation(results: dict, step: float, path: Path) -> Path:
-    """Per-pair rotation angle for each configuration vs the reference (paper Fig. 9)."""
+    """Per-pair rotation angle for each preset vs the reference (paper Fig. 9)."""
     fig, ax = plt.subplots(figsize=(6, 4))
     for k, name in enumerate(results):
         a = np.asarray(results[name]["rotation"]["measured"], float)
@@ -56,7 +56,7 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
 
 
 def plot_detection(levels: dict, path: Path) -> Path:
-    """Detection rate with 95 % intervals versus darkness α and motion blur, per configuration (Fig. 10)."""
+    """Detection rate with 95 % intervals versus darkness α and motion blur, per preset (Fig. 10)."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
     for ax, kind, label in ((axes[0], "alpha", "darkness α (log scale)"), (axes[1], "blur", "motion blur kernel (px)")):
         xs = [float(v) for v in levels[kind]]
@@ -83,7 +83,7 @@ def plot_detection(levels: dict, path: Path) -> Path:
 
 
 def plot_accuracy(per_config: dict, path: Path) -> Path:
-    """Median translation and rotation error by distance and by tilt bin, per configuration."""
+    """Median translation and rotation error by distance and by tilt bin, per preset."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
     names = list(per_config)
     bins = [b["bin"] for b in per_config[names[0]]["by_condition"]]

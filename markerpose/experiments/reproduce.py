@@ -1,6 +1,7 @@
 """``markerpose experiments``: the paper's Section 5 on rendered data, with statistics.
 
-Every experiment runs every configuration on the same rendered stereo pairs:
+Every experiment runs every preset of ``conf["configs"]`` (:mod:`markerpose.presets`) on
+the same rendered stereo pairs:
 
 - **Robot experiments** (Tables 1–5, Figs. 7 and 9), repeated over ``trials`` seeded
   placements of the robot's path (start, depth, tilt, roll, background, noise). Each
@@ -40,15 +41,8 @@ from .endtoend import by_condition, evaluate_pair, random_pairs, summarize
 from .plots import plot_accuracy, plot_detection, plot_displacement, plot_rotation
 from .robot import PAPER, RobotScene, evaluate, render_sequences
 
-# The configurations the experiments compare (those whose weights exist run).
-HEADLINE = (
-    "neural (paper)",
-    "neural + adaptive + sub-pixel + bias + rigid",
-    "neural + stereo match + EllipSegNet + edge refit + bias + rigid",
-    "neural stereo match + classical refine + bias + rigid",
-    "classical (paper)",
-    "classical + sub-pixel + bias + rigid",
-)
+# The presets the experiments compare by default (those whose networks are present run).
+HEADLINE = ("default", "paper", "neural-layout-rigid", "neural-classical-refine", "paper-classical", "classical")
 
 # Table 5 of the paper: displacement MAE / RMS / max (mm) of MarkerPose per α.
 PAPER_LIGHTING = {1.0: (0.0461, 0.0544, 0.1164), 0.5: (0.0451, 0.0539, 0.1352), 0.25: (0.0476, 0.0557, 0.1404), 0.125: (0.0528, 0.0603, 0.1313), 0.0625: (0.0568, 0.0723, 0.2130)}
@@ -63,7 +57,7 @@ default_conf = {
     "seed": 0,
     "tolerance_px": 3.0,
 }
-QUICK = {"trials": 2, "pairs": 6, "alphas": (1.0, 0.25, 0.0625)}  # 6.0 min here
+QUICK = {"trials": 2, "pairs": 6, "alphas": (1.0, 0.25, 0.0625)}  # a few minutes
 
 # Two-sided 95 % quantiles of Student's t, df = 1..30 (beyond: the normal's 1.96).
 _T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
@@ -129,7 +123,7 @@ def scenario(rig: StereoRig, marker: Marker) -> list[str]:
 
 
 def robot_trials(c: dict, rig, marker, trackers: dict, progress: bool) -> dict:
-    """Tables 1–5 per trial and configuration."""
+    """Tables 1–5 per trial and preset."""
     per: dict = {name: [] for name in trackers}
     series: dict = {}
     for trial in tqdm(range(c["trials"]), desc="robot trials", unit="trial", disable=not progress):
@@ -323,8 +317,8 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-experiments
     rig, marker = StereoRig.default(), Marker()
     configs = available(c["configs"])
     if not configs:
-        raise ValueError(f"none of the configurations {c['configs']} can run here (missing weights or torch)")
-    trackers = {name: MarkerPose(rig, marker, **cfg) for name, cfg in configs.items()}
+        raise ValueError(f"none of the presets {c['configs']} can run here (missing weights or torch)")
+    trackers = {name: MarkerPose(rig, marker, preset=name) for name in configs}
     robot = robot_trials(c, rig, marker, trackers, progress)
     lv = levels(c, rig, marker, trackers, progress)
     res = {

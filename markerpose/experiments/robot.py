@@ -127,7 +127,7 @@ def error_stats(err) -> dict:
 
 
 def evaluate(tracker, seqs, scene: RobotScene, marker: Marker, name: str = "", progress: bool = True) -> dict:
-    """Run one tracker configuration over the sequences and compute every metric."""
+    """Run one tracker (one preset) over the sequences and compute every metric."""
     ests = {}
     total = sum(len(s.frames) for s in seqs)
     with tqdm(total=total, desc=f"track {name}".strip(), unit="pair", disable=not progress) as bar:

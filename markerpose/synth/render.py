@@ -1,6 +1,6 @@
 """Physically honest renderer of the marker seen by a calibrated camera or stereo rig.
 
-How an image is made (DESIGN §6):
+How an image is made (docs/design.md §8):
 
 1. Geometry: every pixel's ray is cast through the inverse lens-distortion model
    (``Camera.normalized_grid``) onto the marker plane, where the printed texture is
@@ -264,8 +264,8 @@ def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
     """Normalised linear motion-blur kernel: a line of ``length`` px at ``angle_deg``,
     anti-aliased, with its centroid exactly on the middle pixel (OpenCV's anchor), so
     blurring does not shift the image. (OpenCV's thick lines are not symmetric about
-    their axis: uncorrected, the kernel's centroid was up to 0.11 px off, which shifted
-    every blurred render against its truth.)"""
+    their axis: uncorrected, the kernel's centroid can be a tenth of a pixel off, which
+    would shift every blurred render against its truth.)"""
     n = int(np.ceil(length)) | 1
     n = max(n, 3)
     up = 8
@@ -315,7 +315,7 @@ def sensor_readout(dn: np.ndarray, imaging: Imaging, rng: np.random.Generator) -
     if imaging.noise:
         # Shot noise: exact Poisson draws where few electrons arrive; above
         # _POISSON_EXACT_BELOW the normal approximation N(λ, λ) is used (its error in
-        # the variance is nil and its skew is < 0.2), which is 4x faster on a full frame.
+        # the variance is nil and its skew is < 0.2), which is much faster on a full frame.
         low = electrons < _POISSON_EXACT_BELOW
         shot = np.sqrt(electrons) * rng.standard_normal(electrons.shape, dtype=np.float32)
         if low.any():

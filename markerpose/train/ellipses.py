@@ -300,7 +300,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/ellipses", resume
 
 def export(checkpoint: str | Path, dest: str | Path) -> Path:
     """The inference part of an EllipSegNet checkpoint."""
-    return export_checkpoint(checkpoint, dest)
+    return export_checkpoint(checkpoint, dest, "ellipses")
 
 
 def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2) -> dict:

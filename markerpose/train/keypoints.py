@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from .. import decode as dec
 from .. import keypoints as kp
 from ..nets import fuse_batchnorm
 from .augment import augment
@@ -42,19 +43,18 @@ default_conf = {
     "lambda_id": 1.0,
     # Weight of the "no centre" / background class in both cross-entropies. Three target
     # cells face ~1200 background cells per image; unweighted (1.0, the paper), a short
-    # training run settles on "background everywhere" (seen here: 500 steps, no centre
-    # scored above 0.001). 0.01 gives the targets about a fifth of the loss.
+    # training run settles on "background everywhere". 0.01 gives the targets about a
+    # fifth of the loss.
     "background_weight": 0.01,
     "window": (192, 144),  # train on windows of the 320x240 images (None: whole images)
     "train_size": 12000,  # cached rendered images, augmented afresh each epoch
     # Extra training images of steeply tilted markers (tilt 55-80°, seed + 100). The other
     # view of a stereo pair often sees the marker ~10-20° steeper than the tilt drawn for
-    # one camera, and stage 1 misplaced such rings most (seen: > 10 px at full resolution).
+    # one camera, and stage 1 misplaces such rings most.
     "steep_size": 0,
     # Views whose outer rings look smaller than SMALL_RING_PX at the network input are
     # drawn this many times as often as the others (1: every view once per epoch, in a
-    # random order). Stage 1 missed such rings most (held-out standard set, v0.7: 29 % of
-    # markers under 8 px found, 79 % at 8-12 px, >= 93 % above).
+    # random order): stage 1 misses small rings most.
     "small_boost": 1.0,
     "val_size": 400,
     "seed": 0,
@@ -76,6 +76,36 @@ TEST_SETS = {
 
 STEEP = {"tilt": (55.0, 80.0)}  # scene conf of the extra steep training images
 SMALL_RING_PX = 12.0  # outer-ring diameter at the network input below which ``small_boost`` applies
+
+
+def make_targets(points: np.ndarray, labels: np.ndarray, size=kp.INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+    """Cell targets of the two heads from the ring centres of one image.
+
+    Args:
+        points: (3, 2) centres c0, c1, c2 in the network input's pixels (x, y).
+        labels: (3,) int: 1 = visible (a target), 0 = absent, -1 = ambiguous (ignored
+            by the loss: e.g. a ring half occluded or half outside the image).
+        size: (W, H) of the network input.
+    Returns:
+        det: (H/8, W/8) int64 in 0..64 (64 = no centre) or -100 (ignored);
+        ids: (H/8, W/8) int64 in 0..3 (3 = background) or -100.
+    """
+    w, h = size
+    det = np.full((h // dec.CELL, w // dec.CELL), dec.CELL * dec.CELL, np.int64)
+    ids = np.full((h // dec.CELL, w // dec.CELL), 3, np.int64)
+    for i, ((x, y), lab) in enumerate(zip(np.asarray(points, np.float64), labels)):
+        if lab == 0 or not (np.isfinite(x) and np.isfinite(y)):
+            continue
+        px, py = int(np.floor(x + 0.5)), int(np.floor(y + 0.5))  # nearest pixel centre
+        if not (0 <= px < w and 0 <= py < h):
+            continue
+        cy, cx = py // dec.CELL, px // dec.CELL
+        if lab < 0:
+            det[cy, cx], ids[cy, cx] = -100, -100
+        else:
+            det[cy, cx] = (py % dec.CELL) * dec.CELL + px % dec.CELL
+            ids[cy, cx] = i
+    return det, ids
 
 
 def _render_chunk(args):
@@ -126,17 +156,17 @@ def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.n
     return np.concatenate(dets), np.concatenate(ids)
 
 
-DECODE_WORKERS = 2  # processes decoding a stack of views (export, evaluation): one per core here
+DECODE_WORKERS = 2  # processes decoding a stack of views (export, evaluation)
 _DECODE_CHUNK = 25  # views per job
 _DECODE_JOB: tuple = ()  # (det, ID logits, images, conf) of the running decode_all, inherited by its workers
 
 
 def _decode_views(bounds: tuple[int, int]) -> list:
     det, id_logits, images, conf = _DECODE_JOB
-    c = {**kp.default_conf, **(conf or {})}
+    c = {**dec.default_conf, **(conf or {})}
     needs_image = c["verify"] or c["align"]
     return [
-        kp.decode(det[j], id_logits[j], conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
+        dec.decode(det[j], id_logits[j], conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
         for j in range(*bounds)
     ]
 
@@ -191,7 +221,7 @@ def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="
     for b in tqdm(batches, desc=desc and f"{desc}: network at {zoom:g}x", unit="batch", leave=False, disable=desc is None):
         chunk = new[b : b + 32]
         big = np.stack([cv2.resize(images[k], None, fx=zoom, fy=zoom, interpolation=cv2.INTER_LINEAR) for k in chunk])
-        det, ids = logits(net, big, batch=2, device=device)  # 640x480: ~10 % faster per view in pairs than in 32s here
+        det, ids = logits(net, big, batch=2, device=device)  # 640x480 inputs run faster per view in pairs than in large batches
         zoomed.update({k: (big[j], det[j], ids[j]) for j, k in enumerate(chunk)})
     big, det, ids = zip(*(zoomed[k] for k in again))  # lists, not stacked copies
     found = decode_all(det, ids, big, kp.look_conf(decode_conf), desc=desc)
@@ -219,9 +249,8 @@ TUNING_GRID = {
     "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
     # The ring evidence (in [0, 1]) scales the scores down: a finer, lower grid. The
-    # candidates' threshold: 0.005 won every export of (0.005, 0.01, 0.02) from v0.8 to
-    # v0.10, for both operating points, so it is no longer searched (each value searched
-    # costs a decoding of the validation set, ~2 min with alignment).
+    # candidates' threshold is fixed at the lowest value tried, which won at both operating
+    # points: each value searched costs a decoding of the validation set.
     "layout_verify": {"threshold": (0.005,), "min_score": tuple(round(0.01 * k, 2) for k in range(1, 41))},
 }
 TUNING_GRID["layout_verify_align"] = TUNING_GRID["layout_verify"]
@@ -250,9 +279,9 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
     for values in itertools.product(*grid.values()):
         dc = {**DECODINGS[decoding], **dict(zip(grid, values))}
         if dc["ids"] == "layout":  # the scoring these thresholds hold for travels with them
-            dc["ratio_full"] = kp.default_conf["ratio_full"]
+            dc["ratio_full"] = dec.default_conf["ratio_full"]
         if dc.get("align"):
-            dc.update({k: kp.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power", "align_move_rule")})
+            dc.update({k: dec.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power", "align_move_rule")})
         # The best triple does not depend on min_score: decode once at the grid's lowest
         # (which spares aligning triples that cannot reach it), then threshold.
         every = decode_all(det, id_logits, data["image"], {**dc, "min_score": min(min_scores)}, desc=f"tune {decoding}")
@@ -406,7 +435,7 @@ def _batches(data: dict, idx: np.ndarray, rng, bs: int, window=None):
             im, p, lab = augment(data["image"][j], data["points"][j], data["labels"][j], rng)
             if window is not None:
                 im, p, lab = crop(im, p, lab, rng, window)
-            d, i = kp.make_targets(p, lab, size=(im.shape[1], im.shape[0]))
+            d, i = make_targets(p, lab, size=(im.shape[1], im.shape[0]))
             imgs.append(im)
             dets.append(d)
             ids.append(i)
@@ -475,8 +504,8 @@ SINGLE_VIEW_FP = 0.005
 STEREO_FP = 0.10
 
 
-# Marker-free validation images the export tunes on. A budget of 0.5 % is 3 of 600 (v0.12)
-# and the tuned threshold moved with single views: 4 of 600 held-out views passed it.
+# Marker-free validation images the export tunes on: many, so that the 0.5 % budget spans
+# enough views for the tuned threshold to hold on held-out ones.
 VAL_NEGATIVES = 3000
 
 
@@ -498,7 +527,7 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
 
     negatives = VAL_NEGATIVES if negatives is None else negatives
 
-    dest = export_checkpoint(checkpoint, dest, keep=("width", "stem_width"))
+    dest = export_checkpoint(checkpoint, dest, "keypoints", keep=("width", "stem_width"))
     slim = torch.load(dest, weights_only=True)
     net = kp.build_network(slim["width"], slim.get("stem_width")).eval()
     net.load_state_dict(slim["state_dict"])
@@ -582,17 +611,17 @@ def candidate_recall(det: np.ndarray, id_logits: np.ndarray, data: dict, conf: d
     decoding threshold, best ``max_candidates``) within ``tolerance_px`` at full
     resolution, and among those the share where the ID head's most likely label at each
     true centre is its own ID."""
-    c = {**kp.default_conf, **conf}
+    c = {**dec.default_conf, **conf}
     full = np.nonzero(np.all(data["labels"] == 1, axis=1))[0]
     found = head_right = 0
     for j in full:
         gt, sc = data["points"][j].astype(np.float64), data["scale"][j]
-        cand = kp.nms(kp.score_map(det[j]), c["nms_radius"], c["threshold"], c["max_candidates"])
+        cand = dec.nms(dec.score_map(det[j]), c["nms_radius"], c["threshold"], c["max_candidates"])
         if len(cand) == 0 or not np.all(np.linalg.norm((cand[:, None, :2] - gt[None]) * sc, axis=2).min(0) <= tolerance_px):
             continue
         found += 1
-        cy = np.clip((gt[:, 1] + 0.5).astype(int) // kp.CELL, 0, id_logits.shape[2] - 1)
-        cx = np.clip((gt[:, 0] + 0.5).astype(int) // kp.CELL, 0, id_logits.shape[3] - 1)
+        cy = np.clip((gt[:, 1] + 0.5).astype(int) // dec.CELL, 0, id_logits.shape[2] - 1)
+        cx = np.clip((gt[:, 0] + 0.5).astype(int) // dec.CELL, 0, id_logits.shape[3] - 1)
         head_right += int(np.all(np.argmax(id_logits[j][:, cy, cx], axis=0) == np.arange(3)))
     return {
         "candidates_found": found / len(full) if len(full) else float("nan"),
@@ -627,4 +656,4 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
     return out
 
 
-__all__ = ["DECODE_WORKERS", "DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "VAL_NEGATIVES", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
+__all__ = ["make_targets", "DECODE_WORKERS", "DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "VAL_NEGATIVES", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]

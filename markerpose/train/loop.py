@@ -102,12 +102,16 @@ def fit(
     return out / "best.pt"
 
 
-def export(checkpoint: str | Path, dest: str | Path, keep: tuple = ()) -> Path:
-    """Keep only what inference needs (float32 weights, metrics and those ``keep`` keys it has) from a checkpoint."""
+def export(checkpoint: str | Path, dest: str | Path, kind: str, keep: tuple = ()) -> Path:
+    """Keep only what inference needs (float32 weights, metrics and those ``keep`` keys it
+    has) from a checkpoint of the ``kind`` network ("keypoints" or "ellipses"), with the
+    format entry the loader checks (:func:`markerpose.nets.load_checkpoint`)."""
     import torch
 
+    from ..nets import FORMAT
+
     ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    slim = {"state_dict": {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()}}
+    slim = {"format": {"network": kind, "version": FORMAT}, "state_dict": {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()}}
     slim["metrics"] = {k: v for k, v in ck.get("metrics", {}).items() if isinstance(v, (int, float, str))}
     slim.update({k: ck[k] for k in keep if k in ck})
     dest = Path(dest)

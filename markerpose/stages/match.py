@@ -1,31 +1,55 @@
-"""Stage-1 candidates of the two views matched by the marker's 3D shape.
+"""Match: name the rings and pair them across the two views.
 
-Stage 1 gives each view a handful of candidate ring centres: the marker's rings, and
-anything ring-like in the scene. One view can judge a triple of them only by its 2D
-shape, which tilt distorts and which a chance arrangement of decoys can mimic. Two
-calibrated views measure it: each left/right pair of candidates close to each other's
-epipolar lines is triangulated, and three such points are the marker only if their
-distances are the marker's (c0-c1, c0-c2, c1-c2, in mm) and they turn the marker's way.
-The distances also name the rings, so no ID is needed from the network.
+The neural detectors' stage 1 gives each view a handful of candidate ring centres: the
+marker's rings, and anything ring-like in the scene. One view can judge a triple of them
+only by its 2D shape, which tilt distorts and which a chance arrangement of decoys can
+mimic. Two calibrated views measure it (:func:`stereo_triples`, ours): each left/right
+pair of candidates close to each other's epipolar lines is triangulated, and three such
+points are the marker only if their distances are the marker's (c0-c1, c0-c2, c1-c2, in
+mm) and they turn the marker's way. The distances also name the rings, so no ID is
+needed from the network. A single view names its triples by the marker's 2D layout
+(:func:`view_triples`).
 
 When no matched triple passes, one view may still hold the marker well while the other's
 candidates are off (a steeply tilted marker, which the other camera sees steeper still):
 triples matched with looser tolerances are refined, and :func:`transfer` carries a view's
 refined centres into the other view through the poses that explain them
-(:func:`view_poses`: P3P ranked by the ellipses), where they are refined and checked
-like any other hypothesis.
+(:func:`~markerpose.geometry.view_poses`), where they are refined and checked like any
+other hypothesis (:func:`transfer_sources` lists what to try).
+
+The classical detector (paper §3.4) names each view's rings by their layout itself; its
+views are paired by the epipolar constraint (:func:`pair_triples`).
 """
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
-from .camera import StereoRig
-from .geometry import ellipse_to_conic, epipolar_distance, triangulate
-from .keypoints import layout_ratios, signed_area, signed_areas, triple_orders
+from ..camera import StereoRig
+from ..geometry import epipolar_distance, layout_ratios, signed_area, signed_areas, triangulate, triple_orders
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
+
+default_conf = {
+    "method": "stereo",  # "stereo": candidates matched by the 3D shape (ours); "layout": one
+    #                      triple per view by the 2D layout (ours); "head": by the ID head (paper)
+    "epipolar_tol": 20.0,  # stereo: largest epipolar distance of two matched candidates, px
+    #                        (stage 1 misplaces steeply tilted rings by 10-20 px)
+    "shape_tol": 0.35,  # stereo: relative error allowed in each triangulated ring distance
+    "max_triples": 3,  # stereo: matched triples refined and checked, best first
+    "view_triples": 4,  # single views and the transfer: layout triples tried per view
+    "min_evidence": 0.1,  # single views: layout triples with less ring evidence are not
+    #                       refined, the others are tried by score x evidence; 0: by score
+    "transfer": True,  # stereo: carry one view's refined rings into the other (below)
+    "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
+    "transfer_shape_tol": 0.6,
+    "transfer_attempts": 2,  # ... and how many loose triples are tried
+    "transfer_sources": 4,  # one view's triples refined and carried over, at most
+    "transfer_min_evidence": 0.1,  # sources with less ring evidence are not refined (decoy
+    #                                triples on marker-free pairs cost refits); 0: every one
+    "pair_epipolar_tol": 3.0,  # classical: max epipolar distance of same-ID centres, px
+}
+METHODS = ("stereo", "layout", "head")
 
 
 def side_lengths(points3d: np.ndarray) -> np.ndarray:
@@ -116,67 +140,6 @@ def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, 
     return [(p[6 * t + order[t]], float(best[t])) for t in trios]
 
 
-def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.ndarray, radius: float) -> list[tuple[float, np.ndarray]]:
-    """The marker's poses in one view from three ring centres, best explained first.
-
-    P3P gives up to four poses that put the marker's centres on the three centres' rays;
-    each is scored by how well its projected outer circles fit the rings' fitted ellipses
-    (the ellipses' shapes tell the plate's tilt, which three points leave ambiguous). The
-    score tells the marker from three ring-like things that merely lie in a
-    marker-like triangle: their ellipses do not fit one plate.
-
-    Args:
-        camera: the view's :class:`~markerpose.camera.Camera`.
-        centers: (3, 2) ring centres c0, c1, c2 in its (distorted) pixels.
-        ellipses: the rings' outer ellipses (OpenCV RotatedRects, None for a missing one),
-            or None: every pose then scores 0, in P3P's order.
-        model: (3, 3) the marker's ring centres (``Marker.points3d``), mm.
-        radius: the rings' outer radius, mm.
-    Returns:
-        list of (misfit, T_cam_marker (4, 4)), smallest misfit first; the misfit is the mean
-        relative radial distance of the projected circles from the ellipses (0 = exact).
-    """
-    model = np.asarray(model, np.float64)
-    xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
-    n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
-    conics = [None if e is None else ellipse_to_conic(*e) for e in (ellipses or [])]
-    poses = []
-    for rv, tv in zip(rvecs[:n], tvecs[:n]):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
-        if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
-            continue  # degenerate, or behind the camera
-        misfit = []
-        edges = ring_edges(camera, T, model, radius) if conics else []
-        for C, edge in zip(conics, edges):
-            if C is None:
-                continue
-            h = np.column_stack([edge, np.ones(len(edge))])
-            lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
-            misfit.append(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
-        m = float(np.mean(misfit)) if misfit else 0.0
-        if np.isfinite(m):
-            poses.append((m, T))
-    poses.sort(key=lambda p: p[0])
-    return poses
-
-
-def ring_edges(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float, n: int = 24) -> np.ndarray:
-    """(3, n, 2) distorted pixels of ``n`` points on each ring's outer circle in a view
-    where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm)."""
-    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
-    T = np.asarray(T_cam_marker, np.float64)
-    pts = (np.asarray(model, np.float64)[:, None, :] + circle[None]).reshape(-1, 3)
-    return camera.project(pts @ T[:3, :3].T + T[:3, 3]).reshape(len(model), n, 2)
-
-
-def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float) -> list:
-    """The rings' outer ellipses (OpenCV RotatedRects) in a view where the marker has pose
-    ``T_cam_marker``: ellipses fitted to the projected circles (lens distortion included)."""
-    return [cv2.fitEllipse(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]
-
-
 def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_poses: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
     """Where the marker's rings lie in the other view, from its poses in ``view``.
 
@@ -205,4 +168,45 @@ def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_pose
     return out
 
 
-__all__ = ["ring_edges", "ring_ellipses", "side_lengths", "stereo_triples", "transfer", "view_poses", "view_triples"]
+def transfer_sources(loose: list, cand: list, layout: np.ndarray, view_triples_n: int) -> list[tuple[int, np.ndarray, float]]:
+    """What the transfer tries to carry over, without repeats: (view, points (3, 2), score)
+    for both sides of each loosely matched triple, then each view's best
+    ``view_triples_n`` triples by the 2D layout."""
+    sources = [(a, p, s) for pl, pr, s in loose for a, p in ((0, pl), (1, pr))]
+    for a in (0, 1):
+        sources += [(a, p, s) for p, s in view_triples(cand[a], layout, max_triples=view_triples_n)]
+    unique: list = []
+    for a, pts, s in sources:
+        if not any(a == a2 and np.abs(pts - p2).max() < 1e-6 for a2, p2, _ in unique):
+            unique.append((a, pts, s))
+    return unique
+
+
+def pair_triples(rig: StereoRig, left: tuple, right: tuple, epipolar_tol: float = 3.0):
+    """The classical detector's stereo match (paper §3.4): of each view's marker-like
+    triples, the pair whose same-ID centres lie within ``epipolar_tol`` px of each other's
+    epipolar lines, at the least cost (the two triples' costs + the squared epipolar
+    distances over the tolerance).
+
+    Args:
+        left, right: (rings, triples) of each view, as
+            :func:`markerpose.classical.view_triples` returns them (rings, [(cost, (i0, i1, i2))]).
+    Returns:
+        (left triple, right triple, left cost, right cost) or None.
+    """
+    (rl, tl), (rr, tr) = left, right
+    best = None
+    for cl, il in tl:
+        pl = np.array([rl[k].center for k in il])
+        for cr, ir in tr:
+            pr = np.array([rr[k].center for k in ir])
+            d = np.diag(epipolar_distance(rig, pl, pr))
+            if d.max() > epipolar_tol:
+                continue
+            cost = cl + cr + float((d / epipolar_tol) @ (d / epipolar_tol))
+            if best is None or cost < best[0]:
+                best = (cost, il, ir, cl, cr)
+    return None if best is None else best[1:]
+
+
+__all__ = ["METHODS", "default_conf", "pair_triples", "side_lengths", "stereo_triples", "transfer", "transfer_sources", "view_triples"]

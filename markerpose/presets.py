@@ -1,0 +1,81 @@
+"""Named configurations of the whole pipeline: ``MarkerPose(rig, preset=NAME)``.
+
+Each preset is a small diff from the stages' defaults (``"default"`` is the empty diff).
+The paper's two configurations stay runnable beside ours, and each ablation preset
+switches off one of our improvements, so every gain is measured in the same run on the
+same frames (DESIGN §5). :data:`ORDER` is the order reports list them in.
+"""
+
+from __future__ import annotations
+
+PAPER_POSE = {"pose": "paper", "bias_correction": False}
+_NO_EDGE = {"edge_refit": False}
+
+PRESETS: dict[str, dict] = {
+    # Ours: stage-1 candidates matched across views by the marker's 3D shape (with the
+    # transfer fallback), EllipSegNet + edge refit + blur fit, plate check, bias
+    # correction, rigid pose, a second look at 640x480 when nothing is found.
+    "default": {},
+    # The paper's MarkerPose: ID-head decoding, EllipSegNet on fixed 120 px patches,
+    # cv2.fitEllipse on the mask, DLT triangulation of the ellipse centres, R = [x y x×y].
+    "paper": {
+        "match": {"method": "head"},
+        "propose": {"second_look": 1.0},
+        "refine": {"patch": "fixed", "fit": "ellipse", "edge_refit": False},
+        "solve": PAPER_POSE,
+    },
+    # The paper's classical detector (§3.4): contour ellipses, epipolar pairing.
+    "paper-classical": {"detector": "classical", "refine": {"subpixel": False}, "solve": PAPER_POSE},
+    # Ablations of the neural pipeline, from the paper's towards ours.
+    "neural-layout": {
+        "match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE, "solve": PAPER_POSE,
+    },
+    "neural-layout-rigid": {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE},
+    "neural-stereo": {"refine": _NO_EDGE},
+    "default-no-transfer": {"match": {"transfer": False}},
+    "default-no-blur-fit": {"refine": {"blur_fit": False}},
+    "default-no-second-look": {"propose": {"second_look": 1.0}},
+    "neural-classical-refine": {"refine": {"method": "classical"}},
+    # Ablations of the classical detector, from the paper's towards ours.
+    "classical-subpixel": {"detector": "classical", "solve": PAPER_POSE},
+    "classical-subpixel-bias": {"detector": "classical", "solve": {"pose": "paper"}},
+    "classical": {"detector": "classical"},
+}
+
+ABOUT: dict[str, str] = {
+    "default": "ours: stereo-matched candidates, EllipSegNet + edge refit, blur fit, bias correction, rigid pose",
+    "paper": "the paper's MarkerPose: ID head, EllipSegNet (fixed 120 px, fitEllipse), paper pose",
+    "paper-classical": "the paper's classical detector (§3.4) and pose",
+    "neural-layout": "paper + IDs from the marker's layout, adaptive patches, sub-pixel mask fit",
+    "neural-layout-rigid": "neural-layout + bias correction + rigid pose",
+    "neural-stereo": "neural-layout-rigid with candidates matched across views by the 3D shape",
+    "default-no-transfer": "default without the transfer fallback",
+    "default-no-blur-fit": "default without the blurred-ring fit",
+    "default-no-second-look": "default without stage 1's second look",
+    "neural-classical-refine": "default with the classical ring fit instead of EllipSegNet",
+    "classical-subpixel": "paper-classical + sub-pixel edges",
+    "classical-subpixel-bias": "classical-subpixel + bias correction",
+    "classical": "classical-subpixel-bias + rigid pose: our best classical (detector='classical')",
+}
+
+# Reports list the default and the paper's configurations first, then the ablations.
+ORDER = (
+    "default", "paper", "paper-classical", "classical", "neural-layout", "neural-layout-rigid", "neural-stereo",
+    "default-no-transfer", "default-no-blur-fit", "default-no-second-look", "neural-classical-refine",
+    "classical-subpixel", "classical-subpixel-bias",
+)
+
+
+def is_neural(name: str) -> bool:
+    """Whether a preset uses the networks."""
+    return PRESETS[name].get("detector", "neural") == "neural"
+
+
+def check(name: str) -> str:
+    """``name`` if it is a preset, else ``ValueError`` listing them."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {list(ORDER)}")
+    return name
+
+
+__all__ = ["ABOUT", "ORDER", "PRESETS", "check", "is_neural"]

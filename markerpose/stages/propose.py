@@ -1,0 +1,85 @@
+"""Propose: where the rings might be, before anything is named or refined.
+
+- Neural (the paper's stage 1, :mod:`markerpose.keypoints`): both views go through the
+  SuperPoint-like network in one batch at 320x240; each view's best local maxima of the
+  location score are its candidates (:meth:`NeuralProposer.candidates`). The paper's
+  configuration instead decodes one triple per view by the ID head
+  (:meth:`NeuralProposer.decoded`). When a look finds no marker, stage 1 looks again at
+  ``second_look`` times the input size, resized from the full image (ours): rings under
+  ~12 px at 320x240 are found far more often.
+- Classical (paper §3.4, :mod:`markerpose.classical`): binarise, contours, concentric
+  ellipses; each view's ring candidates and its marker-like triples named by layout
+  (:func:`classical_view`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import classical
+from ..marker import Marker
+
+default_conf = {
+    "weights": None,  # neural: stage-1 weights file (None: the shipped one)
+    "candidates": 16,  # neural: candidates per view
+    "threshold": 0.01,  # ... their least location score
+    "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
+    "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
+}
+
+
+def check_conf(conf: dict) -> dict:
+    """``conf`` with its values checked (``ValueError`` naming the key)."""
+    if not float(conf["second_look"]) >= 1:
+        raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {conf['second_look']!r}")
+    if int(conf["candidates"]) < 3:
+        raise ValueError(f"candidates must be >= 3, got {conf['candidates']!r}")
+    return conf
+
+
+class NeuralProposer:
+    """Stage 1 with its weights, for one way of naming the rings.
+
+    Args:
+        conf: :data:`default_conf` with overrides.
+        marker: the marker's geometry.
+        ids: the match method ("stereo", "layout" or "head"): "head" and "layout" decode
+            one triple per view (:meth:`decoded`), "stereo" uses :meth:`candidates`.
+    """
+
+    def __init__(self, conf: dict, marker: Marker, ids: str):
+        from ..keypoints import KeypointNet
+
+        self.conf = check_conf(conf)
+        decoding = {"ids": "layout" if ids == "stereo" else ids}
+        if ids != "stereo":
+            decoding["second_look"] = float(conf["second_look"])
+        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True)
+
+    def looks(self) -> tuple[float, ...]:
+        """Stage 1's zoom factors, tried in turn while the marker is not found."""
+        zoom = float(self.conf["second_look"])
+        return (1.0, zoom) if zoom > 1 else (1.0,)
+
+    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0) -> list[np.ndarray]:
+        """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first."""
+        c = self.conf
+        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"])
+
+    def decoded(self, grays: list[np.ndarray]) -> list:
+        """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
+        return self.net(grays)
+
+    def evidence(self, gray: np.ndarray, triples: np.ndarray, zoom: float = 1.0) -> np.ndarray:
+        """Ring evidence (:func:`markerpose.evidence.ring_evidence`) of (T, 3, 2) triples
+        in the input of the look ``zoom`` that found them: (T,)."""
+        return self.net.evidence(gray, triples, zoom)
+
+
+def classical_view(image: np.ndarray, marker: Marker, conf: dict | None = None):
+    """The classical detector's proposals in one view: (gray float32, noise sigma, ring
+    candidates, marker-like triples best first) — :func:`markerpose.classical.view_triples`."""
+    return classical.view_triples(image, marker, conf)
+
+
+__all__ = ["NeuralProposer", "check_conf", "classical_view", "default_conf"]

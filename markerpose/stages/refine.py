@@ -1,0 +1,113 @@
+"""Refine: sub-pixel ring centres and outer ellipses near the proposed points.
+
+- ``"ellipsegnet"`` (the paper's stage 2, :mod:`markerpose.ellipses`): a patch around
+  each point (the paper's fixed 120 px, or ours: 1.8 ring diameters resampled to
+  120x120), the ring's mask, its centre (the paper's ``cv2.fitEllipse``, or ours: the
+  mask's sub-pixel iso-line). With ``edge_refit`` (ours) the ring's outer edge is then
+  fitted in the image itself from the mask's ellipse (:func:`classical.refine_ellipses`),
+  and only edge-fitted centres count as refined.
+- ``"classical"``: the classical sub-pixel ring fit near each point
+  (:func:`classical.refine_points`).
+- ``"none"``: the proposed points as they are (~1 px).
+
+Every sub-pixel edge fit ends, when the edges are smeared by motion to near the black
+band's width, with the three rings refitted together under a model of box-blurred rings
+(``blur_fit``, ours; :func:`classical.refine_blurred`, :mod:`markerpose.blurfit`). The
+classical detector's own triples are refined by :meth:`Refiner.triple`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import classical
+from ..marker import Marker
+from ..results import Detection
+
+default_conf = {
+    "method": "ellipsegnet",  # "ellipsegnet" (paper's stage 2), "classical" or "none"
+    "weights": None,  # ellipsegnet: weights file (None: the shipped one)
+    "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
+    "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line (ours), "ellipse" (paper), "moments"
+    "edge_refit": True,  # ellipsegnet: fit the outer edge in the image from the mask's ellipse (ours)
+    "subpixel": True,  # classical fits: sub-pixel edges (False: the paper's contour ellipse)
+    "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
+}
+METHODS = ("ellipsegnet", "classical", "none")
+
+
+class Refiner:
+    """The refine stage with its network (if any).
+
+    Args:
+        conf: :data:`default_conf` with overrides.
+        marker: the marker's geometry.
+        neural: whether the points come from stage 1 (False: the classical detector, which
+            only uses :meth:`triple`).
+    """
+
+    def __init__(self, conf: dict, marker: Marker, neural: bool = True):
+        if conf["method"] not in METHODS:
+            raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
+        self.conf, self.marker = conf, marker
+        self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
+        self.net = None
+        if neural and conf["method"] == "ellipsegnet":
+            from ..ellipses import EllipseNet
+
+            self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]})
+        # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
+        self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
+
+    def __call__(self, grays: list, cameras: list, points: list) -> list:
+        """Per view, the Detection near (points (3, 2), score), or None where None is given."""
+        if self.net is not None:
+            return self._ellipsegnet(grays, cameras, points)
+        out = []
+        for gray, cam, found in zip(grays, cameras, points):
+            if found is None:
+                out.append(None)
+                continue
+            pts, score = found
+            if self.conf["method"] == "none":
+                out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
+                continue
+            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=self.classical, camera=cam)
+            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
+        return out
+
+    def _ellipsegnet(self, grays: list, cameras: list, points: list) -> list:
+        seen = [k for k, f in enumerate(points) if f is not None]  # all patches of all views in one batch
+        refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
+        out = [None] * len(grays)
+        for k, found in zip(seen, refined):
+            centers, ok = found[0], found[1]
+            ellipses = None
+            if self.edge_refit:  # the image's edges, from the mask's ellipses
+                c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, self.classical, camera=cameras[k])
+                if not ok2.all():  # a poor mask: the classical ring fit near the point instead
+                    c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=self.classical, camera=cameras[k])
+                    c2 = np.where(ok2[:, None], c2, c3)
+                    ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
+                    ok2 = ok2 | ok3
+                # Only edge-fitted centres count as refined: a mask's centre can be
+                # pixels off, and a pose from it is wrong by a millimetre.
+                centers, ok = np.where(ok2[:, None], c2, centers), ok2
+            out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
+        return out
+
+    def from_ellipses(self, gray: np.ndarray, camera, ellipses: list, score: float) -> Detection | None:
+        """The rings' edges fitted from predicted outer ellipses (the transfer): a
+        Detection when all three refine, else None."""
+        centers, ok, fitted = classical.refine_ellipses(gray, ellipses, self.marker, self.classical, camera=camera)
+        return Detection(centers=centers, ellipses=fitted, score=score, refined=ok) if ok.all() else None
+
+    def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
+        """The classical detector's triple ``tri`` of a view (gray, noise, rings, ...)
+        refined: sub-pixel edges and the blur fit with ``subpixel``, else the paper's
+        contour ellipses."""
+        gray, noise, rings = view[:3]
+        return classical.refine_triple(gray, rings, tri, cost, self.marker, self.conf["subpixel"], self.classical, noise, camera)
+
+
+__all__ = ["METHODS", "Refiner", "default_conf"]
