@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -11,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .formats import dumps, write_json
 from . import __version__
 from .presets import ORDER
 
@@ -86,7 +86,7 @@ def cmd_render(args):
         "centers": [v.centers.tolist() for v in frame.views],
         "outer_ellipse_centers": [v.outer_centers.tolist() for v in frame.views],
     }
-    (out / "truth.json").write_text(json.dumps(truth, indent=1))
+    write_json(out / "truth.json", truth)
     print(f"wrote {out}/left.png, right.png, truth.json")
     if args.repeat > 1:
         # The first call also builds each camera's undistortion grid (cached afterwards).
@@ -114,10 +114,10 @@ def cmd_estimate(args):
     images = [read_image(p) for p in (args.left, args.right)]
     est = tracker.estimate(*images)
     if est is None:
-        print(json.dumps({"found": False}))
+        print(dumps({"found": False}, None))
         return EXIT_NOT_FOUND
-    print(json.dumps({"found": True, "T_left_marker": est.T.tolist(), "points3d": est.points3d.tolist(),
-                      "centers": est.centers.tolist(), "residual_px": est.residual_px}, indent=1))
+    print(dumps({"found": True, "T_left_marker": est.T, "points3d": est.points3d, "centers": est.centers,
+                 "residual_px": est.residual_px}))
     return 0
 
 
@@ -196,7 +196,7 @@ def cmd_eval_ellipses(args):
                 f"{b['ellipse_median_3d']:.3f} | {b['subpixel_median']:.3f} | {b['subpixel_median_3d']:.3f} |"
             )
     if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1))
+        write_json(args.json, res)
 
 
 def cmd_eval_pipeline(args):
@@ -271,7 +271,7 @@ def cmd_eval_keypoints(args):
             print(f"| {label(w)}{' (paper)' if w == 1.0 else ''}{' (shipped)' if w == shipped else ''} | {r['params']:,} | {r['pair_ms']:.1f} | {r['look_ms']:.1f} |")
         res["speed"] = {label(k): v for k, v in sp.items()}
     if args.json:
-        Path(args.json).write_text(json.dumps(res, indent=1))
+        write_json(args.json, res)
 
 
 def _add_train_args(p, name: str, batch: int, size: int, unit: str):

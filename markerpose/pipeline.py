@@ -1,6 +1,6 @@
 """MarkerPose: two views → propose → match → refine → verify → solve → pose.
 
-The public entry point (DESIGN §3)::
+The public entry point (docs/design.md)::
 
     tracker = MarkerPose(rig, preset="default")   # or "paper", "paper-classical", ...
     est = tracker.estimate(left, right)            # Estimate or None
@@ -11,7 +11,6 @@ The stages live in :mod:`markerpose.stages`; this class only runs them in order.
 
 from __future__ import annotations
 
-import copy
 import time
 
 import numpy as np
@@ -22,48 +21,8 @@ from .geometry import ring_ellipses
 from .images import as_gray, check_size
 from .marker import Marker
 from .results import Detection, Estimate
-from .stages import STAGES, match, propose, refine, solve, verify
+from .stages import match, propose, refine, solve, verify
 from .stages.match import stereo_triples, transfer, transfer_sources, view_triples
-
-DETECTORS = ("neural", "classical")
-
-default_conf = {
-    "detector": "neural",  # "neural" (the paper's networks) or "classical" (paper §3.4)
-    **{name: getattr(stage, "default_conf") for name, stage in zip(STAGES, (propose, match, refine, verify, solve))},
-}
-
-
-def make_conf(preset: str = "default", detector: str | None = None, **overrides) -> dict:
-    """The full configuration: the stages' defaults, the preset's diff, then ``overrides``
-    (``detector`` and one dict per stage); ``ValueError`` for unknown names."""
-    conf = copy.deepcopy(default_conf)
-    if detector is not None and preset == "default":
-        preset = "classical" if detector == "classical" else "default"  # the shorthand
-    for diff in (presets.PRESETS[presets.check(preset)], overrides):
-        for key, value in diff.items():
-            if key not in conf:
-                stage = next((s for s in STAGES if key in default_conf[s]), None)
-                hint = f" (now {stage}={{{key!r}: ...}})" if stage else ""
-                raise ValueError(f"unknown option {key!r}{hint}; known: {sorted(default_conf)}")
-            if key == "detector":
-                conf[key] = value
-                continue
-            if not isinstance(value, dict):
-                raise ValueError(f"{key} takes a dict of settings, got {value!r}")
-            unknown = sorted(set(value) - set(default_conf[key]))
-            if unknown:
-                raise ValueError(f"unknown {key} setting(s) {unknown}; known: {sorted(default_conf[key])}")
-            conf[key].update(value)
-    if detector is not None:
-        conf["detector"] = detector
-    if conf["detector"] not in DETECTORS:
-        raise ValueError(f"unknown detector {conf['detector']!r}; choose from {DETECTORS}")
-    if conf["match"]["method"] not in match.METHODS:
-        raise ValueError(f"unknown ids method {conf['match']['method']!r}; choose from {match.METHODS}")
-    propose.check_conf(conf["propose"])
-    solve.check_conf(conf["solve"])
-    return conf
-
 
 class MarkerPose:
     """Stereo pose of the three-ring marker.
@@ -82,7 +41,7 @@ class MarkerPose:
     def __init__(self, rig: StereoRig, marker: Marker | None = None, preset: str = "default", detector: str | None = None, **overrides):
         if not isinstance(rig, StereoRig):
             raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
-        self.conf = make_conf(preset, detector, **overrides)
+        self.conf = presets.resolve(preset, detector, **overrides)
         self.preset = preset
         self.rig, self.marker = rig, marker or Marker()
         self.timings: dict = {}  # seconds per stage of the last call (see markerpose bench)
@@ -119,7 +78,7 @@ class MarkerPose:
                 from . import classical
 
                 return self._timed("propose", classical.detect, gray, self.marker, self.conf["refine"]["subpixel"], self.refiner.classical)
-            if self.ids == "head" or self.conf["refine"]["method"] == "none":  # the paper's decoding
+            if self.ids == "head" or not self.refiner.gives_ellipses:  # the paper's decoding: one triple
                 return self._timed("refine", self.refiner, [gray], [cam], self._timed("propose", self.proposer.decoded, [gray]))[0]
             for zoom in self.proposer.looks():  # ours: layout triples, best first, until one fits a plate
                 cand = self._timed("propose", self.proposer.candidates, [gray], zoom)[0]
@@ -249,4 +208,4 @@ class MarkerPose:
                     return est
         return None
 
-__all__ = ["DETECTORS", "MarkerPose", "default_conf", "make_conf"]
+__all__ = ["MarkerPose"]

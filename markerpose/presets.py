@@ -3,10 +3,14 @@
 Each preset is a small diff from the stages' defaults (``"default"`` is the empty diff).
 The paper's two configurations stay runnable beside ours, and each ablation preset
 switches off one of our improvements, so every gain is measured in the same run on the
-same frames (DESIGN §5). :data:`ORDER` is the order reports list them in.
+same frames. :data:`ORDER` is the order reports list them in.
 """
 
 from __future__ import annotations
+
+import copy
+
+from .stages import STAGES, match, propose, refine, solve, verify
 
 PAPER_POSE = {"pose": "paper", "bias_correction": False}
 _NO_EDGE = {"edge_refit": False}
@@ -78,4 +82,44 @@ def check(name: str) -> str:
     return name
 
 
-__all__ = ["ABOUT", "ORDER", "PRESETS", "check", "is_neural"]
+DETECTORS = ("neural", "classical")
+
+default_conf = {
+    "detector": "neural",  # "neural" (the paper's networks) or "classical" (paper §3.4)
+    **{name: stage.default_conf for name, stage in zip(STAGES, (propose, match, refine, verify, solve))},
+}
+
+
+def resolve(preset: str = "default", detector: str | None = None, **overrides) -> dict:
+    """The full configuration: the stages' defaults, the preset's diff, then ``overrides``
+    (``detector`` and one dict per stage); ``ValueError`` for unknown names."""
+    conf = copy.deepcopy(default_conf)
+    if detector is not None and preset == "default":
+        preset = "classical" if detector == "classical" else "default"  # the shorthand
+    for diff in (PRESETS[check(preset)], overrides):
+        for key, value in diff.items():
+            if key not in conf:
+                stage = next((s for s in STAGES if key in default_conf[s]), None)
+                hint = f" (now {stage}={{{key!r}: ...}})" if stage else ""
+                raise ValueError(f"unknown option {key!r}{hint}; known: {sorted(default_conf)}")
+            if key == "detector":
+                conf[key] = value
+                continue
+            if not isinstance(value, dict):
+                raise ValueError(f"{key} takes a dict of settings, got {value!r}")
+            unknown = sorted(set(value) - set(default_conf[key]))
+            if unknown:
+                raise ValueError(f"unknown {key} setting(s) {unknown}; known: {sorted(default_conf[key])}")
+            conf[key].update(value)
+    if detector is not None:
+        conf["detector"] = detector
+    if conf["detector"] not in DETECTORS:
+        raise ValueError(f"unknown detector {conf['detector']!r}; choose from {DETECTORS}")
+    if conf["match"]["method"] not in match.METHODS:
+        raise ValueError(f"unknown ids method {conf['match']['method']!r}; choose from {match.METHODS}")
+    propose.check_conf(conf["propose"])
+    solve.check_conf(conf["solve"])
+    return conf
+
+
+__all__ = ["ABOUT", "DETECTORS", "ORDER", "PRESETS", "check", "default_conf", "is_neural", "resolve"]

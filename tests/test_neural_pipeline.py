@@ -165,7 +165,7 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert np.rad2deg(mp.geometry.rotation_angle(est.R, T[:3, :3])) < 0.05
     # The transfer's sources are gated by ring evidence: the default gate lets the
     # marker's own triple through (above); a gate no evidence reaches stops every source.
-    assert mp.pipeline.default_conf["match"]["transfer_min_evidence"] == 0.1
+    assert mp.presets.default_conf["match"]["transfer_min_evidence"] == 0.1
     assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer_min_evidence": 1.01}).estimate(*f.images) is None
 
 
@@ -248,3 +248,14 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     every = mp.MarkerPose(rig, match={"min_evidence": 0.0})._view_triples(empty, cand, 1.0)
     assert len(kept) <= len(every)
     assert tracker.detect(empty) is None
+
+
+@pytest.mark.parametrize("preset", ["neural-layout", "neural-layout-rigid", "neural-stereo"])
+def test_single_view_detect_without_the_edge_fit(rig, preset):
+    """Regression: presets whose refinement gives no ellipses cannot run the plate check;
+    their single views decode one triple (as the paper does) instead of finding nothing."""
+    f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
+    for view in (0, 1):
+        det = mp.MarkerPose(rig, preset=preset).detect(f.images[view], view=view)
+        assert det is not None
+        assert np.linalg.norm(det.centers - f.views[view].outer_centers, axis=1).max() < 1.0

@@ -146,3 +146,44 @@ def test_a_triple_without_the_marker_shape_is_rejected(rig, frame):
     assert shape_error(bad, tracker.marker.points3d) > 2.0
     strict = mp.MarkerPose(rig, detector="classical", verify={"max_shape_error": 1e-6})
     assert strict.estimate(*frame.images) is None  # the check is applied
+
+
+def test_fuzzed_images_raise_value_error_or_give_none(rig):
+    """Images as a user's mistakes come (any dtype, shape, channels, size): a ValueError
+    naming the image, or a result — never another exception, never a pose from nothing."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    tracker = mp.MarkerPose(rig, detector="classical")
+    sizes = st.sampled_from([(0, 0), (8, 8), (1024, 1280), (1280, 1024), (512, 640), (1024, 1279)])
+    dtypes = st.sampled_from([np.uint8, np.uint16, np.int8, np.float32, np.float64, bool])
+    channels = st.sampled_from([None, 1, 2, 3, 4])
+
+    @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+    @given(size=sizes, dtype=dtypes, ch=channels, fill=st.integers(0, 255), other=st.booleans())
+    def check(size, dtype, ch, fill, other):
+        shape = size if ch is None else (*size, ch)
+        img = np.full(shape, fill).astype(dtype)
+        good = np.full((1024, 1280), 128, np.uint8)
+        left, right = (img, good) if other else (good, img)
+        try:
+            est = tracker.estimate(left, right)
+        except ValueError as exc:
+            assert "image" in str(exc)
+        else:
+            assert est is None  # flat images hold no marker
+        try:
+            det = tracker.detect(img, view=0)
+        except ValueError as exc:
+            assert "image" in str(exc)
+        else:
+            assert det is None
+
+    check()
+
+
+@pytest.mark.parametrize("bad", [np.zeros((1024, 1280, 4), np.uint8), np.zeros((512, 640), np.uint8), np.zeros((1280, 1024), np.uint8)])
+def test_detect_checks_the_image_against_the_rig(rig, bad):
+    """A resized, transposed or cropped view is refused rather than detected in the rig's pixel frame."""
+    with pytest.raises(ValueError, match="image"):
+        mp.MarkerPose(rig, detector="classical").detect(bad, view=1)

@@ -12,7 +12,6 @@ view) and the process's peak memory.
 
 from __future__ import annotations
 
-import json
 import resource
 import time
 from pathlib import Path
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..formats import write_json
 from ..camera import StereoRig
 from ..marker import Marker
 from ..pipeline import MarkerPose
@@ -110,7 +110,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         }
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if out:
-        Path(out).write_text(json.dumps(res, indent=1))
+        write_json(out, res)
     return res
 
 

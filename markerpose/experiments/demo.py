@@ -11,15 +11,16 @@ estimated axes on both views.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from ..formats import write_json
 from ..camera import StereoRig
 from ..marker import Marker
 from ..pipeline import MarkerPose
+from ..presets import ABOUT
 from ..synth import Imaging
 from ..viz import draw_axes, draw_centers
 from .configs import DEFAULT, available
@@ -95,9 +96,12 @@ def report_markdown(results: dict, conf: dict, render_s: float) -> str:
     lines += [
         "The paper's rows are real images with a real calibration, print and robot; ours are",
         "synthetic with a perfect calibration, print and robot, so the comparison that is like",
-        "for like is between our configurations, measured here on the same frames.",
+        "for like is between our presets, measured here on the same frames.",
+        "",
+        "**The presets** (`MarkerPose(rig, preset=NAME)`; `default` is what `MarkerPose(rig)` gives):",
         "",
     ]
+    lines += [f"- `{name}`: {ABOUT.get(name, '')}" for name in results] + [""]
     return "\n".join(lines)
 
 
@@ -128,7 +132,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-demo", prog
         results[name] = evaluate(trackers[name], seqs, scene, marker, name=name, progress=progress)
     text = report_markdown(results, conf, render_s)
     (out / "report.md").write_text(text)
-    (out / "results.json").write_text(json.dumps({"conf": conf, "results": results}, indent=1, default=float))
+    write_json(out / "results.json", {"conf": conf, "results": results})
     plot_displacement(results, scene.step, out / "displacement.png")
     plot_rotation(results, scene.rot_step, out / "rotation.png")
     best = trackers.get(DEFAULT, list(trackers.values())[-1])

@@ -17,13 +17,13 @@ centre (they differ by the perspective bias); pose errors against the true pose.
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
+from ..formats import write_json
 from ..camera import StereoRig
 from ..geometry import rotation_angle
 from ..marker import Marker
@@ -251,7 +251,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         res["sets"][name] = out_set
         res["sets"] = {n: res["sets"][n] for n in SETS if n in res["sets"]}
         if out:
-            Path(out).write_text(json.dumps(res, indent=1))
+            write_json(out, res)
 
     if c["workers"] == 1 or len(c["sets"]) == 1:
         for set_name in c["sets"]:

@@ -12,12 +12,29 @@ import numpy as np  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 _MARKERS = ("o", "s", "^", "D", "v")
+# The series a figure shows: the default and the paper's two configurations (and our
+# classical one); every other preset stays in the report's tables, where a dozen lines
+# in one panel would be unreadable.
+PLOTTED = ("default", "paper", "paper-classical", "classical")
+
+
+def _plotted(names) -> list:
+    """The names to draw: those of :data:`PLOTTED` present, in that order (all if none)."""
+    shown = [n for n in PLOTTED if n in names]
+    return shown or list(names)
+
+
+def _legend_below(fig, ax, ncol: int = 5):
+    """One legend for the figure, under the panels, covering no data."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.tight_layout(rect=(0, 0.1, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
 
 
 def plot_displacement(results: dict, step: float, path: Path) -> Path:
-    """Per-pair displacement of each centre for each preset vs the reference (paper Fig. 7)."""
-    names = list(results)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4), sharey=True)
+    """Per-pair displacement of each centre for the plotted presets vs the reference (paper Fig. 7)."""
+    names = _plotted(results)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4.4), sharey=True)
     for c, ax in enumerate(axes):
         for k, name in enumerate(names):
             m = np.asarray(results[name]["displacement"]["measured"], float)
@@ -28,18 +45,17 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("estimated displacement (mm)")
-    axes[0].legend(fontsize=8)
     fig.suptitle("Displacement experiment (10 mm steps)")
-    fig.tight_layout()
+    _legend_below(fig, axes[0])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
 def plot_rotation(results: dict, step: float, path: Path) -> Path:
-    """Per-pair rotation angle for each preset vs the reference (paper Fig. 9)."""
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for k, name in enumerate(results):
+    """Per-pair rotation angle for the plotted presets vs the reference (paper Fig. 9)."""
+    fig, ax = plt.subplots(figsize=(7, 4.6))
+    for k, name in enumerate(_plotted(results)):
         a = np.asarray(results[name]["rotation"]["measured"], float)
         ax.plot(np.arange(1, len(a) + 1), a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name)
     ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g}°")
@@ -48,19 +64,18 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
     ax.set_ylabel("estimated rotation (°)")
     ax.set_title("Rotation experiment (5° steps)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    _legend_below(fig, ax, ncol=3)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
 def plot_detection(levels: dict, path: Path) -> Path:
-    """Detection rate with 95 % intervals versus darkness α and motion blur, per preset (Fig. 10)."""
+    """Detection rate with 95 % intervals versus darkness α and motion blur, per plotted preset (Fig. 10)."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2), sharey=True)
     for ax, kind, label in ((axes[0], "alpha", "darkness α (log scale)"), (axes[1], "blur", "motion blur kernel (px)")):
         xs = [float(v) for v in levels[kind]]
-        names = list(next(iter(levels[kind].values())))
+        names = _plotted(next(iter(levels[kind].values())))
         for k, name in enumerate(names):
             d = [levels[kind][v][name]["detection"] for v in levels[kind]]
             p = np.array([x["p"] for x in d]) * 100
@@ -74,18 +89,17 @@ def plot_detection(levels: dict, path: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("pairs detected (%), 95 % interval")
     axes[0].set_ylim(-2, 102)
-    axes[1].legend(fontsize=7, loc="lower left")
     fig.suptitle("Detection versus darkness and motion blur")
-    fig.tight_layout()
+    _legend_below(fig, axes[1])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
 
 
 def plot_accuracy(per_config: dict, path: Path) -> Path:
-    """Median translation and rotation error by distance and by tilt bin, per preset."""
+    """Median translation and rotation error by distance and by tilt bin, per plotted preset."""
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8))
-    names = list(per_config)
+    names = _plotted(per_config)
     bins = [b["bin"] for b in per_config[names[0]]["by_condition"]]
     x = np.arange(len(bins))
     width = 0.8 / len(names)
@@ -97,10 +111,8 @@ def plot_accuracy(per_config: dict, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
-    handles, labels = axes[0].get_legend_handles_labels()
     fig.suptitle("Absolute pose error by distance (mm) and tilt (°), α = 1")
-    fig.tight_layout(rect=(0, 0.1, 1, 1))
-    fig.legend(handles, labels, loc="lower center", ncol=3, fontsize=7)  # below the bars, hiding none
+    _legend_below(fig, axes[0])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -24,7 +24,6 @@ beside ours), ``results.json`` (every value), ``displacement.png``, ``rotation.p
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from ..formats import write_json
 from ..camera import StereoRig
 from ..marker import Marker
 from ..pipeline import MarkerPose
@@ -333,7 +333,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-experiments
     out.mkdir(parents=True, exist_ok=True)
     text = report(res)
     (out / "report.md").write_text(text)
-    (out / "results.json").write_text(json.dumps(res, indent=1, default=float))
+    write_json(out / "results.json", res)
     scene = RobotScene()
     plot_displacement(robot["trial0"], scene.step, out / "displacement.png")
     plot_rotation(robot["trial0"], scene.rot_step, out / "rotation.png")

@@ -1,4 +1,4 @@
-"""The pipeline's stages, in the order the data flows through them (DESIGN §4):
+"""The pipeline's stages, in the order the data flows through them (docs/design.md):
 
 propose (:mod:`.propose`) → match (:mod:`.match`) → refine (:mod:`.refine`) →
 verify (:mod:`.verify`) → solve (:mod:`.solve`).

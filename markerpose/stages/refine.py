@@ -58,6 +58,8 @@ class Refiner:
             self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]})
         # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
+        # Whether refined detections carry the rings' ellipses (what the plate check needs).
+        self.gives_ellipses = self.edge_refit or conf["method"] == "classical"
 
     def __call__(self, grays: list, cameras: list, points: list) -> list:
         """Per view, the Detection near (points (3, 2), score), or None where None is given."""

@@ -7,7 +7,6 @@ Each network brings its batches, its loss and its validation (see
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -15,6 +14,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 from tqdm import tqdm
+
+from ..formats import write_json
 
 
 def fit(
@@ -96,7 +97,7 @@ def fit(
             {**weights, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1, "history": history, "best": best},
             out / "last.pt",
         )
-        (out / "history.json").write_text(json.dumps(history, indent=1, default=float))
+        write_json(out / "history.json", history)
     if not (out / "best.pt").is_file():  # e.g. resumed after the last epoch
         torch.save({"state_dict": net.state_dict(), "conf": conf, "metrics": history[-1] if history else {}, **(extra or {})}, out / "best.pt")
     return out / "best.pt"
