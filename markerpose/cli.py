@@ -141,19 +141,29 @@ def cmd_experiments(args):
     reproduce.main(conf, args.out, progress=not args.quiet)
 
 
+def _need_torch():
+    import importlib.util
+
+    for name in ("torch", "onnx"):
+        if importlib.util.find_spec(name) is None:
+            raise ValueError(f"training needs {name}: pip install -e \".[train]\" (on a CPU machine, torch from the CPU index first; see the README)")
+
+
 def _train(module, args, keys: tuple, **export_kw):
     conf = {k: getattr(args, k) for k in keys}
     t0 = time.perf_counter()
     best = module.main(conf, args.out, resume=args.resume, data_dir=args.data)
     print(f"best checkpoint: {best} ({(time.perf_counter() - t0) / 60:.1f} min)")
     if args.export:
-        print(f"exported the weights to {module.export(best, args.export, **export_kw)}")
+        dest = module.export(best, args.export, **export_kw)
+        print(f"exported the weights to {dest} and {dest.with_suffix('.onnx')}")
 
 
 _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size", "seed", "workers", "device", "init")
 
 
 def cmd_train_keypoints(args):
+    _need_torch()
     from .train import keypoints
 
     if args.retune:  # no training: the checkpoint's decoding thresholds tuned afresh
@@ -161,13 +171,14 @@ def cmd_train_keypoints(args):
             raise SystemExit("--retune needs --export (where to write the re-tuned weights)")
         t0 = time.perf_counter()
         dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size, negatives=args.val_negatives)
-        print(f"exported the weights to {dest} ({(time.perf_counter() - t0) / 60:.1f} min)")
+        print(f"exported the weights to {dest} and {dest.with_suffix('.onnx')} ({(time.perf_counter() - t0) / 60:.1f} min)")
         return
     _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size,
            negatives=args.val_negatives)
 
 
 def cmd_train_ellipses(args):
+    _need_torch()
     from .train import ellipses
 
     _train(ellipses, args, _TRAIN_KEYS)

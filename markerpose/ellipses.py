@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from .geometry import ring_diameter
-from .nets import fuse_batchnorm, load_checkpoint, load_weights
+from .nets import load_network
 
 PATCH = 120
 ENC_WIDTHS = (16, 16, 32, 32, 64, 64, 64, 64)
@@ -205,43 +205,36 @@ def mask_center(prob: np.ndarray, fit: str = "subpixel", threshold: float = 0.5,
 
 
 # --- the stage-2 model -------------------------------------------------------------------
-WEIGHTS_DIR = Path(__file__).parent / "weights"
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    """The logistic function, float32, without overflow warnings for large negative x."""
+    x = np.asarray(x, np.float32)
+    e = np.exp(-np.abs(x))
+    return np.where(x >= 0, 1 / (1 + e), e / (1 + e)).astype(np.float32)
+
 
 
 class EllipseNet:
     """EllipSegNet with its weights: rough centres → sub-pixel centres.
 
     Args:
-        weights: a checkpoint path or None for the shipped default.
+        weights: an ``.onnx`` file (ONNX Runtime) or a ``.pt`` checkpoint (PyTorch), or
+            None for the shipped default (:func:`markerpose.nets.default_weights`).
         conf: overrides of :data:`default_conf`.
-        device: torch device.
+        device: torch device (``.pt`` weights only).
+        threads: ONNX Runtime's threads (None: its default, every core).
     """
 
-    default_weights = WEIGHTS_DIR / "ellipses.pt"
-
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu"):
-        import torch
-
-        path = Path(weights) if weights is not None else self.default_weights
-        ckpt = load_checkpoint(path, "ellipses", device)
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", threads: int | None = None):
         self.conf = {**default_conf, **(conf or {})}
         for key, allowed in (("patch", PATCH_MODES), ("fit", FITS)):
             if self.conf[key] not in allowed:
                 raise ValueError(f"unknown {key} {self.conf[key]!r}; choose from {allowed}")
-        self.net = build_network().to(device).eval()
-        load_weights(self.net, ckpt["state_dict"], path)
-        fuse_batchnorm(self.net)
-        # Channels-last convolutions run faster on the CPU (same outputs to ~1e-6).
-        self.net = self.net.to(memory_format=torch.channels_last)
-        self.device = device
+        self.runner, self.meta, self.path = load_network(weights, "ellipses", lambda meta: build_network(), threads, device)
 
     def probabilities(self, patches: np.ndarray) -> np.ndarray:
         """(N, 120, 120) uint8 patches → (N, 120, 120) float32 mask probabilities."""
-        import torch
-
-        with torch.inference_mode():
-            x = torch.from_numpy(patches.astype(np.float32) / 255.0)[:, None].to(self.device)
-            return torch.sigmoid(self.net(x))[:, 0].float().cpu().numpy()
+        (logits,) = self.runner(patches.astype(np.float32)[:, None] / 255.0)
+        return sigmoid(logits[:, 0])
 
     def __call__(self, grays: list[np.ndarray], points: list[np.ndarray], marker, with_ellipses: bool = False) -> list[tuple]:
         """Sub-pixel centres for rough centres in several images, all patches in one batch.

@@ -25,7 +25,7 @@ from .decode import CELL, ID_MODES, candidates, decode
 from .decode import default_conf as decode_defaults
 from .evidence import ring_evidence
 from .marker import Marker
-from .nets import fuse_batchnorm, load_checkpoint, load_weights
+from .nets import load_network
 
 INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
 PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
@@ -130,7 +130,8 @@ class KeypointNet:
     """Stage 1 with its weights: full-resolution images → ring centres by ID.
 
     Args:
-        weights: a checkpoint path (``.pt``) or None for the shipped default.
+        weights: an ``.onnx`` file (ONNX Runtime) or a ``.pt`` checkpoint (PyTorch), or
+            None for the shipped default (:func:`markerpose.nets.default_weights`).
         conf: decoding overrides of :data:`decode_defaults`; ``width`` and ``stem_width``
             come from the checkpoint.
         device: torch device ("cpu" by default; "cuda" when wanted and present).
@@ -139,24 +140,23 @@ class KeypointNet:
         stereo: use the thresholds tuned for views of a stereo pair (a looser
             false-positive budget, as the pair's epipolar and shape checks reject false
             triples) when the checkpoint has them; else those for single images.
+        threads: ONNX Runtime's threads (None: its default, every core).
     """
 
-    default_weights = WEIGHTS_DIR / "keypoints.pt"
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", marker: Marker | None = None,
+                 stereo: bool = False, threads: int | None = None):
+        def build(meta):
+            return build_network(float(meta["width"]), meta.get("stem_width"))
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", marker: Marker | None = None, stereo: bool = False):
-        path = Path(weights) if weights is not None else self.default_weights
-        ckpt = load_checkpoint(path, "keypoints", device, required=("state_dict", "width"))
+        self.runner, meta, self.path = load_network(weights, "keypoints", build, threads, device, required=("state_dict", "width"))
+        if "width" not in meta:
+            raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
         # Decoding thresholds: the defaults, those tuned for this ID mode and operating
         # point when the weights were exported (keyed by tuned_key), then the caller's.
-        self.tuned = ckpt.get("decode", {})
+        self.tuned = meta.get("decode", {})
         self.conf = self.decode_conf(conf, stereo)
-        self.conf["width"] = float(ckpt["width"])
-        self.conf["stem_width"] = ckpt.get("stem_width")
-        self.net = build_network(self.conf["width"], self.conf["stem_width"]).to(device).eval()
-        load_weights(self.net, ckpt["state_dict"], path)
-        fuse_batchnorm(self.net)
-        self.device = device
-        self.path = path
+        self.conf["width"] = float(meta["width"])
+        self.conf["stem_width"] = meta.get("stem_width")
         self.marker = marker or _MARKER
 
     def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
@@ -178,12 +178,8 @@ class KeypointNet:
 
     def logits(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(B, H, W) float32 inputs → (det (B, 65, Hc, Wc), ids (B, 4, Hc, Wc)) logits."""
-        import torch
-
-        with torch.inference_mode():
-            x = torch.from_numpy(np.ascontiguousarray(batch, np.float32))[:, None].to(self.device)
-            det, ids = self.net(x)
-        return det.float().cpu().numpy(), ids.float().cpu().numpy()
+        det, ids = self.runner(np.asarray(batch, np.float32)[:, None])
+        return det, ids
 
     def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
         """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),

@@ -1,10 +1,23 @@
-"""What both networks share at inference: loading a weights file safely, and batch norm
-folded into the convolutions."""
+"""What both networks share at inference: loading a weights file safely and running it.
+
+A network ships twice in ``markerpose/weights/``: ``NAME.onnx`` for inference with ONNX
+Runtime (no PyTorch needed; the decoding thresholds tuned at export ride in the model's
+metadata) and ``NAME.pt`` for training (``--init``, ``--retune``). :func:`load_network`
+takes either and returns a :class:`Runner` that maps numpy inputs to numpy outputs.
+"""
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import zipfile
 from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+WEIGHTS_DIR = Path(__file__).parent / "weights"
+META_KEY = "markerpose"  # the ONNX metadata entry holding the file's non-weight contents
 
 # The format of the exported weights files (``--export``): a ``format`` entry names the
 # network and this number, so a file of the other network, of an older export or not of
@@ -77,4 +90,120 @@ def fuse_batchnorm(net):
     return net
 
 
-__all__ = ["FORMAT", "fuse_batchnorm", "load_checkpoint", "load_weights"]
+def have_onnxruntime() -> bool:
+    return importlib.util.find_spec("onnxruntime") is not None
+
+
+def default_weights(kind: str) -> Path:
+    """The shipped file of the ``kind`` network: the ONNX one where ONNX Runtime is
+    installed (the default install), else the PyTorch one."""
+    return WEIGHTS_DIR / f"{kind}.onnx" if have_onnxruntime() else WEIGHTS_DIR / f"{kind}.pt"
+
+
+class Runner:
+    """A network ready for inference: ``runner(x)`` with x (B, 1, H, W) float32 → tuple of
+    float32 outputs. ``backend`` is "onnxruntime" or "torch"."""
+
+    def __init__(self, fn: Callable, backend: str):
+        self._fn, self.backend = fn, backend
+
+    def __call__(self, x: np.ndarray) -> tuple:
+        return self._fn(np.ascontiguousarray(x, np.float32))
+
+
+def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, dict]:
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:
+        raise ValueError(f"{path}: ONNX weights need onnxruntime (pip install onnxruntime)") from exc
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+    opts.inter_op_num_threads = 1
+    # Idle worker threads would otherwise spin after each run, taking the CPU from the
+    # rest of the pipeline (and from other sessions, e.g. the other network).
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # ORT raises its own exception types for unreadable models
+        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{path} is not a readable ONNX model ({first})") from exc
+    raw = session.get_modelmeta().custom_metadata_map.get(META_KEY)
+    try:
+        meta = json.loads(raw) if raw else {}
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: its {META_KEY!r} metadata is not JSON") from exc
+    if meta.get("format") != {"network": kind, "version": FORMAT}:
+        raise ValueError(f"{path} is not a markerpose {kind} model of format {FORMAT}: its format is {meta.get('format')}")
+    name = session.get_inputs()[0].name
+
+    def run(x):
+        return tuple(session.run(None, {name: x}))
+
+    return Runner(run, "onnxruntime"), meta
+
+
+def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device: str, required: tuple) -> tuple[Runner, dict]:
+    import torch
+
+    ckpt = load_checkpoint(path, kind, device, required=required)
+    net = build(ckpt).to(device).eval()
+    load_weights(net, ckpt["state_dict"], path)
+    fuse_batchnorm(net)
+
+    def run(x):
+        with torch.inference_mode():
+            out = net(torch.from_numpy(x).to(device))
+        out = out if isinstance(out, tuple) else (out,)
+        return tuple(o.float().cpu().numpy() for o in out)
+
+    return Runner(run, "torch"), {k: v for k, v in ckpt.items() if k != "state_dict"}
+
+
+def load_network(path: str | Path | None, kind: str, build: Callable[[dict], object], threads: int | None = None,
+                 device: str = "cpu", required: tuple = ("state_dict",)) -> tuple[Runner, dict, Path]:
+    """A network and what its file says besides the weights (format, width, tuned
+    thresholds, metrics), from an ``.onnx`` file (ONNX Runtime) or a ``.pt`` one (PyTorch).
+
+    Args:
+        path: the file (None: :func:`default_weights`).
+        kind: "keypoints" or "ellipses".
+        build: meta → the torch module to load ``.pt`` weights into.
+        threads: ONNX Runtime's intra-op threads (None: its default, every core).
+    Returns:
+        (runner, meta, path).
+    """
+    path = Path(path) if path is not None else default_weights(kind)
+    if not path.is_file():
+        raise ValueError(f"{kind} weights not found: {path} (train them with `markerpose train {kind}`)")
+    if path.suffix == ".onnx":
+        return (*_onnx_runner(path, kind, threads), path)
+    return (*_torch_runner(path, kind, build, device, required), path)
+
+
+def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: dict, output_names: tuple,
+                dynamic_hw: bool = False) -> Path:
+    """Write an inference copy of a torch network (eval mode, batch norm folded) as ONNX,
+    with ``meta`` (JSON) and the format entry in its metadata. Needs ``onnx`` (the train extra)."""
+    import onnx
+    import torch
+
+    path = Path(path)
+    axes = {0: "batch", **({2: "height", 3: "width"} if dynamic_hw else {})}
+    dynamic = {"image": axes, **{n: axes for n in output_names}}
+    import warnings
+
+    with torch.no_grad(), warnings.catch_warnings():
+        # The TorchScript exporter needs no onnxscript; its deprecation notice is not for users.
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(net, torch.zeros(example_shape), str(path), input_names=["image"], output_names=list(output_names),
+                          dynamic_axes=dynamic, opset_version=17, dynamo=False)
+    model = onnx.load(str(path))
+    entry = model.metadata_props.add()
+    entry.key, entry.value = META_KEY, json.dumps({"format": {"network": kind, "version": FORMAT}, **meta})
+    onnx.save(model, str(path))
+    return path
+
+
+__all__ = ["FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_onnxruntime", "load_checkpoint",
+           "load_network", "load_weights"]

@@ -34,6 +34,7 @@ class MarkerPose:
             "paper-classical", ...).
         detector: "neural" or "classical": shorthand for the presets "default" and
             "classical" (with another preset: that preset with this detector).
+        threads: (in ``overrides``) the networks' inference threads (None: every core).
         **overrides: one dict of settings per stage (``propose``, ``match``, ``refine``,
             ``verify``, ``solve``; see each stage's ``default_conf``), applied over the preset.
     """
@@ -48,8 +49,8 @@ class MarkerPose:
         c = self.conf
         neural = c["detector"] == "neural"
         self.ids = c["match"]["method"] if neural else "classical"
-        self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids) if neural else None
-        self.refiner = refine.Refiner(c["refine"], self.marker, neural)
+        self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
+        self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
 
     def __repr__(self):
         return f"MarkerPose(preset={self.preset!r}, conf={self.conf!r})"

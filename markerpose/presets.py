@@ -86,6 +86,7 @@ DETECTORS = ("neural", "classical")
 
 default_conf = {
     "detector": "neural",  # "neural" (the paper's networks) or "classical" (paper §3.4)
+    "threads": None,  # the networks' inference threads (ONNX Runtime; None: every core)
     **{name: stage.default_conf for name, stage in zip(STAGES, (propose, match, refine, verify, solve))},
 }
 
@@ -102,7 +103,7 @@ def resolve(preset: str = "default", detector: str | None = None, **overrides) -
                 stage = next((s for s in STAGES if key in default_conf[s]), None)
                 hint = f" (now {stage}={{{key!r}: ...}})" if stage else ""
                 raise ValueError(f"unknown option {key!r}{hint}; known: {sorted(default_conf)}")
-            if key == "detector":
+            if key in ("detector", "threads"):
                 conf[key] = value
                 continue
             if not isinstance(value, dict):
@@ -113,6 +114,8 @@ def resolve(preset: str = "default", detector: str | None = None, **overrides) -
             conf[key].update(value)
     if detector is not None:
         conf["detector"] = detector
+    if conf["threads"] is not None and not (isinstance(conf["threads"], int) and conf["threads"] >= 1):
+        raise ValueError(f"threads must be a whole number >= 1 or None, got {conf['threads']!r}")
     if conf["detector"] not in DETECTORS:
         raise ValueError(f"unknown detector {conf['detector']!r}; choose from {DETECTORS}")
     if conf["match"]["method"] not in match.METHODS:

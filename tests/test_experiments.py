@@ -152,7 +152,6 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
 
     from markerpose import cli
 
-    pytest.importorskip("torch")
     assert cli.main(["render", "--out", str(tmp_path), "--tilt", "25", "--seed", "3"]) == 0
     capsys.readouterr()
     assert cli.main(["estimate", str(tmp_path / "left.png"), str(tmp_path / "right.png")]) == 0

@@ -8,6 +8,7 @@ from markerpose import decode as dec
 from markerpose import evidence as evidence_mod
 from markerpose import geometry as geo
 from markerpose import keypoints as kp
+from markerpose.nets import default_weights
 from markerpose.train import keypoints as tk
 
 torch = pytest.importorskip("torch")
@@ -217,7 +218,7 @@ def test_missing_weights_is_a_clear_error(tmp_path):
 
 
 # --- the shipped weights on rendered views ------------------------------------------------------
-shipped = pytest.mark.skipif(not kp.KeypointNet.default_weights.is_file(), reason="no shipped stage-1 weights")
+shipped = pytest.mark.skipif(not default_weights("keypoints").is_file(), reason="no shipped stage-1 weights")
 
 
 @shipped

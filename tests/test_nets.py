@@ -46,3 +46,23 @@ def test_fused_network_gives_the_same_outputs(build, shape):
 def test_fusing_a_network_in_training_mode_is_an_error():
     with pytest.raises(ValueError, match="eval"):
         fuse_batchnorm(kp.build_network(0.25))
+
+
+def test_onnx_and_torch_give_the_same_centres():
+    """The shipped ONNX files (inference) and .pt files (training) are the same networks:
+    the pipeline's centres agree to 1e-3 px on fixed rendered pairs."""
+    import markerpose as mp
+    from markerpose.nets import WEIGHTS_DIR
+    from markerpose.synth import Imaging, look_at_pose, render_stereo
+
+    rig = mp.StereoRig.default()
+    onnx = mp.MarkerPose(rig, propose={"weights": WEIGHTS_DIR / "keypoints.onnx"}, refine={"weights": WEIGHTS_DIR / "ellipses.onnx"})
+    pt = mp.MarkerPose(rig, propose={"weights": WEIGHTS_DIR / "keypoints.pt"}, refine={"weights": WEIGHTS_DIR / "ellipses.pt"})
+    assert onnx.proposer.net.runner.backend == "onnxruntime" and pt.proposer.net.runner.backend == "torch"
+    for seed, pose in enumerate(([10, 0, 600], [-40, 30, 450], [0, -20, 750])):
+        f = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
+        a, b = onnx.estimate(*f.images), pt.estimate(*f.images)
+        assert a is not None and b is not None
+        np.testing.assert_allclose(a.centers, b.centers, atol=1e-3)
+        np.testing.assert_allclose(a.T, b.T, atol=1e-4)
+

@@ -8,13 +8,12 @@ import numpy as np
 import pytest
 
 import markerpose as mp
-from markerpose.ellipses import EllipseNet
-from markerpose.keypoints import KeypointNet
+from markerpose.nets import default_weights
 from markerpose.synth import Imaging, look_at_pose, render_stereo
 
-pytest.importorskip("torch")
+# The networks run on ONNX Runtime (a core dependency) or, with .pt weights, on PyTorch.
 pytestmark = pytest.mark.skipif(
-    not (KeypointNet.default_weights.is_file() and EllipseNet.default_weights.is_file()), reason="no shipped weights"
+    not (default_weights("keypoints").is_file() and default_weights("ellipses").is_file()), reason="no shipped weights"
 )
 
 
@@ -259,3 +258,21 @@ def test_single_view_detect_without_the_edge_fit(rig, preset):
         det = mp.MarkerPose(rig, preset=preset).detect(f.images[view], view=view)
         assert det is not None
         assert np.linalg.norm(det.centers - f.views[view].outer_centers, axis=1).max() < 1.0
+
+
+def test_broken_onnx_files_fail_at_load(tmp_path):
+    from markerpose.ellipses import EllipseNet
+    from markerpose.keypoints import KeypointNet
+    from markerpose.nets import WEIGHTS_DIR
+
+    (tmp_path / "junk.onnx").write_bytes(b"\x00" * 100)
+    with pytest.raises(ValueError, match="not a readable ONNX model"):
+        KeypointNet(tmp_path / "junk.onnx")
+    with pytest.raises(ValueError, match="not a markerpose keypoints model of format"):
+        KeypointNet(WEIGHTS_DIR / "ellipses.onnx")
+    with pytest.raises(ValueError, match="not a markerpose ellipses model of format"):
+        EllipseNet(WEIGHTS_DIR / "keypoints.onnx")
+    cut = tmp_path / "cut.onnx"
+    cut.write_bytes((WEIGHTS_DIR / "keypoints.onnx").read_bytes()[:50000])
+    with pytest.raises(ValueError, match="not a readable ONNX model"):
+        KeypointNet(cut)

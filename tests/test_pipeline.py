@@ -17,8 +17,6 @@ def rig():
 @pytest.fixture(scope="module", params=["neural", "classical"])
 def detector(request):
     """The contract holds for both detectors (neural is the default)."""
-    if request.param == "neural":
-        pytest.importorskip("torch")
     return request.param
 
 
@@ -43,7 +41,6 @@ def test_estimate_contract_and_accuracy(rig, frame):
 
 
 def test_default_detector_is_neural(rig):
-    pytest.importorskip("torch")
     assert mp.MarkerPose(rig).conf["detector"] == "neural"
 
 

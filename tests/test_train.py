@@ -119,6 +119,12 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     assert all(tuned[k][key] == dec.default_conf[key] for k in tuned if tuned[k].get("align") for key in ("align_top", "align_orders", "align_cc_power"))
     assert kp.KeypointNet(slim, {"verify": True, "align": True}).conf["min_score"] == tuned["layout_verify_align"]["min_score"]
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1
+    # The export writes the ONNX copy inference loads: same thresholds, same logits.
+    onnx_net = kp.KeypointNet(slim.with_suffix(".onnx"), {"verify": True, "align": True})
+    assert onnx_net.runner.backend == "onnxruntime" and onnx_net.conf["min_score"] == tuned["layout_verify_align"]["min_score"]
+    x = np.random.default_rng(0).random((2, 240, 320), np.float32)
+    for a, b in zip(net.logits(x), onnx_net.logits(x)):
+        np.testing.assert_allclose(a, b, atol=1e-4)
 
 
 def test_training_window_keeps_the_marker_and_shifts_its_points():
@@ -144,6 +150,7 @@ def test_training_window_keeps_the_marker_and_shifts_its_points():
 def test_training_window_option():
     """--window W H reaches the training conf as given; windows that are not multiples of 8
     within 320x240 are refused before any rendering; crop honours the size."""
+    pytest.importorskip("torch")
     from markerpose import cli
     from markerpose.train import keypoints as tk
 

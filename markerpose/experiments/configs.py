@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 
-from ..ellipses import EllipseNet
-from ..keypoints import KeypointNet
+from ..nets import default_weights, have_onnxruntime
 from ..presets import ORDER, PRESETS, is_neural
 
 DEFAULT = "default"
@@ -17,7 +16,8 @@ def available(names=None) -> list[str]:
     unknown = [n for n in (names or ()) if n not in PRESETS]
     if unknown:
         raise ValueError(f"unknown preset(s) {unknown}; known: {list(ORDER)}")
-    nets = importlib.util.find_spec("torch") is not None and KeypointNet.default_weights.is_file() and EllipseNet.default_weights.is_file()
+    runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
+    nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
     return [n for n in ORDER if (names is None or n in names) and (nets or not is_neural(n))]
 
 

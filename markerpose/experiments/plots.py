@@ -38,7 +38,7 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
     for c, ax in enumerate(axes):
         for k, name in enumerate(names):
             m = np.asarray(results[name]["displacement"]["measured"], float)
-            ax.plot(np.arange(1, len(m) + 1), m[:, c], marker=_MARKERS[k % 5], ms=4, lw=1, label=name)
+            ax.plot(np.arange(1, len(m) + 1), m[:, c], marker=_MARKERS[k % 5], ms=4, lw=1, label=name, zorder=3 + len(names) - k)
         ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g} mm")
         ax.set_title(f"centre c{c}")
         ax.set_xlabel("pair of consecutive frames")
@@ -55,9 +55,10 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
 def plot_rotation(results: dict, step: float, path: Path) -> Path:
     """Per-pair rotation angle for the plotted presets vs the reference (paper Fig. 9)."""
     fig, ax = plt.subplots(figsize=(7, 4.6))
-    for k, name in enumerate(_plotted(results)):
+    names = _plotted(results)
+    for k, name in enumerate(names):  # the first (the default) drawn on top
         a = np.asarray(results[name]["rotation"]["measured"], float)
-        ax.plot(np.arange(1, len(a) + 1), a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name)
+        ax.plot(np.arange(1, len(a) + 1), a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name, zorder=3 + len(names) - k)
     ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g}°")
     ax.set_xlabel("pair of consecutive frames")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))

@@ -47,14 +47,14 @@ class NeuralProposer:
             one triple per view (:meth:`decoded`), "stereo" uses :meth:`candidates`.
     """
 
-    def __init__(self, conf: dict, marker: Marker, ids: str):
+    def __init__(self, conf: dict, marker: Marker, ids: str, threads: int | None = None):
         from ..keypoints import KeypointNet
 
         self.conf = check_conf(conf)
         decoding = {"ids": "layout" if ids == "stereo" else ids}
         if ids != "stereo":
             decoding["second_look"] = float(conf["second_look"])
-        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True)
+        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True, threads=threads)
 
     def looks(self) -> tuple[float, ...]:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""

@@ -46,7 +46,7 @@ class Refiner:
             only uses :meth:`triple`).
     """
 
-    def __init__(self, conf: dict, marker: Marker, neural: bool = True):
+    def __init__(self, conf: dict, marker: Marker, neural: bool = True, threads: int | None = None):
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
@@ -55,7 +55,7 @@ class Refiner:
         if neural and conf["method"] == "ellipsegnet":
             from ..ellipses import EllipseNet
 
-            self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]})
+            self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]}, threads=threads)
         # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
         # Whether refined detections carry the rings' ellipses (what the plate check needs).

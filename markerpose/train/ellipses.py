@@ -30,6 +30,7 @@ from .data import cached as data_cache
 from .data import draw as draw_value
 from .data import render_many
 from .loop import export as export_checkpoint
+from .loop import to_onnx
 from .loop import fit
 from .scenes import FULL_SIZES, _loguniform, _occluders, random_imaging
 
@@ -188,10 +189,17 @@ def cached(path: Path, *, n: int, seed: int, conf: dict | None = None, workers: 
 
 # --- evaluation --------------------------------------------------------------------------
 def predict(net, images: np.ndarray, batch: int = 64, device="cpu") -> np.ndarray:
-    """(N, 120, 120) uint8 → (N, 120, 120) float32 probabilities."""
-    import torch
+    """(N, 120, 120) uint8 → (N, 120, 120) float32 probabilities. ``net``: a torch module,
+    or a :class:`markerpose.nets.Runner` (ONNX Runtime or torch)."""
+    from ..nets import Runner
 
     out = []
+    if isinstance(net, Runner):
+        for k in range(0, len(images), batch):
+            out.append(es.sigmoid(net(images[k : k + batch].astype(np.float32)[:, None] / 255.0)[0][:, 0]))
+        return np.concatenate(out)
+    import torch
+
     net.eval()
     with torch.inference_mode():
         for k in range(0, len(images), batch):
@@ -299,8 +307,10 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/ellipses", resume
 
 
 def export(checkpoint: str | Path, dest: str | Path) -> Path:
-    """The inference part of an EllipSegNet checkpoint."""
-    return export_checkpoint(checkpoint, dest, "ellipses")
+    """The inference part of an EllipSegNet checkpoint (``dest``), and its ONNX copy beside it."""
+    dest = export_checkpoint(checkpoint, dest, "ellipses")
+    to_onnx(dest)
+    return dest
 
 
 def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2) -> dict:
@@ -311,7 +321,7 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         seed, n, conf = TEST_SETS[name]
         data = cached(Path(data_dir) / f"es_test_{name}.npz", n=n, seed=seed, conf=conf, workers=workers, desc=f"render {name}")
         t0 = time.perf_counter()
-        probs = predict(model.net, data["image"])
+        probs = predict(model.runner, data["image"])
         seconds = (time.perf_counter() - t0) / n
         r = score(probs, data, detail=True)
         r["by_condition"] = by_condition(data, r)

@@ -29,6 +29,7 @@ from .augment import augment
 from .data import cached as data_cache
 from .data import render_many
 from .loop import export as export_checkpoint
+from .loop import to_onnx
 from .loop import fit
 from .scenes import sample
 
@@ -142,10 +143,19 @@ def cached(path: Path, *, n: int, seed: int, conf: dict | None = None, workers: 
 
 # --- evaluation ------------------------------------------------------------------------
 def logits(net, images: np.ndarray, batch: int = 32, device="cpu") -> tuple[np.ndarray, np.ndarray]:
-    """Both heads' logits for a (N, 240, 320) uint8 stack: (N, 65, 30, 40), (N, 4, 30, 40)."""
-    import torch
+    """Both heads' logits for a (N, 240, 320) uint8 stack: (N, 65, 30, 40), (N, 4, 30, 40).
+    ``net``: a torch module, or a :class:`markerpose.nets.Runner` (ONNX Runtime or torch)."""
+    from ..nets import Runner
 
     dets, ids = [], []
+    if isinstance(net, Runner):
+        for k in range(0, len(images), batch):
+            d, i = net(images[k : k + batch].astype(np.float32)[:, None] / 255.0)
+            dets.append(d)
+            ids.append(i)
+        return np.concatenate(dets), np.concatenate(ids)
+    import torch
+
     net.eval()
     with torch.inference_mode():
         for k in range(0, len(images), batch):
@@ -548,6 +558,7 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
         slim["decode"][name + "_look"] = dc
         print(f"second look tuned on the validation set ({name}_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
     torch.save(slim, dest)
+    to_onnx(dest)  # what inference loads: the same network and thresholds
     return dest
 
 
@@ -573,12 +584,12 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         seed, n, conf = TEST_SETS[name]
         data = cached(Path(data_dir) / f"kp_test_{name}.npz", n=n, seed=seed, conf=conf, workers=workers, desc=f"render {name}")
         t0 = time.perf_counter()
-        det, id_logits = logits(net.net, data["image"])
+        det, id_logits = logits(net.runner, data["image"])
         t_net = time.perf_counter() - t0
         diag = candidate_recall(det, id_logits, data, net.conf)
         for mode, dc in confs.items():
             t0 = time.perf_counter()
-            preds = look_again(net.net, data["image"], decode_all(det, id_logits, data["image"], dc, desc=f"{name} {mode}"), dc,
+            preds = look_again(net.runner, data["image"], decode_all(det, id_logits, data["image"], dc, desc=f"{name} {mode}"), dc,
                                desc=f"{name} {mode} look")
             res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n,
                                "by_ring_size": by_ring_size(preds, data)}

@@ -121,4 +121,34 @@ def export(checkpoint: str | Path, dest: str | Path, kind: str, keep: tuple = ()
     return dest
 
 
-__all__ = ["export", "fit"]
+
+
+
+def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
+    """The ONNX copy of an exported ``.pt`` weights file (what inference loads by default):
+    the network with batch norm folded, and the file's other contents (format, width,
+    tuned thresholds, metrics) in the model's metadata. ``dest`` defaults to the same
+    name with ``.onnx``."""
+    from .. import ellipses as es
+    from .. import keypoints as kp
+    from ..nets import export_onnx, fuse_batchnorm, load_checkpoint, load_weights
+
+    weights = Path(weights)
+    import torch
+
+    try:
+        kind = torch.load(weights, map_location="cpu", weights_only=True)["format"]["network"]
+    except Exception as exc:
+        raise ValueError(f"{weights} is not an exported markerpose weights file (`markerpose train ... --export`)") from exc
+    ckpt = load_checkpoint(weights, kind)
+    if kind == "keypoints":
+        net, shape, outputs, dynamic = kp.build_network(float(ckpt["width"]), ckpt.get("stem_width")), (1, 1, 240, 320), ("det", "ids"), True
+    else:
+        net, shape, outputs, dynamic = es.build_network(), (1, 1, es.PATCH, es.PATCH), ("logits",), False
+    net.eval()
+    load_weights(net, ckpt["state_dict"], weights)
+    fuse_batchnorm(net)
+    meta = {k: v for k, v in ckpt.items() if k not in ("state_dict", "format")}
+    dest = Path(dest) if dest is not None else weights.with_suffix(".onnx")
+    return export_onnx(net, dest, shape, kind, meta, outputs, dynamic_hw=dynamic)
+__all__ = ["export", "fit", "to_onnx"]
