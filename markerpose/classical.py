@@ -95,6 +95,9 @@ default_conf: dict = {
     "blur_fit": True,  # refit wide-edged (motion-blurred) rings with a blurred-image model (ours)
     "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
     #                         fraction of the smallest outer minor semi-axis
+    "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
+    #                               refit rings the edge fit found; a tracker's prediction
+    #                               that missed the rings then fails fast)
     "blur_fit_max_move": 3.0,  # ... keeping the edge fit if a centre would move farther, px
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
@@ -885,6 +888,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         return rings
     minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
     if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
+        return rings
+    if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
         return rings
     if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
         return rings

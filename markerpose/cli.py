@@ -122,6 +122,13 @@ def cmd_estimate(args):
 
 
 def cmd_bench(args):
+    if args.sequence:
+        from .experiments import sequence
+
+        res = sequence.main({"frames": args.frames, "threads": args.threads, "seed": args.seed}, args.out, progress=not args.quiet)
+        print(sequence.report(res))
+        print(f"Wrote {args.out}/: report.md, results.json, sequence.png")
+        return
     from .experiments import bench
 
     conf = {"pairs": args.pairs, "blurred_pairs": args.blurred_pairs, "empty_pairs": args.empty_pairs, "repeats": args.repeats, "threads": args.threads, "configs": args.configs}
@@ -362,6 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--threads", type=int, help="torch threads (default: all cores)")
     b.add_argument("--configs", nargs="*", help="preset names (default: all available)")
     b.add_argument("--json", help="also write the figures as JSON")
+    b.add_argument("--sequence", action="store_true", help="instead: a rendered 60 frames/s stereo video (still, by hand, fast, gone, dark), tracked and detected")
+    b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
+    b.add_argument("--seed", type=int, default=0, help="--sequence: seed of the noise and the background")
+    b.add_argument("--out", default="markerpose-sequence", help="--sequence: output folder (default markerpose-sequence)")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
 

@@ -3,8 +3,10 @@
 The public entry point (docs/design.md)::
 
     tracker = MarkerPose(rig, preset="default")   # or "paper", "paper-classical", ...
-    est = tracker.estimate(left, right)            # Estimate or None
-    det = tracker.detect(image, view=0)            # Detection or None
+    est = tracker.estimate(left, right)            # stateless cold detection: Estimate or None
+    est = tracker.track(left, right)               # video: the previous frames are the prior
+    tracker.reset()                                # forget the prior (a new sequence)
+    det = tracker.detect(image, view=0)            # one view: Detection or None
 
 The stages live in :mod:`markerpose.stages`; this class only runs them in order.
 """
@@ -21,7 +23,7 @@ from .geometry import ring_ellipses
 from .images import as_gray, check_size
 from .marker import Marker
 from .results import Detection, Estimate
-from .stages import match, propose, refine, solve, verify
+from .stages import match, propose, refine, solve, track, verify
 from .stages.match import stereo_triples, transfer, transfer_sources, view_triples
 
 class MarkerPose:
@@ -51,6 +53,7 @@ class MarkerPose:
         self.ids = c["match"]["method"] if neural else "classical"
         self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
+        self._history: list = []  # the last poses track() found, oldest first
 
     def __repr__(self):
         return f"MarkerPose(preset={self.preset!r}, conf={self.conf!r})"
@@ -104,40 +107,88 @@ class MarkerPose:
         kept = [(p, s * e) for (p, s), e in zip(triples, ev) if e >= m["min_evidence"]]
         return sorted(kept, key=lambda t: -t[1])[: m["view_triples"]]
 
+    def _pair(self, left, right) -> list:
+        gl, gr = as_gray(left, "left image"), as_gray(right, "right image")
+        if gl.shape != gr.shape:
+            raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
+        check_size(gl, self.rig.left, "left image")
+        check_size(gr, self.rig.right, "right image")
+        return [gl, gr]
+
     def estimate(self, left, right) -> Estimate | None:
         """Pose of the marker from a stereo pair, or None if it is not found in both views.
+        Stateless: every pair is detected from scratch (see :meth:`track` for video).
 
         Args:
             left, right: uint8 gray (H, W) or BGR (H, W, 3) images of the same size.
         Returns:
             :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
         """
-        gl, gr = as_gray(left, "left image"), as_gray(right, "right image")
-        if gl.shape != gr.shape:
-            raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
-        check_size(gl, self.rig.left, "left image")
-        check_size(gr, self.rig.right, "right image")
+        grays = self._pair(left, right)
         self.timings, t0 = {}, time.perf_counter()
         try:
-            grays = [gl, gr]
-            if self.proposer is None:
-                return self._classical(grays)
-            if self.ids != "stereo":  # one triple per view, by the ID head (paper) or the layout
-                found = self._timed("propose", self.proposer.decoded, grays)
-                return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
-            m = self.conf["match"]
-            for zoom in self.proposer.looks():
-                cand = self._timed("propose", self.proposer.candidates, grays, zoom)
-                triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
-                                      m["epipolar_tol"], m["shape_tol"], m["max_triples"])
-                est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples])
-                if est is None and m["transfer"]:
-                    est = self._transferred(grays, cand, zoom)
-                if est is not None:
-                    return est
-            return None
+            return self._cold(grays)
         finally:
             self.timings["total"] = time.perf_counter() - t0
+
+    def track(self, left, right) -> Estimate | None:
+        """Pose of the marker in the next pair of a video stream, or None.
+
+        Uses the previous frames as the prior (:mod:`markerpose.stages.track`): the rings
+        predicted from the last poses are refitted on the image's edges in both views and
+        verified; where that fails (the marker lost, moved too fast), the pair is
+        detected cold, as :meth:`estimate` does. ``Estimate.source`` says which
+        ("tracked" or "detected"). Call :meth:`reset` between sequences.
+        """
+        grays = self._pair(left, right)
+        self.timings, t0 = {}, time.perf_counter()
+        try:
+            est = self._tracked(grays, track.predict(self._history)) if self._history else None
+            est = est if est is not None else self._cold(grays)
+            self._history = [*self._history, est.T][-2:] if est is not None else []
+            return est
+        finally:
+            self.timings["total"] = time.perf_counter() - t0
+
+    def reset(self) -> None:
+        """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
+        self._history = []
+
+    def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
+        """The rings refitted from their predicted ellipses in both views, verified, solved."""
+        mk, c = self.marker, self.conf["track"]
+        found = []
+        for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            ellipses = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
+                return None
+            det = self._timed("refine", self.refiner.from_ellipses, gray, cam, ellipses, 1.0, False)
+            if det is None:
+                return None
+            found.append(det)
+        if not self._timed("verify", verify.pair, self.rig, found, mk, self.conf["verify"], True):
+            return None
+        est = self._solved(found, "tracked")
+        return est if est is not None and est.residual_px <= c["max_residual_px"] else None
+
+    def _cold(self, grays: list) -> Estimate | None:
+        """Detection from scratch: propose, match, refine, verify, solve."""
+        if self.proposer is None:
+            return self._classical(grays)
+        if self.ids != "stereo":  # one triple per view, by the ID head (paper) or the layout
+            found = self._timed("propose", self.proposer.decoded, grays)
+            return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
+        m = self.conf["match"]
+        for zoom in self.proposer.looks():
+            cand = self._timed("propose", self.proposer.candidates, grays, zoom)
+            triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
+                                  m["epipolar_tol"], m["shape_tol"], m["max_triples"])
+            est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples])
+            if est is None and m["transfer"]:
+                est = self._transferred(grays, cand, zoom)
+            if est is not None:
+                return est
+        return None
 
     def _classical(self, grays: list) -> Estimate | None:
         """Paper §3.4: each view's ring triples, paired by the epipolar constraint, refined."""
@@ -163,9 +214,9 @@ class MarkerPose:
         ok = self._timed("verify", verify.pair, self.rig, found, self.marker, self.conf["verify"], self.refiner.edge_refit)
         return self._solved(found) if ok else None
 
-    def _solved(self, found: list) -> Estimate | None:
+    def _solved(self, found: list, source: str = "detected") -> Estimate | None:
         """Solve, then reject points that do not have the marker's shape (a wrong triple)."""
-        est = self._timed("solve", solve.solve, self.rig, self.marker, found[0], found[1], self.conf["solve"])
+        est = self._timed("solve", solve.solve, self.rig, self.marker, found[0], found[1], self.conf["solve"], source)
         return est if verify.shape(est.points3d, self.marker, self.conf["verify"]) else None
 
     def _transferred(self, grays: list, cand: list, zoom: float) -> Estimate | None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 
-from .stages import STAGES, match, propose, refine, solve, verify
+from .stages import STAGES, match, propose, refine, solve, track, verify
 
 PAPER_POSE = {"pose": "paper", "bias_correction": False}
 _NO_EDGE = {"edge_refit": False}
@@ -87,7 +87,7 @@ DETECTORS = ("neural", "classical")
 default_conf = {
     "detector": "neural",  # "neural" (the paper's networks) or "classical" (paper §3.4)
     "threads": None,  # the networks' inference threads (ONNX Runtime; None: every core)
-    **{name: stage.default_conf for name, stage in zip(STAGES, (propose, match, refine, verify, solve))},
+    **{name: stage.default_conf for name, stage in zip(STAGES, (propose, match, refine, verify, solve, track))},
 }
 
 

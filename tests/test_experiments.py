@@ -1,6 +1,9 @@
 """The benchmark and the end-to-end evaluation run and report what they measured."""
 
+import numpy as np
 import pytest
+
+import markerpose as mp
 
 from markerpose.experiments import bench, endtoend
 
@@ -199,3 +202,34 @@ def test_cli_output_into_a_closed_pipe_is_quiet(tmp_path):
     cmd = f"{sys.executable} -m markerpose.cli --help | head -1"
     r = subprocess.run(cmd, shell=True, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "Traceback" not in r.stderr and r.stdout.startswith("usage")
+
+
+def test_sequence_segments_and_summary():
+    """The sequence benchmark's trajectory and figures, on hand-made rows (no rendering)."""
+    from markerpose.experiments import sequence as sq
+
+    seg = sq.segments(240)
+    assert [seg.count(s) for s, _ in sq.SEGMENTS] == [60, 60, 30, 30, 60]
+    poses, seg = sq.trajectory(240, 60.0)
+    rig = mp.StereoRig.default()
+    c0 = np.array([T[:3, 3] for T in poses])
+    px = rig.project(c0)  # (2, 240, 2)
+    gone = np.array([s == "out of view" for s in seg])
+    w, h = rig.left.image_size
+    outside = (px[..., 0] < 0) | (px[..., 0] > w) | (px[..., 1] < 0) | (px[..., 1] > h)
+    assert outside[:, gone].all() and not outside[:, ~gone].any()
+    assert np.allclose(c0[seg.index("static") : seg.index("hand-held")], c0[0])  # held still
+
+    def row(k, segment, visible, t_mm, ms):
+        est = {"ms": ms, "found": t_mm is not None, "source": "tracked" if t_mm is not None else None, "t_mm": t_mm,
+               "r_deg": 0.01 if t_mm is not None else None, "t": [0.0, 0.0, 500.0 + (k % 2) * 0.002] if t_mm is not None else None,
+               "R": np.eye(3).tolist() if t_mm is not None else None}
+        return {"frame": k, "segment": segment, "visible": visible, "blur_px": 0.0, **{m: est for m in sq.METHODS}}
+
+    rows = [row(k, "static", True, 0.001, 5.0) for k in range(4)] + [row(4, "out of view", False, None, 50.0)]
+    rows += [row(5, "dark", True, None, 80.0), row(6, "dark", True, 0.002, 10.0)]
+    s = sq.summarize(rows, "track")
+    assert s["detected"] == 5 / 6 and s["false_poses"] == 0 and s["frames_to_reacquire"] == 1
+    assert s["jitter_mm"] == pytest.approx(0.001) and s["jitter_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert s["median_ms"] == 7.5 and s["max_ms"] == 80.0
+    assert "frames to re-acquire" in sq.report({"conf": sq.default_conf, "summary": {m: s for m in sq.METHODS}, "frames": rows})

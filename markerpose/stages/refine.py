@@ -98,10 +98,12 @@ class Refiner:
             out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
         return out
 
-    def from_ellipses(self, gray: np.ndarray, camera, ellipses: list, score: float) -> Detection | None:
-        """The rings' edges fitted from predicted outer ellipses (the transfer): a
-        Detection when all three refine, else None."""
-        centers, ok, fitted = classical.refine_ellipses(gray, ellipses, self.marker, self.classical, camera=camera)
+    def from_ellipses(self, gray: np.ndarray, camera, ellipses: list, score: float, blur_unrefined: bool = True) -> Detection | None:
+        """The rings' edges fitted from predicted outer ellipses (the transfer, tracking):
+        a Detection when all three refine, else None. ``blur_unrefined=False``: no blur
+        fit when the edge fit found none of the rings (a prediction that missed them)."""
+        conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
+        centers, ok, fitted = classical.refine_ellipses(gray, ellipses, self.marker, conf, camera=camera)
         return Detection(centers=centers, ellipses=fitted, score=score, refined=ok) if ok.all() else None
 
     def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
