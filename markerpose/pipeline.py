@@ -246,6 +246,12 @@ class MarkerPose:
             det_a = self._timed("refine", self.refiner, [grays[a]], [cams[a]], [(pts, s)])[0]
             poses = verify.plate_poses(det_a, cams[a], mk, self.conf["verify"]["plate_tol"])
             for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
+                # Cheap first: the other view must show ring evidence where the pose puts the
+                # rings (an inconsistent pair, e.g. one view given twice, does not), before
+                # any costly fit there.
+                gate = m["transfer_min_evidence"]
+                if gate and self._timed("verify", self.proposer.evidence, grays[b], pred[None], zoom)[0] < gate:
+                    continue
                 # The pose predicts the rings' ellipses in the other view to within a pixel
                 # or so: their edges are fitted from there first; the usual refinement at
                 # the predicted centres can be led to a neighbouring ring by a steep,

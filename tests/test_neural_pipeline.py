@@ -276,3 +276,20 @@ def test_broken_onnx_files_fail_at_load(tmp_path):
     cut.write_bytes((WEIGHTS_DIR / "keypoints.onnx").read_bytes()[:50000])
     with pytest.raises(ValueError, match="not a readable ONNX model"):
         KeypointNet(cut)
+
+
+def test_inconsistent_pairs_are_rejected_cheaply(rig, monkeypatch):
+    """One view given twice, or the views swapped: no pose, and the transfer fallback does
+    not run its costly blurred-ring fits where the other view shows no rings (regression:
+    such pairs took many seconds)."""
+    from markerpose import blurfit
+
+    calls = []
+    real = blurfit.fit_blurred_rings
+    monkeypatch.setattr(blurfit, "fit_blurred_rings", lambda *a, **k: calls.append(1) or real(*a, **k))
+    f = render_stereo(rig, look_at_pose([-20, 10, 600], 35, 120, 200), imaging=Imaging(alpha=0.6), seed=37)
+    tracker = mp.MarkerPose(rig)
+    for left, right in ((f.images[0], f.images[0]), (f.images[1], f.images[0])):
+        calls.clear()
+        assert tracker.estimate(left, right) is None
+        assert len(calls) <= 2, len(calls)
