@@ -675,6 +675,20 @@ def _integral(f: np.ndarray, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
     return F[rows, j] + dl * (t * f0 + 0.5 * t * t * (f1 - f0))
 
 
+_SUBSETS: dict = {}  # (n, count) → the fixed random 5-point subsets of n points
+
+
+def _subsets(n: int, count: int) -> np.ndarray:
+    """(count, 5) random 5-point subsets of ``n`` points from a fixed seed, drawn once per
+    (n, count): the same subsets every call, without drawing them again."""
+    key = (n, count)
+    if key not in _SUBSETS:
+        rng = np.random.default_rng(0)
+        _SUBSETS[key] = np.stack([rng.choice(n, 5, replace=False) for _ in range(count)])
+        _SUBSETS[key].flags.writeable = False
+    return _SUBSETS[key]
+
+
 def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
     """Inliers of edge points by least-median-of-squares on a linearised ellipse model.
 
@@ -694,8 +708,7 @@ def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
     off = (lam - 1.0) * np.hypot(d[:, 0], d[:, 1]) / np.maximum(lam, 1e-9)  # radial offset, px
     X = np.column_stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)])
     n = len(P)
-    rng = np.random.default_rng(0)
-    idx = np.stack([rng.choice(n, 5, replace=False) for _ in range(n_subsets)])
+    idx = _subsets(n, n_subsets)
     A = X[idx]  # (S, 5, 5)
     good = np.abs(np.linalg.det(A)) > 1e-6
     if not good.any():
