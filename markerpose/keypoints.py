@@ -98,9 +98,6 @@ def to_full(points: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return (np.asarray(points, np.float64) + 0.5) * scale - 0.5
 
 
-WEIGHTS_DIR = Path(__file__).parent / "weights"
-
-
 def look_conf(conf: dict) -> dict:
     """The decoding settings of the second look: ``min_score`` from ``look_min_score``."""
     ms = conf.get("look_min_score")
