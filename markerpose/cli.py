@@ -121,6 +121,18 @@ def cmd_estimate(args):
     return 0
 
 
+def cmd_track(args):
+    from .pipeline import MarkerPose
+    from .video import open_stereo, track_stream
+
+    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
+    stream = open_stereo(args.left, args.right)
+    s = track_stream(tracker, stream, args.out, args.jsonl, progress=not args.quiet)
+    print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
+          f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
+          f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else ""))
+
+
 def cmd_bench(args):
     if args.sequence:
         from .experiments import sequence
@@ -360,6 +372,18 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
+
+    k = sub.add_parser("track", help="track the marker through two image folders, two videos or two cameras; one CSV row a frame")
+    k.add_argument("left", help="left frames: a folder of images (sorted by name), a video file or a camera index")
+    k.add_argument("right", help="right frames, the same kind")
+    k.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
+    k.add_argument("--out", default="poses.csv", help="CSV, one row a frame (default poses.csv)")
+    k.add_argument("--jsonl", help="also one JSON object a frame")
+    k.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
+    k.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")
+    k.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_marker_args(k)
+    k.set_defaults(func=cmd_track)
 
     b = sub.add_parser("bench", help="speed of the stereo pipeline per configuration (interleaved, same frames)")
     b.add_argument("--pairs", type=int, default=8, help="rendered stereo pairs")

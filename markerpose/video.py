@@ -1,0 +1,204 @@
+"""Stereo streams in, poses out: two image folders, two video files or two cameras.
+
+:func:`open_stereo` pairs the frames of two sources; :func:`track_stream` runs
+:meth:`markerpose.MarkerPose.track` over them and writes one CSV row a frame (the
+pose ``T_left_marker`` as a translation, a quaternion (x, y, z, w), a rotation vector
+and the 16 matrix entries; empty pose fields when the marker is not found). The CSV is
+written to ``NAME.partial`` and renamed when the stream ends or is stopped with Ctrl-C,
+so a file under the final name always holds every frame that was read.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
+CSV_HEADER = (
+    ["frame", "timestamp_s", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
+    + [f"T{i}{j}" for i in range(4) for j in range(4)]
+    + ["residual_px", "source"]
+)
+
+
+class _Folder:
+    def __init__(self, path: Path):
+        self.files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise ValueError(f"{path}: no image files ({', '.join(IMAGE_SUFFIXES)})")
+        self.name, self.count, self.fps = str(path), len(self.files), None
+
+    def frames(self) -> Iterator[tuple[float | None, np.ndarray]]:
+        for p in self.files:
+            img = cv2.imdecode(np.fromfile(p, np.uint8), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise ValueError(f"cannot read image {p}")
+            yield None, img
+
+    def close(self):
+        pass
+
+
+class _Capture:
+    def __init__(self, source: str | int):
+        # OpenCV prints a warning per backend it tries; our own error names the source.
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        try:
+            self.cap = cv2.VideoCapture(source)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
+        self.name = f"camera {source}" if isinstance(source, int) else str(source)
+        if not self.cap.isOpened():
+            raise ValueError(f"cannot open {self.name}")
+        n = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.count = n if n > 0 and not isinstance(source, int) else None
+        fps = self.cap.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if fps and fps > 0 else None
+        self.live = isinstance(source, int)
+
+    def frames(self) -> Iterator[tuple[float | None, np.ndarray]]:
+        t0 = time.perf_counter()
+        while True:
+            ok, img = self.cap.read()
+            if not ok:
+                return
+            if self.live:
+                yield time.perf_counter() - t0, img
+            else:
+                ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
+                yield (ms / 1000.0 if ms > 0 else None), img
+
+    def close(self):
+        self.cap.release()
+
+
+def _source(spec: str):
+    """An image folder, a video file or a camera index (a whole number)."""
+    if str(spec).isdigit():
+        return _Capture(int(spec))
+    path = Path(spec)
+    if path.is_dir():
+        return _Folder(path)
+    if path.is_file():
+        return _Capture(str(path))
+    raise ValueError(f"{spec}: no such file, folder or camera index")
+
+
+class StereoStream:
+    """Two sources read in step: ``for k, timestamp_s, left, right in stream``.
+
+    ``count`` is the number of pairs when known (folders, video files), else None.
+    """
+
+    def __init__(self, left: str, right: str):
+        self.left = _source(left)
+        try:
+            self.right = _source(right)
+        except ValueError:
+            self.left.close()
+            raise
+        if self.left.count is not None and self.right.count is not None and self.left.count != self.right.count:
+            self.close()
+            raise ValueError(f"the two sources differ in length: {self.left.name} has {self.left.count} frames, {self.right.name} {self.right.count}")
+        self.count = self.left.count if self.left.count is not None else self.right.count
+        self.fps = self.left.fps or self.right.fps
+        self.live = getattr(self.left, "live", False)
+
+    def __iter__(self):
+        for k, ((tl, a), (_, b)) in enumerate(zip(self.left.frames(), self.right.frames())):
+            t = tl if tl is not None else (k / self.fps if self.fps else float(k))
+            yield k, t, a, b
+
+    def close(self):
+        self.left.close()
+        self.right.close()
+
+
+def open_stereo(left: str, right: str) -> StereoStream:
+    """The frames of two sources (folders of images sorted by name, video files, or camera
+    indices), paired in order; ``ValueError`` naming the source that cannot be read."""
+    return StereoStream(left, right)
+
+
+def pose_row(k: int, t: float, est) -> list:
+    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds."""
+    if est is None:
+        return [k, f"{t:.6f}", 0] + [""] * (len(CSV_HEADER) - 3)
+    from scipy.spatial.transform import Rotation
+
+    U, _, Vt = np.linalg.svd(est.R)
+    R = Rotation.from_matrix(U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt)
+    vals = [*est.t, *R.as_quat(), *R.as_rotvec(), *est.T.ravel(), est.residual_px]
+    return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals), est.source]
+
+
+def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True) -> dict:
+    """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
+    ``jsonl``, one JSON object a frame). Returns the summary: frames, found share, tracked
+    share, frames per second, longest run of frames without a pose."""
+    out_csv = Path(out_csv)
+    partial = out_csv.with_name(out_csv.name + ".partial")
+    partial_jsonl = None if jsonl is None else Path(jsonl).with_name(Path(jsonl).name + ".partial")
+    tracker.reset()
+    n = found = tracked = gap = longest = 0
+    stopped = False
+    t0 = time.perf_counter()
+    bar = tqdm(total=stream.count, desc="track", unit="pair", disable=not progress)
+    with open(partial, "w", newline="") as f, (open(partial_jsonl, "w") if partial_jsonl else _Null()) as fj:
+        w = csv.writer(f)
+        w.writerow(CSV_HEADER)
+        try:
+            for k, t, left, right in stream:
+                est = tracker.track(left, right)
+                w.writerow(pose_row(k, t, est))
+                f.flush()
+                if partial_jsonl:
+                    fj.write(json.dumps({"frame": k, "timestamp_s": t, "valid": est is not None,
+                                         "T_left_marker": None if est is None else est.T.tolist(),
+                                         "residual_px": None if est is None else est.residual_px,
+                                         "source": None if est is None else est.source}) + "\n")
+                n += 1
+                found += est is not None
+                tracked += est is not None and est.source == "tracked"
+                gap = 0 if est is not None else gap + 1
+                longest = max(longest, gap)
+                bar.update()
+                bar.set_postfix(fps=f"{n / (time.perf_counter() - t0):.1f}", found=f"{found}/{n}")
+        except KeyboardInterrupt:
+            stopped = True
+        except BaseException:
+            if n == 0:  # nothing tracked (e.g. images that do not match the rig): no file
+                f.close()
+                partial.unlink(missing_ok=True)
+                if partial_jsonl:
+                    fj.close()
+                    partial_jsonl.unlink(missing_ok=True)
+            raise
+        finally:
+            bar.close()
+            stream.close()
+    partial.replace(out_csv)
+    if partial_jsonl:
+        partial_jsonl.replace(jsonl)
+    seconds = time.perf_counter() - t0
+    return {"frames": n, "found": found / n if n else 0.0, "tracked": tracked / found if found else 0.0,
+            "fps": n / seconds if seconds > 0 else 0.0, "longest_gap": longest, "stopped": stopped, "csv": str(out_csv)}
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+__all__ = ["CSV_HEADER", "StereoStream", "open_stereo", "pose_row", "track_stream"]

@@ -1,0 +1,108 @@
+"""markerpose track: two image folders in, one CSV row a frame out (markerpose.video)."""
+
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose import cli
+from markerpose.synth import Imaging, clutter_background, look_at_pose, render_stereo
+from markerpose.video import CSV_HEADER
+
+
+@pytest.fixture(scope="module")
+def folders(tmp_path_factory):
+    """Eight rendered pairs of a moving marker, then two without it, as PNG folders."""
+    rig = mp.StereoRig.default()
+    root = tmp_path_factory.mktemp("seq")
+    (root / "L").mkdir()
+    (root / "R").mkdir()
+    truth = []
+    rng = np.random.default_rng(2)
+    for k in range(10):
+        if k < 8:
+            T = look_at_pose([-4 + k, 1, 560 - k], 30 + k, 45, 5 + k)
+            images = render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=k).images
+        else:
+            T, img = None, (clutter_background((1280, 1024), rng) * 200).astype(np.uint8)
+            images = (img, img)
+        truth.append(T)
+        for side, img in zip("LR", images):
+            cv2.imwrite(str(root / side / f"{k:04d}.png"), img)
+    return root, truth
+
+
+def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsys):
+    root, truth = folders
+    out = tmp_path / "poses.csv"
+    assert cli.main(["track", str(root / "L"), str(root / "R"), "--out", str(out), "--jsonl", str(tmp_path / "p.jsonl"),
+                     "--detector", "classical", "--quiet"]) == 0
+    assert "10 frames" in capsys.readouterr().out
+    rows = list(csv.DictReader(out.open()))
+    assert list(rows[0]) == CSV_HEADER and len(rows) == len(truth)
+    for row, T in zip(rows, truth):
+        if T is None:
+            assert row["valid"] == "0" and row["x_mm"] == ""
+            continue
+        assert row["valid"] == "1"
+        t = np.array([float(row[k]) for k in ("x_mm", "y_mm", "z_mm")])
+        assert np.linalg.norm(t - T[:3, 3]) < 0.05  # mm
+        M = np.array([float(row[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
+        np.testing.assert_allclose(M[:3, 3], t)
+        q = np.array([float(row[k]) for k in ("qx", "qy", "qz", "qw")])
+        assert abs(np.linalg.norm(q) - 1) < 1e-6
+    assert [r["source"] for r in rows[2:8]] == ["tracked"] * 6
+    assert not list(tmp_path.glob("*.partial"))
+    assert len((tmp_path / "p.jsonl").read_text().splitlines()) == len(truth)
+
+
+def test_track_bad_input_is_one_line_and_leaves_no_file(folders, tmp_path, capsys):
+    root, _ = folders
+    out = tmp_path / "poses.csv"
+    cases = [
+        ([str(tmp_path / "nope"), str(root / "R")], "no such file, folder or camera index"),
+        ([str(root / "L"), str(tmp_path)], "no image files"),
+    ]
+    short = tmp_path / "short"
+    short.mkdir()
+    for p in sorted((root / "R").iterdir())[:3]:
+        (short / p.name).write_bytes(p.read_bytes())
+    cases.append(([str(root / "L"), str(short)], "differ in length: .* has 10 frames, .* 3"))
+    small = tmp_path / "small"
+    small.mkdir()
+    for p in sorted((root / "L").iterdir()):
+        cv2.imwrite(str(small / p.name), cv2.resize(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE), (640, 512)))
+    cases.append(([str(small), str(small)], "calibrated for 1280x1024"))
+    import re
+
+    for args, message in cases:
+        assert cli.main(["track", *args, "--out", str(out), "--quiet", "--detector", "classical"]) == 2
+        err = capsys.readouterr().err
+        assert re.search(message, err) and err.count("\n") == 1, err
+        assert not out.exists() and not list(tmp_path.glob("*.partial"))
+
+
+def test_track_reads_two_lossless_videos(folders, tmp_path):
+    """The same frames as FFV1 videos: the same poses as from the PNG folders."""
+    root, truth = folders
+    for side in "LR":
+        w = cv2.VideoWriter(str(tmp_path / f"{side}.avi"), cv2.VideoWriter_fourcc(*"FFV1"), 60, (1280, 1024), isColor=False)
+        assert w.isOpened()
+        for p in sorted((root / side).iterdir()):
+            w.write(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE))
+        w.release()
+    a, b = tmp_path / "video.csv", tmp_path / "png.csv"
+    assert cli.main(["track", str(tmp_path / "L.avi"), str(tmp_path / "R.avi"), "--out", str(a), "--detector", "classical", "--quiet"]) == 0
+    assert cli.main(["track", str(root / "L"), str(root / "R"), "--out", str(b), "--detector", "classical", "--quiet"]) == 0
+    va, vb = list(csv.DictReader(a.open())), list(csv.DictReader(b.open()))
+    assert len(va) == len(vb) == len(truth)
+    assert [r["x_mm"] for r in va] == [r["x_mm"] for r in vb]  # lossless: the very same poses
+    assert float(va[1]["timestamp_s"]) == pytest.approx(1 / 60, abs=1e-3)
+
+
+def test_a_camera_that_does_not_open(tmp_path, capsys):
+    assert cli.main(["track", "97", "98", "--out", str(tmp_path / "p.csv"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == "error: cannot open camera 97"
