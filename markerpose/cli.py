@@ -123,11 +123,23 @@ def cmd_estimate(args):
 
 def cmd_track(args):
     from .pipeline import MarkerPose
-    from .video import open_stereo, track_stream
+    from .video import IGTLSender, open_stereo, track_stream
 
     tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
-    stream = open_stereo(args.left, args.right)
-    s = track_stream(tracker, stream, args.out, args.jsonl, progress=not args.quiet)
+    stream = open_stereo(args.left, args.right, args.fps)
+    send = None
+    if args.igtl is not None:
+        try:
+            send = IGTLSender(args.igtl, args.igtl_name, local_only=not args.igtl_public)
+        except ValueError:
+            stream.close()
+            raise
+        print(f"OpenIGTLink: serving TRANSFORM {args.igtl_name!r} on port {args.igtl}", file=sys.stderr)
+    try:
+        s = track_stream(tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send)
+    finally:
+        if send is not None:
+            send.close()
     print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
           f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
           f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else ""))
@@ -379,8 +391,13 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
     k.add_argument("--out", default="poses.csv", help="CSV, one row a frame (default poses.csv)")
     k.add_argument("--jsonl", help="also one JSON object a frame")
+    k.add_argument("--fps", type=float, default=60.0, help="frame rate of image folders, for timestamp_s (videos and cameras give their own; default 60)")
     k.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
     k.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")
+    k.add_argument("--igtl", type=int, nargs="?", const=18944, metavar="PORT",
+                   help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages (port default 18944; the igtl extra)")
+    k.add_argument("--igtl-name", default="MarkerToTracker", help="the TRANSFORM's device name (default MarkerToTracker)")
+    k.add_argument("--igtl-public", action="store_true", help="listen on the network interface, not only on 127.0.0.1")
     k.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_marker_args(k)
     k.set_defaults(func=cmd_track)

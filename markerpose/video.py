@@ -98,7 +98,7 @@ class StereoStream:
     ``count`` is the number of pairs when known (folders, video files), else None.
     """
 
-    def __init__(self, left: str, right: str):
+    def __init__(self, left: str, right: str, fps: float | None = None):
         self.left = _source(left)
         try:
             self.right = _source(right)
@@ -109,7 +109,8 @@ class StereoStream:
             self.close()
             raise ValueError(f"the two sources differ in length: {self.left.name} has {self.left.count} frames, {self.right.name} {self.right.count}")
         self.count = self.left.count if self.left.count is not None else self.right.count
-        self.fps = self.left.fps or self.right.fps
+        # Timestamps: a video's own, a camera's clock, else frame / fps (image folders).
+        self.fps = self.left.fps or self.right.fps or fps
         self.live = getattr(self.left, "live", False)
 
     def __iter__(self):
@@ -122,10 +123,13 @@ class StereoStream:
         self.right.close()
 
 
-def open_stereo(left: str, right: str) -> StereoStream:
+def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream:
     """The frames of two sources (folders of images sorted by name, video files, or camera
-    indices), paired in order; ``ValueError`` naming the source that cannot be read."""
-    return StereoStream(left, right)
+    indices), paired in order; ``ValueError`` naming the source that cannot be read.
+    ``fps`` times image folders, which carry no timestamps of their own."""
+    if fps is not None and not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    return StereoStream(left, right, fps)
 
 
 def pose_row(k: int, t: float, est) -> list:
@@ -140,9 +144,48 @@ def pose_row(k: int, t: float, est) -> list:
     return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals), est.source]
 
 
-def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True) -> dict:
+class IGTLSender:
+    """An OpenIGTLink server (``pyigtl``, the igtl extra) that sends each found pose as a
+    TRANSFORM message named ``name`` (millimetres, T_left_marker, the frame's timestamp),
+    so 3D Slicer's OpenIGTLinkIF module shows it live. Frames without a pose send
+    nothing, and nothing is queued while no client is connected: a client that connects
+    later gets the next pose, never a stale one.
+
+    Args:
+        port: TCP port (OpenIGTLink's default is 18944).
+        name: the device name (e.g. "MarkerToTracker").
+        local_only: listen on 127.0.0.1 only (False: the machine's network interface).
+    """
+
+    def __init__(self, port: int = 18944, name: str = "MarkerToTracker", local_only: bool = True):
+        try:
+            import pyigtl
+        except ImportError as exc:
+            raise ValueError("--igtl needs pyigtl: pip install -e \".[igtl]\"") from exc
+        self._pyigtl, self.name = pyigtl, name
+        try:
+            self.server = pyigtl.OpenIGTLinkServer(port=int(port), local_server=local_only)
+        except OSError as exc:
+            raise ValueError(f"cannot serve OpenIGTLink on port {port}: {exc.strerror or exc}") from exc
+        self.sent = 0
+
+    def __call__(self, k: int, t: float, est, wait: bool = False) -> bool:
+        if est is None or not self.server.is_connected():
+            return False
+        msg = self._pyigtl.TransformMessage(np.asarray(est.T, np.float64), timestamp=float(t), device_name=self.name)
+        self.server.send_message(msg, wait=wait)
+        self.sent += 1
+        return True
+
+    def close(self):
+        self.server.stop()
+
+
+def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True,
+                 send=None) -> dict:
     """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
-    ``jsonl``, one JSON object a frame). Returns the summary: frames, found share, tracked
+    ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
+    e.g. an :class:`IGTLSender`). Returns the summary: frames, found share, tracked
     share, frames per second, longest run of frames without a pose."""
     out_csv = Path(out_csv)
     partial = out_csv.with_name(out_csv.name + ".partial")
@@ -160,6 +203,8 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
                 est = tracker.track(left, right)
                 w.writerow(pose_row(k, t, est))
                 f.flush()
+                if send is not None:
+                    send(k, t, est)
                 if partial_jsonl:
                     fj.write(json.dumps({"frame": k, "timestamp_s": t, "valid": est is not None,
                                          "T_left_marker": None if est is None else est.T.tolist(),
@@ -201,4 +246,4 @@ class _Null:
         return False
 
 
-__all__ = ["CSV_HEADER", "StereoStream", "open_stereo", "pose_row", "track_stream"]
+__all__ = ["CSV_HEADER", "IGTLSender", "StereoStream", "open_stereo", "pose_row", "track_stream"]

@@ -56,6 +56,7 @@ def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsy
     assert [r["source"] for r in rows[2:8]] == ["tracked"] * 6
     assert not list(tmp_path.glob("*.partial"))
     assert len((tmp_path / "p.jsonl").read_text().splitlines()) == len(truth)
+    assert float(rows[3]["timestamp_s"]) == pytest.approx(3 / 60)  # folders: --fps, 60 by default
 
 
 def test_track_bad_input_is_one_line_and_leaves_no_file(folders, tmp_path, capsys):
@@ -106,3 +107,59 @@ def test_a_camera_that_does_not_open(tmp_path, capsys):
     assert cli.main(["track", "97", "98", "--out", str(tmp_path / "p.csv"), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.strip() == "error: cannot open camera 97"
+
+
+def test_openigtlink_client_receives_the_tracked_poses(folders, tmp_path):
+    """A pyigtl client on 127.0.0.1 receives one TRANSFORM per found frame, the same
+    matrices as poses.csv, and nothing for frames without the marker."""
+    import socket
+    import threading
+    import time
+
+    pyigtl = pytest.importorskip("pyigtl")
+    from markerpose.video import IGTLSender, open_stereo, track_stream
+
+    with socket.socket() as s:  # a free port on the loopback interface
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    root, truth = folders
+    sender = IGTLSender(port, "MarkerToTracker")
+    client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
+    received, done = [], threading.Event()
+
+    def listen():
+        while not done.is_set():
+            msg = client.wait_for_message("MarkerToTracker", timeout=0.05)
+            if msg is not None:
+                received.append((msg.timestamp, np.array(msg.matrix)))
+
+    listener = threading.Thread(target=listen, daemon=True)
+    listener.start()
+    try:
+        for _ in range(500):  # the client connects within a few seconds at most
+            if sender.server.is_connected():
+                break
+            time.sleep(0.01)
+        assert sender.server.is_connected()
+
+        def send(k, t, est):  # each message on the wire and read before the next frame
+            if sender(k, t, est, wait=True):
+                for _ in range(200):
+                    if len(received) == sender.sent:
+                        break
+                    time.sleep(0.005)
+
+        out = tmp_path / "poses.csv"
+        summary = track_stream(mp.MarkerPose(mp.StereoRig.default(), detector="classical"), open_stereo(str(root / "L"), str(root / "R")),
+                               out, progress=False, send=send)
+    finally:
+        done.set()
+        listener.join(timeout=2)
+        client.stop()
+        sender.close()
+    rows = [r for r in csv.DictReader(out.open()) if r["valid"] == "1"]
+    assert summary["frames"] == len(truth) and len(rows) == sum(T is not None for T in truth) == len(received)
+    for row, (stamp, M) in zip(rows, received):
+        expected = np.array([float(row[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
+        np.testing.assert_allclose(M, expected, atol=1e-4)  # float32 on the wire
+        assert stamp == pytest.approx(float(row["timestamp_s"]), abs=1e-6)
