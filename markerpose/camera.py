@@ -392,7 +392,10 @@ class StereoRig:
         path = Path(path)
         if path.suffix.lower() not in (".yaml", ".yml", ".xml"):
             raise ValueError(f"rig file must end in .yaml, .yml or .xml, got {path.name}")
+        path.parent.mkdir(parents=True, exist_ok=True)
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+        if not fs.isOpened():
+            raise ValueError(f"cannot write the rig file {path}")
         fs.write("K1", self.left.K)
         fs.write("dist1", self.left.dist.reshape(1, 5))
         fs.write("K2", self.right.K)

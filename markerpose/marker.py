@@ -276,15 +276,7 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
     # Title.
     items.append(_Text(W / 2, H - 15.0, "markerpose three-ring target", _TITLE_SIZE, "center", _INK, "title"))
 
-    # 50 mm scale bar with end ticks (tick centres exactly 50 mm apart) and 10 mm minor ticks.
-    bar_y, bar_len = 36.0, 50.0
-    bx0 = W / 2 - bar_len / 2
-    items.append(_Polyline(((bx0, bar_y), (bx0 + bar_len, bar_y)), _INK, 0.3, False, False, "scale-bar"))
-    for m in range(0, int(bar_len) + 1, 10):
-        h = 3.0 if m in (0, bar_len) else 1.5
-        items.append(_Polyline(((bx0 + m, bar_y - h), (bx0 + m, bar_y + h)), _INK, 0.3, False, False,
-                               f"scale-tick-{m}"))
-    items.append(_Text(W / 2, bar_y + 4.5, "50 mm", _NOTE_SIZE * 1.2, "center", _INK, "scale-label"))
+    items += _scale_bar(W / 2)
 
     # Geometry and printing instructions.
     do, di = marker.outer_diameter, marker.inner_diameter
@@ -300,6 +292,58 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         items.append(_Text(W / 2, 24.0 - 5.0 * k, line, _NOTE_SIZE, "center", _ANNOT if k < 2 else _INK,
                            f"note-{k}"))
     return items
+
+
+def _scale_bar(x_center: float, bar_y: float = 36.0, bar_len: float = 50.0) -> list:
+    """A 50 mm scale bar with end ticks (tick centres exactly 50 mm apart), 10 mm minor
+    ticks and its label, centred on ``x_center`` (page mm, y up)."""
+    bx0 = x_center - bar_len / 2
+    items = [_Polyline(((bx0, bar_y), (bx0 + bar_len, bar_y)), _INK, 0.3, False, False, "scale-bar")]
+    for m in range(0, int(bar_len) + 1, 10):
+        h = 3.0 if m in (0, bar_len) else 1.5
+        items.append(_Polyline(((bx0 + m, bar_y - h), (bx0 + m, bar_y + h)), _INK, 0.3, False, False, f"scale-tick-{m}"))
+    items.append(_Text(x_center, bar_y + 4.5, "50 mm", _NOTE_SIZE * 1.2, "center", _INK, "scale-label"))
+    return items
+
+
+def write_grid(grid, path, paper: str = "a4") -> Path:
+    """Write a printable asymmetric circle grid (:class:`markerpose.calibration.CircleGrid`)
+    at exact physical scale, with a 50 mm scale bar and its geometry, as ``.pdf`` or ``.svg``.
+    ``ValueError`` for an unsupported suffix or paper, or a grid that does not fit."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in _TARGET_SUFFIXES:
+        raise ValueError(f"unsupported pattern file suffix {path.suffix!r}: use one of {', '.join(_TARGET_SUFFIXES)}")
+    key = str(paper).lower()
+    if key not in PAPER_SIZES_MM:
+        raise ValueError(f"unknown paper {paper!r}: use one of {', '.join(PAPER_SIZES_MM)}")
+    W, H = PAPER_SIZES_MM[key]
+    p = grid.points3d[:, :2]
+    span = p.max(0) - p.min(0) + 2 * grid.radius
+    free_w, free_h = W - 2 * _PAGE_MARGIN, H - _TOP_RESERVED - _BOTTOM_RESERVED
+    if span[0] > free_w or span[1] > free_h:
+        raise ValueError(f"the grid ({span[0]:g} x {span[1]:g} mm) does not fit on {key} (at most {free_w:g} x {free_h:g} mm): "
+                         "use a smaller --spacing or larger paper")
+    # Centred in the free area; the grid's y axis runs down the page (as seen in an image).
+    ox = W / 2 - (p[:, 0].min() + p[:, 0].max()) / 2
+    oy = _BOTTOM_RESERVED + free_h / 2 + (p[:, 1].min() + p[:, 1].max()) / 2
+    items = [_Circle(ox + x, oy - y, grid.radius, _INK, f"circle-{k}") for k, (x, y) in enumerate(p)]
+    items.append(_Text(W / 2, H - 15.0, f"markerpose calibration grid {grid.cols}x{grid.rows}", _TITLE_SIZE, "center", _INK, "title"))
+    items += _scale_bar(W / 2)
+    notes = [
+        f"Asymmetric circle grid, {grid.cols} x {grid.rows} (OpenCV's pattern size), spacing {_num(grid.spacing)} mm, "
+        f"circles Ø {_num(2 * grid.radius)} mm.",
+        f"markerpose calibrate LEFT RIGHT --grid {grid.cols}x{grid.rows} --spacing {_num(grid.spacing)} --out rig.yaml",
+        "Print at 100% / actual size (no “fit to page”); check the scale bar with a ruler; mount it flat.",
+    ]
+    for k, line in enumerate(notes):
+        items.append(_Text(W / 2, 24.0 - 5.0 * k, line, _NOTE_SIZE, "center", _ANNOT if k < 2 else _INK, f"note-{k}"))
+    title = f"markerpose calibration grid {grid.cols}x{grid.rows}"
+    if suffix == ".svg":
+        _write_svg(items, (W, H), path, title)
+    else:
+        _write_pdf(items, (W, H), path, title)
+    return path
 
 
 def _items_extent(items: list) -> tuple[float, float, float, float]:
