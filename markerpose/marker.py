@@ -310,13 +310,7 @@ def write_grid(grid, path, paper: str = "a4") -> Path:
     """Write a printable asymmetric circle grid (:class:`markerpose.calibration.CircleGrid`)
     at exact physical scale, with a 50 mm scale bar and its geometry, as ``.pdf`` or ``.svg``.
     ``ValueError`` for an unsupported suffix or paper, or a grid that does not fit."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in _TARGET_SUFFIXES:
-        raise ValueError(f"unsupported pattern file suffix {path.suffix!r}: use one of {', '.join(_TARGET_SUFFIXES)}")
-    key = str(paper).lower()
-    if key not in PAPER_SIZES_MM:
-        raise ValueError(f"unknown paper {paper!r}: use one of {', '.join(PAPER_SIZES_MM)}")
+    path, key = _page(path, paper)
     W, H = PAPER_SIZES_MM[key]
     p = grid.points3d[:, :2]
     span = p.max(0) - p.min(0) + 2 * grid.radius
@@ -338,11 +332,26 @@ def write_grid(grid, path, paper: str = "a4") -> Path:
     ]
     for k, line in enumerate(notes):
         items.append(_Text(W / 2, 24.0 - 5.0 * k, line, _NOTE_SIZE, "center", _ANNOT if k < 2 else _INK, f"note-{k}"))
-    title = f"markerpose calibration grid {grid.cols}x{grid.rows}"
-    if suffix == ".svg":
-        _write_svg(items, (W, H), path, title)
+    return _write(items, (W, H), path, f"markerpose calibration grid {grid.cols}x{grid.rows}")
+
+
+def _page(path, paper: str) -> tuple[Path, str]:
+    """(path, paper key) after checking the suffix (.pdf or .svg) and the paper name."""
+    path = Path(path)
+    if path.suffix.lower() not in _TARGET_SUFFIXES:
+        raise ValueError(f"unsupported file suffix {path.suffix!r}: use one of {', '.join(_TARGET_SUFFIXES)}")
+    key = str(paper).lower()
+    if key not in PAPER_SIZES_MM:
+        raise ValueError(f"unknown paper {paper!r}: use one of {', '.join(PAPER_SIZES_MM)}")
+    return path, key
+
+
+def _write(items: list, paper_mm: tuple, path: Path, title: str) -> Path:
+    """The page as SVG or PDF, by the path's suffix."""
+    if path.suffix.lower() == ".svg":
+        _write_svg(items, paper_mm, path, title)
     else:
-        _write_pdf(items, (W, H), path, title)
+        _write_pdf(items, paper_mm, path, title)
     return path
 
 
@@ -459,18 +468,6 @@ def write_target(marker: Marker, path, paper: str = "a4") -> Path:
     Raises:
         ValueError: unsupported suffix or paper, or the marker does not fit on the sheet.
     """
-    path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in _TARGET_SUFFIXES:
-        raise ValueError(f"unsupported target file suffix {path.suffix!r}: use one of {', '.join(_TARGET_SUFFIXES)}")
-    key = str(paper).lower()
-    if key not in PAPER_SIZES_MM:
-        raise ValueError(f"unknown paper {paper!r}: use one of {', '.join(PAPER_SIZES_MM)}")
+    path, key = _page(path, paper)
     paper_mm = PAPER_SIZES_MM[key]
-    items = _target_items(marker, paper_mm)
-    title = "markerpose three-ring target"
-    if suffix == ".svg":
-        _write_svg(items, paper_mm, path, title)
-    else:
-        _write_pdf(items, paper_mm, path, title)
-    return path
+    return _write(_target_items(marker, paper_mm), paper_mm, path, "markerpose three-ring target")
