@@ -184,10 +184,19 @@ def StereoRigDefault():
 
 def cmd_track(args):
     from .pipeline import MarkerPose
-    from .video import IGTLSender, open_stereo, track_stream
+    from .video import IGTLSender, ShowSink, VideoSink, open_stereo, track_stream
 
     tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
     stream = open_stereo(args.left, args.right, args.fps)
+    sinks = []
+    try:
+        if args.show:
+            sinks.append(ShowSink(tracker.rig))
+        if args.video:
+            sinks.append(VideoSink(args.video, tracker.rig, stream.fps or args.fps))
+    except ValueError:
+        stream.close()
+        raise
     send = None
     if args.igtl is not None:
         try:
@@ -197,10 +206,12 @@ def cmd_track(args):
             raise
         print(f"OpenIGTLink: serving TRANSFORM {args.igtl_name!r} on port {args.igtl}", file=sys.stderr)
     try:
-        s = track_stream(tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send)
+        s = track_stream(tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks))
     finally:
         if send is not None:
             send.close()
+        for sink in sinks:
+            sink.close()
     print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
           f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
           f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else ""))
@@ -472,6 +483,8 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
     k.add_argument("--out", default="poses.csv", help="CSV, one row a frame (default poses.csv)")
     k.add_argument("--jsonl", help="also one JSON object a frame")
+    k.add_argument("--video", help="also a video (mp4) of both views side by side with the marker's axes drawn")
+    k.add_argument("--show", action="store_true", help="a live window with both views and the axes (q stops; needs a display)")
     k.add_argument("--fps", type=float, default=60.0, help="frame rate of image folders, for timestamp_s (videos and cameras give their own; default 60)")
     k.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
     k.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")

@@ -24,7 +24,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".pp
 CSV_HEADER = (
     ["frame", "timestamp_s", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
     + [f"T{i}{j}" for i in range(4) for j in range(4)]
-    + ["residual_px", "source"]
+    + ["residual_px"]
 )
 
 
@@ -141,7 +141,7 @@ def pose_row(k: int, t: float, est) -> list:
     U, _, Vt = np.linalg.svd(est.R)
     R = Rotation.from_matrix(U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt)
     vals = [*est.t, *R.as_quat(), *R.as_rotvec(), *est.T.ravel(), est.residual_px]
-    return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals), est.source]
+    return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals)]
 
 
 class IGTLSender:
@@ -181,11 +181,56 @@ class IGTLSender:
         self.server.stop()
 
 
+class VideoSink:
+    """Both views side by side with the marker's axes drawn, into a video file (mp4v)."""
+
+    def __init__(self, path: str | Path, rig, fps: float):
+        self.path, self.rig, self.fps, self.writer = Path(path), rig, fps, None
+
+    def __call__(self, k, t, left, right, est):
+        from .viz import annotate_pair
+
+        frame = annotate_pair((left, right), est, self.rig)
+        if self.writer is None:
+            h, w = frame.shape[:2]
+            self.writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.fps), (w, h))
+            if not self.writer.isOpened():
+                raise ValueError(f"cannot write the video {self.path}")
+        self.writer.write(frame)
+
+    def close(self):
+        if self.writer is not None:
+            self.writer.release()
+
+
+class ShowSink:
+    """A live window with both views and the axes (OpenCV with GUI support and a display);
+    q or Esc stops the stream like Ctrl-C."""
+
+    def __init__(self, rig, name: str = "markerpose"):
+        self.rig, self.name = rig, name
+        try:
+            cv2.namedWindow(name, cv2.WINDOW_NORMAL)
+        except cv2.error as exc:
+            raise ValueError("--show needs OpenCV with GUI support (opencv-python, not -headless) and a display") from exc
+
+    def __call__(self, k, t, left, right, est):
+        from .viz import annotate_pair
+
+        cv2.imshow(self.name, annotate_pair((left, right), est, self.rig))
+        if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+            raise KeyboardInterrupt
+
+    def close(self):
+        cv2.destroyWindow(self.name)
+
+
 def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True,
-                 send=None) -> dict:
+                 send=None, sinks: tuple = ()) -> dict:
     """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
     ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
-    e.g. an :class:`IGTLSender`). Returns the summary: frames, found share, tracked
+    e.g. an :class:`IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
+    a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
     share, frames per second, longest run of frames without a pose."""
     out_csv = Path(out_csv)
     partial = out_csv.with_name(out_csv.name + ".partial")
@@ -205,6 +250,8 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
                 f.flush()
                 if send is not None:
                     send(k, t, est)
+                for sink in sinks:
+                    sink(k, t, left, right, est)
                 if partial_jsonl:
                     fj.write(json.dumps({"frame": k, "timestamp_s": t, "valid": est is not None,
                                          "T_left_marker": None if est is None else est.T.tolist(),
@@ -246,4 +293,4 @@ class _Null:
         return False
 
 
-__all__ = ["CSV_HEADER", "IGTLSender", "StereoStream", "open_stereo", "pose_row", "track_stream"]
+__all__ = ["CSV_HEADER", "IGTLSender", "ShowSink", "StereoStream", "VideoSink", "open_stereo", "pose_row", "track_stream"]

@@ -40,3 +40,16 @@ def draw_centers(image: np.ndarray, centers: np.ndarray, radius: int = 6) -> np.
         cv2.drawMarker(out, c, _ID_COLORS[i % 3], cv2.MARKER_CROSS, 2 * radius, 2, cv2.LINE_AA)
         cv2.putText(out, f"c{i}", (c[0] + radius, c[1] - radius), cv2.FONT_HERSHEY_SIMPLEX, 0.8, _ID_COLORS[i % 3], 2, cv2.LINE_AA)
     return out
+
+
+def annotate_pair(images, est, rig, length: float = 30.0) -> np.ndarray:
+    """Both views side by side (BGR), with the estimate's axes and centres drawn on each
+    (the views unmarked when ``est`` is None)."""
+    views = []
+    for i, (img, cam) in enumerate(zip(images, rig.cameras)):
+        if est is None:
+            views.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy())
+            continue
+        T = est.T if i == 0 else rig.T_right_left @ est.T
+        views.append(draw_centers(draw_axes(img, cam, T, length=length), est.centers[i]))
+    return np.hstack(views)

@@ -1,6 +1,7 @@
 """markerpose track: two image folders in, one CSV row a frame out (markerpose.video)."""
 
 import csv
+import json
 
 import cv2
 import numpy as np
@@ -38,7 +39,9 @@ def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsy
     root, truth = folders
     out = tmp_path / "poses.csv"
     assert cli.main(["track", str(root / "L"), str(root / "R"), "--out", str(out), "--jsonl", str(tmp_path / "p.jsonl"),
-                     "--detector", "classical", "--quiet"]) == 0
+                     "--video", str(tmp_path / "axes.mp4"), "--detector", "classical", "--quiet"]) == 0
+    cap = cv2.VideoCapture(str(tmp_path / "axes.mp4"))  # both views side by side, one frame a pair
+    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(truth) and int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 2 * 1280
     assert "10 frames" in capsys.readouterr().out
     rows = list(csv.DictReader(out.open()))
     assert list(rows[0]) == CSV_HEADER and len(rows) == len(truth)
@@ -53,7 +56,8 @@ def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsy
         np.testing.assert_allclose(M[:3, 3], t)
         q = np.array([float(row[k]) for k in ("qx", "qy", "qz", "qw")])
         assert abs(np.linalg.norm(q) - 1) < 1e-6
-    assert [r["source"] for r in rows[2:8]] == ["tracked"] * 6
+    sources = [json.loads(line)["source"] for line in (tmp_path / "p.jsonl").read_text().splitlines()]
+    assert sources[2:8] == ["tracked"] * 6 and sources[8:] == [None, None]
     assert not list(tmp_path.glob("*.partial"))
     assert len((tmp_path / "p.jsonl").read_text().splitlines()) == len(truth)
     assert float(rows[3]["timestamp_s"]) == pytest.approx(3 / 60)  # folders: --fps, 60 by default

@@ -22,7 +22,7 @@ from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..presets import ABOUT
 from ..synth import Imaging
-from ..viz import draw_axes, draw_centers
+from ..viz import annotate_pair
 from .configs import DEFAULT, available
 from .plots import plot_displacement, plot_rotation
 from .robot import PAPER, RobotScene, evaluate, render_sequences
@@ -107,14 +107,7 @@ def report_markdown(results: dict, conf: dict, render_s: float) -> str:
 
 def _annotate(frame, est, rig, path: Path):
     """Both views side by side with the estimated axes and centres drawn (as estimated)."""
-    views = []
-    for i, (img, cam) in enumerate(zip(frame.images, rig.cameras)):
-        if est is None:
-            views.append(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
-            continue
-        T = est.T if i == 0 else rig.T_right_left @ est.T
-        views.append(draw_centers(draw_axes(img, cam, T, length=30.0), est.centers[i]))
-    cv2.imwrite(str(path), np.hstack(views))
+    cv2.imwrite(str(path), annotate_pair(frame.images, est, rig))
     return path
 
 
