@@ -54,9 +54,19 @@ class MarkerPose:
         self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
         self._history: list = []  # the last poses track() found, oldest first
+        self.why: str | None = None  # after a call that found nothing: the first reason met
 
     def __repr__(self):
         return f"MarkerPose(preset={self.preset!r}, conf={self.conf!r})"
+
+    def _failed(self, reason: str) -> None:
+        """Remember why the best hypothesis of this call failed (the first reason met)."""
+        if self.why is None:
+            self.why = reason
+
+    def _start(self) -> float:
+        self.timings, self.why = {}, None
+        return time.perf_counter()
 
     def _timed(self, stage: str, fn, *args):
         t = time.perf_counter()
@@ -76,20 +86,28 @@ class MarkerPose:
         gray = as_gray(image)
         cam = self.rig.cameras[view]
         check_size(gray, cam, "image")
-        self.timings, t0 = {}, time.perf_counter()
+        t0 = self._start()
         try:
             if self.proposer is None:
                 from . import classical
 
-                return self._timed("propose", classical.detect, gray, self.marker, self.conf["refine"]["subpixel"], self.refiner.classical)
+                det = self._timed("propose", classical.detect, gray, self.marker, self.conf["refine"]["subpixel"], self.refiner.classical)
+                self.why = None if det is not None else "no marker-like triple of rings in this view"
+                return det
             if self.ids == "head" or not self.refiner.gives_ellipses:  # the paper's decoding: one triple
-                return self._timed("refine", self.refiner, [gray], [cam], self._timed("propose", self.proposer.decoded, [gray]))[0]
+                det = self._timed("refine", self.refiner, [gray], [cam], self._timed("propose", self.proposer.decoded, [gray]))[0]
+                self.why = None if det is not None else "stage 1 decoded no triple in this view"
+                return det
+            tried = 0
             for zoom in self.proposer.looks():  # ours: layout triples, best first, until one fits a plate
                 cand = self._timed("propose", self.proposer.candidates, [gray], zoom)[0]
                 for pts, s in self._view_triples(gray, cand, zoom):
+                    tried += 1
                     det = self._timed("refine", self.refiner, [gray], [cam], [(pts, s)])[0]
                     if verify.plate_poses(det, cam, self.marker, self.conf["verify"]["plate_tol"]):
                         return det
+            self.why = (f"none of {tried} layout triples refined to rings on one plate" if tried else
+                        "no triple of stage-1 candidates has the marker's layout and enough ring evidence")
             return None
         finally:
             self.timings["total"] = time.perf_counter() - t0
@@ -125,9 +143,11 @@ class MarkerPose:
             :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
         """
         grays = self._pair(left, right)
-        self.timings, t0 = {}, time.perf_counter()
+        t0 = self._start()
         try:
-            return self._cold(grays)
+            est = self._cold(grays)
+            self.why = None if est is not None else (self.why or "no marker found")
+            return est
         finally:
             self.timings["total"] = time.perf_counter() - t0
 
@@ -141,10 +161,13 @@ class MarkerPose:
         ("tracked" or "detected"). Call :meth:`reset` between sequences.
         """
         grays = self._pair(left, right)
-        self.timings, t0 = {}, time.perf_counter()
+        t0 = self._start()
         try:
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
-            est = est if est is not None else self._cold(grays)
+            if est is None:
+                self.why = None  # the prior's failure is not why the frame has no pose
+                est = self._cold(grays)
+                self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*self._history, est.T][-2:] if est is not None else []
             return est
         finally:
@@ -166,7 +189,8 @@ class MarkerPose:
             if det is None:
                 return None
             found.append(det)
-        if not self._timed("verify", verify.pair, self.rig, found, mk, self.conf["verify"], True):
+        reason = self._timed("verify", verify.rejection, self.rig, found, mk, self.conf["verify"], True)
+        if reason is not None:
             return None
         est = self._solved(found, "tracked")
         return est if est is not None and est.residual_px <= c["max_residual_px"] else None
@@ -177,12 +201,18 @@ class MarkerPose:
             return self._classical(grays)
         if self.ids != "stereo":  # one triple per view, by the ID head (paper) or the layout
             found = self._timed("propose", self.proposer.decoded, grays)
+            for f, view in zip(found, verify.VIEWS):
+                if f is None:
+                    self._failed(f"stage 1 decoded no triple in the {view} view")
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
         m = self.conf["match"]
         for zoom in self.proposer.looks():
             cand = self._timed("propose", self.proposer.candidates, grays, zoom)
             triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
                                   m["epipolar_tol"], m["shape_tol"], m["max_triples"])
+            if not triples:
+                self._failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
+                             "matches across the views with the marker's 3D shape")
             est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples])
             if est is None and m["transfer"]:
                 est = self._transferred(grays, cand, zoom)
@@ -195,6 +225,8 @@ class MarkerPose:
         views = [self._timed("propose", propose.classical_view, g, self.marker, self.refiner.classical) for g in grays]
         pair = self._timed("match", match.pair_triples, self.rig, views[0][2:], views[1][2:], self.conf["match"]["pair_epipolar_tol"])
         if pair is None:
+            counts = ", ".join(f"{len(v[3])} {name}" for v, name in zip(views, verify.VIEWS))
+            self._failed(f"no pair of marker-like ring triples ({counts}) agrees with the epipolar geometry")
             return None
         il, ir, cl, cr = pair
         found = [self._timed("refine", self.refiner.triple, v, tri, cost, cam) for v, tri, cost, cam in zip(views, (il, ir), (cl, cr), self.rig.cameras)]
@@ -211,13 +243,20 @@ class MarkerPose:
 
     def _accepted(self, found: list) -> Estimate | None:
         """The estimate from refined detections of both views if they pass verification."""
-        ok = self._timed("verify", verify.pair, self.rig, found, self.marker, self.conf["verify"], self.refiner.edge_refit)
-        return self._solved(found) if ok else None
+        reason = self._timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], self.refiner.edge_refit)
+        if reason is not None:
+            self._failed(reason)
+            return None
+        return self._solved(found)
 
     def _solved(self, found: list, source: str = "detected") -> Estimate | None:
         """Solve, then reject points that do not have the marker's shape (a wrong triple)."""
         est = self._timed("solve", solve.solve, self.rig, self.marker, found[0], found[1], self.conf["solve"], source)
-        return est if verify.shape(est.points3d, self.marker, self.conf["verify"]) else None
+        if verify.shape(est.points3d, self.marker, self.conf["verify"]):
+            return est
+        self._failed(f"shape check: the triangulated centres are {verify.shape_error(est.points3d, self.marker.points3d):.2f} mm "
+                     f"from the marker's layout (limit {self.conf['verify']['max_shape_error']:g} mm)")
+        return None
 
     def _transferred(self, grays: list, cand: list, zoom: float) -> Estimate | None:
         """Recover a marker one camera sees too steeply for stage 1 to place its rings within

@@ -1,6 +1,8 @@
 """The public API contract (DESIGN §3) on rendered stereo pairs."""
 
 import cv2
+import re
+
 import numpy as np
 import pytest
 
@@ -184,3 +186,32 @@ def test_detect_checks_the_image_against_the_rig(rig, bad):
     """A resized, transposed or cropped view is refused rather than detected in the rig's pixel frame."""
     with pytest.raises(ValueError, match="image"):
         mp.MarkerPose(rig, detector="classical").detect(bad, view=1)
+
+
+def test_why_says_which_stage_found_nothing(rig, frame):
+    """After a call that gives no pose, ``tracker.why`` names the stage and the figure
+    that stopped it; after a success it is None."""
+    tracker = mp.MarkerPose(rig, detector="classical")
+    assert tracker.estimate(*frame.images) is not None and tracker.why is None
+    blank = np.full_like(frame.images[0], 90)
+    assert tracker.estimate(frame.images[0], blank) is None
+    assert re.search(r"no pair of marker-like ring triples \(\d+ left, 0 right\) agrees with the epipolar geometry", tracker.why)
+    strict = mp.MarkerPose(rig, detector="classical", verify={"max_shape_error": 1e-6})
+    assert strict.estimate(*frame.images) is None
+    assert re.match(r"shape check: the triangulated centres are 0\.\d+ mm from the marker's layout \(limit 1e-06 mm\)", strict.why)
+    assert tracker.detect(blank) is None and tracker.why == "no marker-like triple of rings in this view"
+
+
+def test_rejection_names_the_failed_check(rig, frame):
+    from dataclasses import replace
+
+    from markerpose.stages import verify
+
+    tracker = mp.MarkerPose(rig, detector="classical")
+    left, right = tracker.estimate(*frame.images).detections
+    conf = verify.default_conf
+    assert verify.rejection(rig, [left, right], tracker.marker, conf, True) is None
+    moved = replace(right, centers=right.centers + [0.0, 8.0])
+    assert re.match(r"epipolar check: c\d is \d+\.\d px from its epipolar line \(limit 3 px\)", verify.rejection(rig, [left, moved], tracker.marker, conf, True))
+    unrefined = replace(right, refined=np.array([True, False, True]))
+    assert verify.rejection(rig, [left, unrefined], tracker.marker, conf, True) == "the sub-pixel edge fit failed on c1 in the right view"

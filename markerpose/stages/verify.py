@@ -34,24 +34,40 @@ def plate_poses(det: Detection | None, camera, marker: Marker, tol: float) -> li
     return poses if poses and poses[0][0] <= tol else []
 
 
-def pair(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> bool:
-    """Whether refined detections of both views may give a pose: every centre refined
-    (when ``all_refined``), same-ID centres on each other's epipolar lines and, with
-    ``plate_check``, each view's rings on one plate."""
-    if found[0] is None or found[1] is None:
-        return False
-    if all_refined and not (found[0].refined.all() and found[1].refined.all()):
-        return False
+VIEWS = ("left", "right")
+
+
+def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> str | None:
+    """Why refined detections of both views may not give a pose, or None when they may:
+    every centre refined (when ``all_refined``), same-ID centres on each other's
+    epipolar lines and, with ``plate_check``, each view's rings on one plate."""
+    for det, view in zip(found, VIEWS):
+        if det is None:
+            return f"nothing to refine in the {view} view"
+    if all_refined:
+        for det, view in zip(found, VIEWS):
+            if not det.refined.all():
+                rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
+                return f"the sub-pixel edge fit failed on {rings} in the {view} view"
     # The IDs give the correspondences; the epipolar constraint checks them.
     d = np.diag(epipolar_distance(rig, found[0].centers, found[1].centers))
     both = found[0].refined & found[1].refined
-    if np.any(d > np.where(both, conf["epipolar_tol"], conf["epipolar_tol_coarse"])):
-        return False
+    tol = np.where(both, conf["epipolar_tol"], conf["epipolar_tol_coarse"])
+    if np.any(d > tol):
+        i = int(np.argmax(d - tol))
+        return f"epipolar check: c{i} is {d[i]:.1f} px from its epipolar line (limit {tol[i]:g} px)"
     if conf["plate_check"]:
-        for det, cam in zip(found, rig.cameras):
+        for det, cam, view in zip(found, rig.cameras, VIEWS):
             if det.ellipses is not None and det.refined.all() and not plate_poses(det, cam, marker, conf["plate_tol"]):
-                return False
-    return True
+                poses = view_poses(cam, det.centers, det.ellipses, marker.points3d, marker.outer_radius)
+                misfit = f"{poses[0][0]:.3f}" if poses else "no pose"
+                return f"plate check: the {view} view's rings fit no pose of the marker (misfit {misfit}, limit {conf['plate_tol']:g})"
+    return None
+
+
+def pair(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> bool:
+    """Whether refined detections of both views may give a pose (:func:`rejection` is None)."""
+    return rejection(rig, found, marker, conf, all_refined) is None
 
 
 def shape_error(points3d: np.ndarray, model: np.ndarray) -> float:
@@ -67,4 +83,4 @@ def shape(points3d: np.ndarray, marker: Marker, conf: dict) -> bool:
     return shape_error(points3d, marker.points3d) <= conf["max_shape_error"]
 
 
-__all__ = ["default_conf", "pair", "plate_poses", "shape", "shape_error"]
+__all__ = ["default_conf", "pair", "plate_poses", "rejection", "shape", "shape_error"]
