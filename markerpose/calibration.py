@@ -106,14 +106,19 @@ def _paint(camera: Camera, T: np.ndarray, target, imaging, scene: np.ndarray, bo
     """Ray-cast the target into ``scene[box]`` (in place), edge pixels supersampled."""
     from .synth.render import _plane_coords
 
-    grid = camera.normalized_grid()
+    # The box grown by one pixel, so the differences below are central up to its edge.
+    h, w = scene.shape
+    ys, xs = box
+    gy0, gy1, gx0, gx1 = max(ys.start - 1, 0), min(ys.stop + 1, h), max(xs.start - 1, 0), min(xs.stop + 1, w)
+    grid = camera.normalized_grid()[gy0:gy1, gx0:gx1]
+    inner = (slice(ys.start - gy0, ys.stop - gy0), slice(xs.start - gx0, xs.stop - gx0))
     Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
     mx, my = _plane_coords(Hinv, grid[..., 0], grid[..., 1])
     front = Hinv[2, 0] * grid[..., 0] + Hinv[2, 1] * grid[..., 1] + Hinv[2, 2]  # > 0: the plane lies ahead
-    # The pixel's footprint on the plane, from differences over the whole grid.
+    # The pixel's footprint on the plane.
     foot = 0.75 * (np.hypot(np.gradient(mx, axis=1), np.gradient(my, axis=1)) + np.hypot(np.gradient(mx, axis=0), np.gradient(my, axis=0)))
-    J_u, J_v = np.gradient(grid, axis=1)[box], np.gradient(grid, axis=0)[box]
-    grid, mx, my, front, foot = grid[box], mx[box], my[box], front[box], foot[box]
+    J_u, J_v = np.gradient(grid, axis=1)[inner], np.gradient(grid, axis=0)[inner]
+    grid, mx, my, front, foot = grid[inner], mx[inner], my[inner], front[inner], foot[inner]
     sub = scene[box]
     val = target.reflectance(np.stack([mx, my], -1))
     # Edge pixels: the texture differs across the pixel's footprint.

@@ -143,7 +143,7 @@ def cmd_calibrate(args):
 
     grid = _grid(args)
     if args.rendered:
-        truth = StereoRigDefault()
+        truth = _rig(None)
         pairs, _ = rendered_pairs(truth, grid, args.rendered, args.seed)
         names = list(range(len(pairs)))
     else:
@@ -174,12 +174,6 @@ def cmd_calibrate(args):
               f"rotation within {c['R_deg_error']:.4f}°")
     if max(s["rms_left_px"], s["rms_right_px"]) > 0.5:
         print("warning: RMS reprojection error above 0.5 px: check focus, motion blur, a flat print and the --grid/--spacing", file=sys.stderr)
-
-
-def StereoRigDefault():
-    from .camera import StereoRig
-
-    return StereoRig.default()
 
 
 def cmd_track(args):

@@ -187,6 +187,13 @@ def pose_from_points(points3d: np.ndarray, model: np.ndarray, method: str = "pap
     raise ValueError(f"unknown pose method {method!r}; choose from {POSE_METHODS}")
 
 
+def nearest_rotation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation nearest ``R`` (3, 3) in the Frobenius norm (SVD; the paper's
+    pose is not exactly orthonormal)."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+
+
 def rotation_angle(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Angle (rad) of ``R_a^T R_b`` by the paper's formula ``arccos((tr - 1) / 2)`` (clipped)."""
     c = (np.trace(np.asarray(R_a).T @ np.asarray(R_b)) - 1.0) / 2.0

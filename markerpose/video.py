@@ -10,6 +10,7 @@ so a file under the final name always holds every frame that was read.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import time
@@ -138,8 +139,9 @@ def pose_row(k: int, t: float, est) -> list:
         return [k, f"{t:.6f}", 0] + [""] * (len(CSV_HEADER) - 3)
     from scipy.spatial.transform import Rotation
 
-    U, _, Vt = np.linalg.svd(est.R)
-    R = Rotation.from_matrix(U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt)
+    from .geometry import nearest_rotation
+
+    R = Rotation.from_matrix(nearest_rotation(est.R))
     vals = [*est.t, *R.as_quat(), *R.as_rotvec(), *est.T.ravel(), est.residual_px]
     return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals)]
 
@@ -240,7 +242,7 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
     stopped = False
     t0 = time.perf_counter()
     bar = tqdm(total=stream.count, desc="track", unit="pair", disable=not progress)
-    with open(partial, "w", newline="") as f, (open(partial_jsonl, "w") if partial_jsonl else _Null()) as fj:
+    with open(partial, "w", newline="") as f, (open(partial_jsonl, "w") if partial_jsonl else contextlib.nullcontext()) as fj:
         w = csv.writer(f)
         w.writerow(CSV_HEADER)
         try:
@@ -283,14 +285,6 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
     seconds = time.perf_counter() - t0
     return {"frames": n, "found": found / n if n else 0.0, "tracked": tracked / found if found else 0.0,
             "fps": n / seconds if seconds > 0 else 0.0, "longest_gap": longest, "stopped": stopped, "csv": str(out_csv)}
-
-
-class _Null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
 
 
 __all__ = ["CSV_HEADER", "IGTLSender", "ShowSink", "StereoStream", "VideoSink", "open_stereo", "pose_row", "track_stream"]

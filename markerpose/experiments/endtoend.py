@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from ..formats import write_json
 from ..camera import StereoRig
-from ..geometry import rotation_angle
+from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
@@ -133,7 +133,7 @@ def evaluate_pair(tracker: MarkerPose, frame, tol: float) -> dict:
         "t_mm": float(np.linalg.norm(est.t - T[:3, 3])),
         # The paper's R is not exactly orthonormal: its angle to the truth is measured on
         # the nearest rotation.
-        "r_deg": float(np.rad2deg(rotation_angle(_orthonormal(est.R), T[:3, :3]))),
+        "r_deg": float(np.rad2deg(rotation_angle(nearest_rotation(est.R), T[:3, :3]))),
     }
 
 
@@ -145,11 +145,6 @@ def evaluate_views(tracker: MarkerPose, frame, tol: float) -> list[bool]:
         det = tracker.detect(image, view=k)
         out.append(det is not None and bool(np.all(np.linalg.norm(det.centers - view.outer_centers, axis=1) <= tol)))
     return out
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def summarize(rows: list[dict]) -> dict:

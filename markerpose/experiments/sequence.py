@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from ..camera import StereoRig
 from ..formats import write_json
-from ..geometry import rotation_angle
+from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
@@ -118,8 +118,8 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
             dt = time.perf_counter() - t0
             row[m] = {"ms": 1000 * dt, "found": est is not None, "source": None if est is None else est.source,
                       "t_mm": None if est is None else float(np.linalg.norm(est.t - frame.T_left_marker[:3, 3])),
-                      "r_deg": None if est is None else float(np.degrees(rotation_angle(_orthonormal(est.R), frame.T_left_marker[:3, :3]))),
-                      "t": None if est is None else est.t.tolist(), "R": None if est is None else _orthonormal(est.R).tolist()}
+                      "r_deg": None if est is None else float(np.degrees(rotation_angle(nearest_rotation(est.R), frame.T_left_marker[:3, :3]))),
+                      "t": None if est is None else est.t.tolist(), "R": None if est is None else nearest_rotation(est.R).tolist()}
         rows.append(row)
     res = {"conf": c, "summary": {m: summarize(rows, m) for m in METHODS}, "frames": rows}
     if out_dir is not None:
@@ -129,11 +129,6 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
         (out / "report.md").write_text(report(res))
         plot(rows, out / "sequence.png")
     return res
-
-
-def _orthonormal(R: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
 
 
 def summarize(rows: list[dict], m: str) -> dict:
@@ -149,7 +144,7 @@ def summarize(rows: list[dict], m: str) -> dict:
         t = np.array([r[m]["t"] for r in static])
         jitter_t = float(np.sqrt(np.mean(np.sum((t - t.mean(0)) ** 2, axis=1))))
         Rs = np.array([r[m]["R"] for r in static])
-        R_mean = _orthonormal(Rs.sum(0))
+        R_mean = nearest_rotation(Rs.sum(0))
         jitter_r = float(np.sqrt(np.mean([np.degrees(rotation_angle(R, R_mean)) ** 2 for R in Rs])))
     back = [r["frame"] for r in rows if r["visible"] and r["frame"] > 0 and not rows[r["frame"] - 1]["visible"]]
     reacquire = None

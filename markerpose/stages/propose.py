@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import classical
+from ..keypoints import KeypointNet, check_second_look
 from ..marker import Marker
 
 default_conf = {
@@ -30,8 +31,7 @@ default_conf = {
 
 def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
-    if not float(conf["second_look"]) >= 1:
-        raise ValueError(f"second_look is a zoom factor >= 1 (1: none), got {conf['second_look']!r}")
+    check_second_look(conf["second_look"])
     if int(conf["candidates"]) < 3:
         raise ValueError(f"candidates must be >= 3, got {conf['candidates']!r}")
     return conf
@@ -48,8 +48,6 @@ class NeuralProposer:
     """
 
     def __init__(self, conf: dict, marker: Marker, ids: str, threads: int | None = None):
-        from ..keypoints import KeypointNet
-
         self.conf = check_conf(conf)
         decoding = {"ids": "layout" if ids == "stereo" else ids}
         if ids != "stereo":

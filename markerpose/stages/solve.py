@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import POSE_METHODS, perspective_bias, pose_from_points, pose_rigid, triangulate
+from ..geometry import POSE_METHODS, nearest_rotation, perspective_bias, pose_from_points, pose_rigid, triangulate
 from ..marker import Marker
 from ..results import Detection, Estimate
 
@@ -54,9 +54,7 @@ def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: 
 def reprojection_rms(rig, marker: Marker, T_left_marker: np.ndarray, centers: np.ndarray) -> float:
     """RMS distance (px) of ``centers`` (2, 3, 2) from the marker's ring centres projected
     into both views under ``T_left_marker`` (its rotation made orthonormal first)."""
-    U, _, Vt = np.linalg.svd(T_left_marker[:3, :3])
-    R = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    X = marker.points3d @ R.T + T_left_marker[:3, 3]
+    X = marker.points3d @ nearest_rotation(T_left_marker[:3, :3]).T + T_left_marker[:3, 3]
     proj = np.stack(rig.project(X))
     return float(np.sqrt(np.mean(np.sum((proj - centers) ** 2, axis=-1))))
 
