@@ -42,4 +42,155 @@ def write_json(path: str | Path, obj, indent: int | None = 1) -> Path:
     return path
 
 
-__all__ = ["dumps", "jsonable", "write_json"]
+__all__ = ["dumps", "jsonable", "read_ply", "read_sequence", "read_volume", "write_json", "write_ply", "write_sequence", "write_volume"]
+
+
+# --- point clouds ---------------------------------------------------------------------
+def write_ply(path: str | Path, points: np.ndarray, frame: np.ndarray | None = None) -> Path:
+    """Binary little-endian PLY of (N, 3) points (float32 x y z, mm), with an int32
+    ``frame`` property per point when given. Opens in MeshLab, CloudCompare, 3D Slicer."""
+    path = Path(path)
+    P = np.asarray(points, dtype="<f4").reshape(-1, 3)
+    props = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if frame is not None:
+        props.append(("frame", "<i4"))
+    rec = np.empty(len(P), dtype=props)
+    rec["x"], rec["y"], rec["z"] = P[:, 0], P[:, 1], P[:, 2]
+    if frame is not None:
+        rec["frame"] = np.asarray(frame, dtype="<i4").reshape(-1)
+    names = {"<f4": "float", "<i4": "int"}
+    header = ["ply", "format binary_little_endian 1.0", "comment markerpose point cloud, millimetres",
+              f"element vertex {len(P)}"] + [f"property {names[t]} {n}" for n, t in props] + ["end_header"]
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(rec.tobytes())
+    return path
+
+
+def read_ply(path: str | Path) -> dict:
+    """Read a binary little-endian PLY vertex list written by :func:`write_ply` (float and
+    int properties): a dict of property name → array."""
+    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "int": "<i4", "int32": "<i4",
+             "uchar": "u1", "uint8": "u1"}
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file")
+        props, n, fmt = [], 0, None
+        while True:
+            line = f.readline()
+            if not line:
+                raise ValueError(f"{path}: PLY header without end_header")
+            words = line.decode("ascii").split()
+            if not words:
+                continue
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element" and words[1] == "vertex":
+                n = int(words[2])
+            elif words[0] == "property":
+                if words[1] not in types:
+                    raise ValueError(f"{path}: unsupported PLY property type {words[1]}")
+                props.append((words[2], types[words[1]]))
+            elif words[0] == "end_header":
+                break
+        if fmt != "binary_little_endian":
+            raise ValueError(f"{path}: only binary_little_endian PLY is read, got {fmt}")
+        rec = np.frombuffer(f.read(), dtype=props, count=n)
+    return {name: np.array(rec[name]) for name, _ in props}
+
+
+# --- volumes and ultrasound sequences (NRRD, read by 3D Slicer, PLUS, ITK) -------------
+def write_volume(path: str | Path, data: np.ndarray, origin, directions) -> Path:
+    """A 3D volume as NRRD: ``data`` (nx, ny, nz) indexed [i, j, k]; ``origin`` the centre
+    of voxel (0, 0, 0) and ``directions`` (3, 3) whose columns are the steps along i, j, k,
+    both in millimetres in the tracker frame."""
+    import nrrd
+
+    path = Path(path)
+    header = {
+        "space dimension": 3,
+        "space directions": np.asarray(directions, dtype=np.float64).T,
+        "space origin": np.asarray(origin, dtype=np.float64),
+        "space units": ["mm", "mm", "mm"],
+        "kinds": ["domain", "domain", "domain"],
+        "encoding": "gzip",
+    }
+    nrrd.write(str(path), np.ascontiguousarray(data), header, index_order="F")
+    return path
+
+
+def read_volume(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(data, origin, directions) of a volume written by :func:`write_volume`."""
+    import nrrd
+
+    data, header = nrrd.read(str(path), index_order="F")
+    return data, np.asarray(header["space origin"], float), np.asarray(header["space directions"], float).T
+
+
+def _matrix_text(T) -> str:
+    return " ".join(f"{v:.9g}" for v in np.asarray(T, dtype=np.float64).ravel())
+
+
+def write_sequence(path: str | Path, images, timestamps, probe_to_tracker: list, image_to_probe: np.ndarray) -> Path:
+    """A tracked ultrasound sweep as a PLUS / IGSIO sequence file (``.seq.nrrd``), which 3D
+    Slicer (SlicerIGSIO) loads as a sequence with its transforms.
+
+    Args:
+        images: N uint8 (H, W) frames.
+        timestamps: N times, s.
+        probe_to_tracker: N (4, 4) ``T_left_marker`` (PLUS's ProbeToTracker) or None where
+            the marker was not found (written as identity with status INVALID).
+        image_to_probe: (4, 4) PLUS's ImageToProbe (pixels → marker mm, spacing folded in).
+    """
+    import nrrd
+
+    frames = [np.asarray(im) for im in images]
+    if not frames:
+        raise ValueError("no frames to write")
+    h, w = frames[0].shape
+    if any(f.shape != (h, w) or f.dtype != np.uint8 for f in frames):
+        raise ValueError("every frame must be uint8 of the same (H, W)")
+    if not (len(frames) == len(timestamps) == len(probe_to_tracker)):
+        raise ValueError("images, timestamps and probe_to_tracker must have the same length")
+    data = np.stack(frames, axis=-1).transpose(1, 0, 2)[:, :, None, :]  # (W, H, 1, N)
+    header = {
+        "kinds": ["domain", "domain", "domain", "list"],
+        "encoding": "raw",
+        "ultrasound image orientation": "MF",
+        "ultrasound image type": "BRIGHTNESS",
+    }
+    for k, (t, T) in enumerate(zip(timestamps, probe_to_tracker)):
+        p = f"Seq_Frame{k:04d}_"
+        header[p + "FrameNumber"] = str(k)
+        header[p + "Timestamp"] = f"{float(t):.6f}"
+        header[p + "UnfilteredTimestamp"] = f"{float(t):.6f}"
+        header[p + "ImageStatus"] = "OK"
+        header[p + "ProbeToTrackerTransform"] = _matrix_text(np.eye(4) if T is None else T)
+        header[p + "ProbeToTrackerTransformStatus"] = "INVALID" if T is None else "OK"
+        header[p + "ImageToProbeTransform"] = _matrix_text(image_to_probe)
+        header[p + "ImageToProbeTransformStatus"] = "OK"
+    nrrd.write(str(path), data, header, index_order="F")
+    return Path(path)
+
+
+def read_sequence(path: str | Path) -> dict:
+    """Read a file written by :func:`write_sequence`: ``images`` (N, H, W) uint8,
+    ``timestamps`` (N,), ``probe_to_tracker`` (list of (4, 4) or None), ``image_to_probe``
+    (list of (4, 4))."""
+    import nrrd
+
+    data, header = nrrd.read(str(path), index_order="F")
+    if data.ndim != 4:
+        raise ValueError(f"{path}: expected a 4D (W, H, 1, N) sequence, got {data.ndim}D")
+    images = data[:, :, 0, :].transpose(2, 1, 0)
+    n = images.shape[0]
+    mat = lambda s: np.array([float(v) for v in s.split()]).reshape(4, 4)
+    times, p2t, i2p = [], [], []
+    for k in range(n):
+        p = f"Seq_Frame{k:04d}_"
+        times.append(float(header[p + "Timestamp"]))
+        ok = header.get(p + "ProbeToTrackerTransformStatus", "OK") == "OK"
+        p2t.append(mat(header[p + "ProbeToTrackerTransform"]) if ok else None)
+        i2p.append(mat(header[p + "ImageToProbeTransform"]))
+    return {"images": np.ascontiguousarray(images), "timestamps": np.array(times), "probe_to_tracker": p2t,
+            "image_to_probe": i2p}
