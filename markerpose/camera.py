@@ -28,7 +28,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-
 # Sanity limits for rigs: values outside them load but cannot work (overflow, division
 # by ~0, singular matrices far from the code that reads the rig), so they are refused.
 MAX_IMAGE_SIDE = 100_000  # px, per side
@@ -314,7 +313,7 @@ class StereoRig:
 
     # --- file I/O -----------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | Path) -> "StereoRig":
+    def load(cls, path: str | Path) -> StereoRig:
         """Read a rig from OpenCV FileStorage YAML or XML (keys ``K1 dist1 K2 dist2 R t``).
 
         Raises:
@@ -324,46 +323,24 @@ class StereoRig:
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"rig file not found: {path}")
-        # Open in two steps: a parse error inside the constructor surfaces as a bare
-        # SystemError in the Python bindings, whereas open() raises cv2.error.
-        fs = cv2.FileStorage()
-        try:
-            fs.open(str(path), cv2.FILE_STORAGE_READ)
-        except cv2.error as e:
-            raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file ({e.err})") from None
-        if not fs.isOpened():
-            raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file")
+        from .formats import open_storage, storage_array
+
+        fs = open_storage(path)
         try:
             vals = {}
             for key in ("K1", "dist1", "K2", "dist2", "R", "t"):
-                node = fs.getNode(key)
-                if node.empty() or node.isNone():
-                    raise ValueError(f"{path}: missing key '{key}'")
-                try:
-                    m = node.mat() if node.isMap() else None
-                except cv2.error:  # a map that is not an opencv-matrix
-                    raise ValueError(f"{path}: key '{key}' is not a matrix") from None
+                m = storage_array(fs, key, path)
                 if m is None:
-                    # Also accept a plain sequence of numbers.
-                    if node.isSeq():
-                        m = np.array([node.at(i).real() for i in range(node.size())])
-                    else:
-                        raise ValueError(f"{path}: key '{key}' is not a matrix")
+                    raise ValueError(f"{path}: missing key '{key}'")
                 vals[key] = m
-            node = fs.getNode("image_size")
-            if not node.empty() and not node.isNone():
-                arr = None
-                if node.isMap():
-                    try:
-                        m = node.mat()
-                    except cv2.error:  # a map that is not an opencv-matrix
-                        m = None
-                    arr = None if m is None else m.ravel()
-                elif node.isSeq():
-                    arr = np.array([node.at(i).real() for i in range(node.size())])
-                if arr is None or arr.size != 2:
+            try:
+                arr = storage_array(fs, "image_size", path)
+            except ValueError:
+                arr = np.zeros(0)
+            if arr is not None:
+                if arr.size != 2:
                     raise ValueError(f"{path}: key 'image_size' must hold two numbers (width, height)")
-                vals["image_size"] = arr
+                vals["image_size"] = arr.ravel()
         finally:
             fs.release()
 
@@ -408,7 +385,7 @@ class StereoRig:
         return path
 
     @classmethod
-    def default(cls) -> "StereoRig":
+    def default(cls) -> StereoRig:
         """The simulated paper-like rig shipped with the package (``data/default_rig.yaml``).
 
         Two 1280x1024 mono cameras with 4.8 µm pixels and 12 mm lenses (f ≈ 2500 px),

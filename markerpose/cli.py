@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .formats import dumps, write_json
 from . import __version__
+from .formats import dumps, write_json
 from .presets import ORDER
 
 EXIT_NOT_FOUND = 1
@@ -61,9 +61,9 @@ def cmd_marker(args):
 
 
 def cmd_render(args):
-    from .synth import Imaging, look_at_pose, render_stereo
-
     import cv2
+
+    from .synth import Imaging, look_at_pose, render_stereo
 
     if args.repeat < 1:
         raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
@@ -399,6 +399,54 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
     p.add_argument("--export", help="also write the best weights, slimmed, to this path")
 
 
+def _pixel(text: str) -> tuple[float, float]:
+    try:
+        u, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected U,V in pixels, got {text!r}") from None
+    return u, v
+
+
+def cmd_ultrasound_demo(args):
+    from .ultrasound import experiment
+
+    if args.acquisitions is not None and args.acquisitions < 1:
+        raise ValueError(f"--acquisitions must be >= 1, got {args.acquisitions}")
+    t0 = time.perf_counter()
+    cmd = "markerpose ultrasound demo" + (" --quick" if args.quick else "") + f" --out {args.out}"
+    if args.acquisitions is not None:
+        cmd += f" --acquisitions {args.acquisitions}"
+    path = experiment.main(args.out, quick=args.quick, seed=args.seed, jobs=args.jobs, acquisitions=args.acquisitions,
+                           progress=not args.quiet, command=cmd)
+    print(f"wrote {path} and the plots and files beside it ({time.perf_counter() - t0:.0f} s)")
+
+
+def cmd_ultrasound_reconstruct(args):
+    from .ultrasound.recording import reconstruct_recording
+
+    s = reconstruct_recording(args.poses, args.images, args.calibration, args.out, seed_px=args.seed, fps=args.fps,
+                              time_offset_s=args.time_offset, max_gap_s=args.max_gap, voxel_mm=args.voxel_mm,
+                              progress=not args.quiet)
+    print(f"{s['frames_with_pose']} of {s['frames']} frames with a pose; wrote {', '.join(s['files'])} into {args.out}")
+    if "cylinder" in s:
+        c = s["cylinder"]
+        print(f"cylinder: diameter {c['diameter_mm']:.3f} mm, RMS {c['rms_mm']:.3f} mm, {c['inliers']} of {c['points']} points")
+
+
+def cmd_ultrasound_simulate(args):
+    from .ultrasound.recording import write_simulated_recording
+
+    if args.frames < 2:
+        raise ValueError(f"--frames must be >= 2, got {args.frames}")
+    t = write_simulated_recording(args.out, n_frames=args.frames, seed=args.seed, progress=not args.quiet)
+    u, v = t["seed_px"]
+    print(f"wrote {t['camera_frames']} stereo pairs (30 frames/s) and {t['us_frames']} ultrasound frames into {args.out}; "
+          f"the tube (diameter {t['diameter_mm']} mm) is at {u:.0f},{v:.0f} px on the first ultrasound frame. Next:\n"
+          f"  markerpose track {t['left']} {t['right']} --fps 30 --out {Path(args.out) / 'poses.csv'}\n"
+          f"  markerpose ultrasound reconstruct --poses {Path(args.out) / 'poses.csv'} --images {t['us']} "
+          f"--calibration {t['calibration']} --seed {u:.0f},{v:.0f} --out {Path(args.out) / 'reconstruction'}")
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -489,6 +537,35 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_marker_args(k)
     k.set_defaults(func=cmd_track)
+
+    us = sub.add_parser("ultrasound", help="freehand 3D ultrasound with a tracked probe (the paper's section 5.3)")
+    usub = us.add_subparsers(dest="ultrasound_command", required=True)
+    ud = usub.add_parser("demo", help="the paper's tube experiment on simulated data: diameter vs the paper, report, plots, files")
+    ud.add_argument("--out", default="markerpose-ultrasound", help="output folder (default: markerpose-ultrasound)")
+    ud.add_argument("--quick", action="store_true", help="3 short acquisitions (about a minute) instead of 10 full ones")
+    ud.add_argument("--acquisitions", type=int, help="number of seeded acquisitions (default 10; --quick 3)")
+    ud.add_argument("--seed", type=int, default=0)
+    ud.add_argument("--jobs", type=int, help="processes (default: up to 2)")
+    ud.add_argument("--quiet", action="store_true", help="no progress bar")
+    ud.set_defaults(func=cmd_ultrasound_demo)
+    ur = usub.add_parser("reconstruct", help="a recorded sweep: poses.csv from markerpose track + ultrasound frames → sequence, volume, tube fit")
+    ur.add_argument("--poses", required=True, help="poses.csv written by markerpose track")
+    ur.add_argument("--images", required=True, help="folder of ultrasound frames (sorted by name) with timestamps.csv (file,timestamp_s)")
+    ur.add_argument("--calibration", required=True, help="probe calibration YAML (T_marker_image, spacing, image_size)")
+    ur.add_argument("--out", default="markerpose-reconstruction", help="output folder (default: markerpose-reconstruction)")
+    ur.add_argument("--seed", type=_pixel, metavar="U,V", help="a pixel inside the tube on the first frame: segment it and fit a cylinder")
+    ur.add_argument("--fps", type=float, help="frame rate of the ultrasound frames when there is no timestamps.csv")
+    ur.add_argument("--time-offset", type=float, default=0.0, help="seconds added to the ultrasound times to reach the cameras' clock")
+    ur.add_argument("--max-gap", type=float, default=0.2, help="no pose is interpolated across a tracking gap longer than this, s (default 0.2)")
+    ur.add_argument("--voxel-mm", type=float, default=0.3, help="volume spacing, mm (default 0.3)")
+    ur.add_argument("--quiet", action="store_true", help="no progress bars")
+    ur.set_defaults(func=cmd_ultrasound_reconstruct)
+    usim = usub.add_parser("simulate", help="write a simulated recording (stereo frames, ultrasound frames, calibration) to try reconstruct on")
+    usim.add_argument("--out", default="markerpose-us-recording", help="output folder (default: markerpose-us-recording)")
+    usim.add_argument("--frames", type=int, default=30, help="ultrasound frames (15 frames/s; default 30)")
+    usim.add_argument("--seed", type=int, default=0)
+    usim.add_argument("--quiet", action="store_true", help="no progress bar")
+    usim.set_defaults(func=cmd_ultrasound_simulate)
 
     b = sub.add_parser("bench", help="speed of the stereo pipeline per configuration (interleaved, same frames)")
     b.add_argument("--pairs", type=int, default=8, help="rendered stereo pairs")

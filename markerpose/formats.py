@@ -42,7 +42,48 @@ def write_json(path: str | Path, obj, indent: int | None = 1) -> Path:
     return path
 
 
-__all__ = ["dumps", "jsonable", "read_ply", "read_sequence", "read_volume", "write_json", "write_ply", "write_sequence", "write_volume"]
+__all__ = ["dumps", "jsonable", "open_storage", "read_ply", "read_sequence", "read_volume", "storage_array", "write_json", "write_ply", "write_sequence", "write_volume"]
+
+
+# --- OpenCV FileStorage (rig and probe calibration files) ----------------------------
+def open_storage(path: str | Path):
+    """An OpenCV FileStorage opened for reading, or a ValueError naming the file.
+
+    Opened in two steps: a parse error inside the constructor surfaces as a bare
+    SystemError in the Python bindings, whereas ``open()`` raises ``cv2.error``.
+    """
+    import cv2
+
+    fs = cv2.FileStorage()
+    try:
+        fs.open(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error as e:
+        raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file ({e.err})") from None
+    if not fs.isOpened():
+        raise ValueError(f"{path}: not a readable OpenCV FileStorage YAML/XML file")
+    return fs
+
+
+def storage_array(fs, key: str, path) -> np.ndarray | None:
+    """The matrix (an opencv-matrix map, or a plain sequence of numbers) stored under
+    ``key``; None when the key is absent; a ValueError naming the file and key otherwise."""
+    import cv2
+
+    node = fs.getNode(key)
+    if node.empty() or node.isNone():
+        return None
+    if node.isMap():
+        try:
+            m = node.mat()
+        except cv2.error:  # a map that is not an opencv-matrix
+            m = None
+        if m is not None:
+            return np.asarray(m)
+    elif node.isSeq():
+        vals = [node.at(i) for i in range(node.size())]
+        if all(v.isReal() or v.isInt() for v in vals):
+            return np.array([v.real() for v in vals])
+    raise ValueError(f"{path}: key '{key}' is not a matrix")
 
 
 # --- point clouds ---------------------------------------------------------------------

@@ -14,13 +14,37 @@ Plain functions, one module per step:
 from .bmode import Transducer, crosswire_phantom, simulate_bmode, tube_phantom
 from .calibrate import calibrate_probe
 from .probe import ProbeCalibration
-from .reconstruct import CylinderFit, Volume, compound, fit_cylinder, interpolate_poses, tracker_points
+from .reconstruct import (
+    CylinderFit,
+    Volume,
+    compound,
+    fit_cylinder,
+    interpolate_poses,
+    sweep_normal,
+    tracker_points,
+)
 from .segment import RingSearch, point_target, ring_points, sweep_points
 from .simulate import ProbeSetup, calibration_poses, sweep_poses
 
 __all__ = [
-    "CylinderFit", "ProbeCalibration", "ProbeSetup", "RingSearch", "Transducer", "Volume",
-    "calibrate_probe", "calibration_poses", "compound", "crosswire_phantom", "fit_cylinder",
-    "interpolate_poses", "point_target", "ring_points", "simulate_bmode", "sweep_points",
-    "sweep_poses", "tracker_points", "tube_phantom",
+    "CylinderFit",
+    "ProbeCalibration",
+    "ProbeSetup",
+    "RingSearch",
+    "Transducer",
+    "Volume",
+    "calibrate_probe",
+    "calibration_poses",
+    "compound",
+    "crosswire_phantom",
+    "fit_cylinder",
+    "interpolate_poses",
+    "point_target",
+    "ring_points",
+    "simulate_bmode",
+    "sweep_normal",
+    "sweep_points",
+    "sweep_poses",
+    "tracker_points",
+    "tube_phantom",
 ]

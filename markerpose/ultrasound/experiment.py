@@ -24,7 +24,7 @@ from ..synth.render import render_stereo
 from .bmode import crosswire_phantom, simulate_bmode, tube_phantom
 from .calibrate import calibrate_probe
 from .probe import ProbeCalibration, invert
-from .reconstruct import fit_cylinder, tracker_points
+from .reconstruct import fit_cylinder, sweep_normal, tracker_points
 from .segment import point_target, sweep_points
 from .simulate import ProbeSetup, calibration_poses, sweep_poses
 
@@ -135,7 +135,7 @@ def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: Ste
             continue
         X, idx = tracker_points(points, poses[src], cal)
         try:
-            fit = fit_cylinder(X)
+            fit = fit_cylinder(X, sweep_normal(poses[src], cal))
         except ValueError:
             out[f"diameter_{key}_mm"] = None
             continue
@@ -438,9 +438,11 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
 
 
 def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, seed: int = 0, jobs: int | None = None,
-         acquisitions: int | None = None, progress: bool = True, command: str | None = None) -> Path:
+         acquisitions: int | None = None, progress: bool = True, command: str | None = None,
+         plan: Plan | None = None) -> Path:
     """Run the experiment and write report.md, results.json, plots and files into
-    ``out_dir``. Returns the report's path."""
+    ``out_dir`` (``plan`` overrides ``quick``, ``seed`` and ``acquisitions``). Returns the
+    report's path."""
     from .. import formats
     from .reconstruct import compound
 
@@ -448,7 +450,10 @@ def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, see
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    plan = Plan.quick(seed) if quick else Plan(seed=seed)
+    if plan is None:
+        plan = Plan.quick(seed) if quick else Plan(seed=seed)
+    elif acquisitions is not None:
+        raise ValueError("give either plan or acquisitions")
     if acquisitions is not None:
         if acquisitions < 1:
             raise ValueError(f"acquisitions must be >= 1, got {acquisitions}")

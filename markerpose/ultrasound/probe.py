@@ -90,22 +90,24 @@ class ProbeCalibration:
         path = Path(path)
         if not path.is_file():
             raise ValueError(f"{path}: no such file")
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        if not fs.isOpened():
-            raise ValueError(f"{path}: not an OpenCV FileStorage file")
+        from ..formats import open_storage, storage_array
+
+        fs = open_storage(path)
         try:
-            T = fs.getNode("T_marker_image").mat()
-            sp = fs.getNode("spacing").mat()
+            T = storage_array(fs, "T_marker_image", path)
+            sp = storage_array(fs, "spacing", path)
             if T is None or sp is None:
                 raise ValueError(f"{path}: needs the keys T_marker_image (4x4) and spacing (sx, sy)")
-            size_node = fs.getNode("image_size")
-            size = None if size_node.empty() else tuple(round(v) for v in size_node.mat().ravel())
-            rms_node = fs.getNode("rms_mm")
-            rms = None if rms_node.empty() else float(rms_node.real())
+            size = storage_array(fs, "image_size", path)
+            size = None if size is None else tuple(round(v) for v in size.ravel())
+            node = fs.getNode("rms_mm")
+            rms = float(node.real()) if node.isReal() or node.isInt() else None
         finally:
             fs.release()
+        if T.size != 16 or sp.size != 2:
+            raise ValueError(f"{path}: T_marker_image must be 4x4 and spacing two numbers")
         try:
-            return cls(T, tuple(sp.ravel()[:2]) if sp.size >= 2 else (), size, rms)
+            return cls(T.reshape(4, 4), tuple(sp.ravel()), size, rms)
         except ValueError as e:
             raise ValueError(f"{path}: {e}") from None
 

@@ -36,6 +36,17 @@ def tracker_points(points_px: list, poses: list, calibration: ProbeCalibration) 
     return np.concatenate(out), np.concatenate(idx)
 
 
+def sweep_normal(poses: list, calibration: ProbeCalibration) -> np.ndarray:
+    """The mean image-plane normal of a sweep in the tracker frame: the axis direction of a
+    tube imaged in cross-section (a better start for :func:`fit_cylinder` than the points'
+    spread when the sweep is shorter than the tube is wide)."""
+    n = [T[:3, :3] @ calibration.T_marker_image[:3, 2] for T in poses if T is not None]
+    if not n:
+        raise ValueError("no frame has a pose")
+    m = np.mean(n, axis=0)
+    return m / np.linalg.norm(m)
+
+
 @dataclass
 class CylinderFit:
     """A least-squares cylinder.
@@ -250,4 +261,4 @@ def compound(images: list, poses: list, calibration: ProbeCalibration, voxel_mm:
     return Volume(np.clip(np.rint(vol), 0, 255).astype(np.uint8), origin, R * voxel_mm, filled)
 
 
-__all__ = ["CylinderFit", "Volume", "compound", "fit_cylinder", "interpolate_poses", "tracker_points"]
+__all__ = ["CylinderFit", "Volume", "compound", "fit_cylinder", "interpolate_poses", "sweep_normal", "tracker_points"]

@@ -86,16 +86,19 @@ def _smooth_noise(t: np.ndarray, rng: np.random.Generator, amplitude: float, fre
 
 def sweep_poses(setup: ProbeSetup, rng: np.random.Generator, n_frames: int = 94, length_mm: float = 56.0,
                 fps: float = 15.0, tremor_mm: float = 0.3, tremor_deg: float = 0.7,
-                yaw_deg: float = 4.0) -> tuple[np.ndarray, list]:
+                yaw_deg: float = 4.0, times: np.ndarray | None = None) -> tuple[np.ndarray, list]:
     """A hand-held sweep along the tube: times (s) and T_phantom_image per frame.
 
     The probe moves along the axis at constant speed with a constant yaw (the cross-sections
-    are slightly oblique), plus tremor in all six degrees of freedom.
+    are slightly oblique), plus tremor in all six degrees of freedom. ``times`` samples the
+    same motion at given instants instead of ``n_frames`` at ``fps`` (e.g. the cameras' and
+    the scanner's clocks).
     """
-    if n_frames < 2:
-        raise ValueError(f"n_frames must be >= 2, got {n_frames}")
-    t = np.arange(n_frames) / fps
-    xs = np.linspace(-length_mm / 2, length_mm / 2, n_frames)
+    t = np.arange(n_frames) / fps if times is None else np.asarray(times, dtype=np.float64)
+    if len(t) < 2 or np.ptp(t) <= 0:
+        raise ValueError("a sweep needs at least 2 frames spread in time")
+    n_frames = len(t)
+    xs = -length_mm / 2 + length_mm * (t - t.min()) / np.ptp(t)
     dx, dy, dz = (_smooth_noise(t, rng, tremor_mm) for _ in range(3))
     ax, ay, az = (_smooth_noise(t, rng, tremor_deg) for _ in range(3))
     base_yaw = yaw_deg + rng.uniform(-1.0, 1.0)

@@ -1,0 +1,202 @@
+"""Freehand reconstruction from a user's own recording.
+
+Inputs:
+- ``poses.csv`` from ``markerpose track`` (one row a camera frame: ``timestamp_s``,
+  ``valid``, ``T00`` … ``T33`` = T_left_marker);
+- a folder of ultrasound frames (PNG, JPEG, BMP, TIFF; sorted by name) with a
+  ``timestamps.csv`` beside them (columns ``file,timestamp_s``, on the same clock as the
+  cameras, or shifted by a known offset), or a frame rate;
+- a probe calibration (:class:`ProbeCalibration` YAML).
+
+Each ultrasound frame gets the pose interpolated at its time (none when the marker was lost
+around it). Outputs: the tracked sweep as a PLUS sequence, the compounded volume, and with a
+seed the segmented tube's points and cylinder fit.
+"""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .. import formats
+from .probe import ProbeCalibration
+from .reconstruct import (
+    compound,
+    fit_cylinder,
+    interpolate_poses,
+    sweep_normal,
+    tracker_points,
+)
+from .segment import RingSearch, sweep_points
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+def read_track_csv(path: str | Path) -> tuple[np.ndarray, list]:
+    """Times (s) and poses (4x4 T_left_marker, or None where not found) of a
+    ``markerpose track`` CSV."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    need = ["timestamp_s", "valid"] + [f"T{i}{j}" for i in range(4) for j in range(4)]
+    if not rows or any(k not in rows[0] for k in need):
+        raise ValueError(f"{path}: not a markerpose track CSV (needs the columns timestamp_s, valid, T00 … T33)")
+    times, poses = [], []
+    for r in rows:
+        times.append(float(r["timestamp_s"]))
+        if r["valid"] not in ("1", "True", "true"):
+            poses.append(None)
+            continue
+        poses.append(np.array([float(r[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4))
+    return np.array(times), poses
+
+
+def read_frames(folder: str | Path, fps: float | None = None) -> tuple[list[Path], np.ndarray]:
+    """The ultrasound frames of ``folder`` and their times: from ``timestamps.csv``
+    (``file,timestamp_s``) when present, else frame k at k / ``fps``."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise ValueError(f"{folder}: no image files ({', '.join(IMAGE_SUFFIXES)})")
+    ts_file = folder / "timestamps.csv"
+    if ts_file.is_file():
+        with open(ts_file, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows or "file" not in rows[0] or "timestamp_s" not in rows[0]:
+            raise ValueError(f"{ts_file}: needs the columns file,timestamp_s")
+        by_name = {r["file"]: float(r["timestamp_s"]) for r in rows}
+        missing = [p.name for p in files if p.name not in by_name]
+        if missing:
+            raise ValueError(f"{ts_file}: no time for {len(missing)} frame(s), e.g. {missing[0]}")
+        return files, np.array([by_name[p.name] for p in files])
+    if fps is None:
+        raise ValueError(f"{folder}: no timestamps.csv; give the frame rate (--fps)")
+    if not fps > 0:
+        raise ValueError(f"fps must be > 0, got {fps}")
+    return files, np.arange(len(files)) / fps
+
+
+def _load_gray(path: Path, size) -> np.ndarray:
+    im = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if im is None:
+        raise ValueError(f"{path}: cannot read the image")
+    if size is not None and (im.shape[1], im.shape[0]) != tuple(size):
+        raise ValueError(f"{path}: {im.shape[1]}x{im.shape[0]} px, but the calibration is for {size[0]}x{size[1]}")
+    return im
+
+
+def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None, fps: float | None = None,
+                          time_offset_s: float = 0.0, max_gap_s: float = 0.2, voxel_mm: float = 0.3,
+                          search: RingSearch | None = None, progress: bool = True) -> dict:
+    """Reconstruct a recorded sweep; writes ``sweep.seq.nrrd``, ``volume.nrrd`` and
+    ``summary.json`` into ``out_dir`` (and, with ``seed_px``, ``points.ply`` and the
+    cylinder fit in the summary).
+
+    Args:
+        poses_csv: the ``markerpose track`` CSV.
+        images: folder of ultrasound frames (see :func:`read_frames`).
+        calibration: :class:`ProbeCalibration` or a path to its YAML.
+        out_dir: output folder.
+        seed_px: (u, v) inside the tube on the first frame with a pose, to segment a tube.
+        fps: frame rate of the ultrasound frames when there is no ``timestamps.csv``.
+        time_offset_s: added to the ultrasound times to put them on the cameras' clock.
+        max_gap_s: no pose is interpolated across a gap in tracking longer than this.
+        voxel_mm: volume grid spacing.
+    Returns:
+        the summary (also written as ``summary.json``).
+    """
+    calib = calibration if isinstance(calibration, ProbeCalibration) else ProbeCalibration.load(calibration)
+    p_times, p_poses = read_track_csv(poses_csv)
+    files, times = read_frames(images, fps)
+    times = times + time_offset_s
+    poses = interpolate_poses(times, p_times, p_poses, max_gap_s)
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{out} is a file, not a folder")
+    frames = [_load_gray(p, calib.size) for p in files]
+    n_posed = sum(T is not None for T in poses)
+    if n_posed == 0:
+        raise ValueError("no ultrasound frame falls inside the tracked span with a pose; check the clocks (--time-offset)")
+    out.mkdir(parents=True, exist_ok=True)
+    formats.write_sequence(out / "sweep.seq.nrrd", frames, times, poses, calib.image_to_probe)
+    vol = compound(frames, poses, calib, voxel_mm=voxel_mm, progress=progress)
+    formats.write_volume(out / "volume.nrrd", vol.data, vol.origin, vol.directions)
+    summary = {"frames": len(frames), "frames_with_pose": n_posed, "volume_shape": list(vol.data.shape),
+               "voxel_mm": voxel_mm, "volume_filled_fraction": vol.filled,
+               "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"]}
+    if seed_px is not None:
+        first = next(k for k, T in enumerate(poses) if T is not None)
+        posed = [k for k in range(first, len(frames))]
+        pts = sweep_points([frames[k] for k in posed], seed_px, calib.spacing, search, progress=progress)
+        X, idx = tracker_points(pts, [poses[k] for k in posed], calib)
+        if len(X) < 10:
+            raise ValueError(f"the tube was not found from the seed {tuple(seed_px)}: {len(X)} points")
+        fit = fit_cylinder(X, sweep_normal(poses, calib))
+        formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx])
+        summary["cylinder"] = {"diameter_mm": fit.diameter, "radius_mm": fit.radius, "rms_mm": fit.rms,
+                               "axis_point_mm": fit.point, "axis_direction": fit.direction,
+                               "points": len(X), "inliers": int(fit.inliers.sum())}
+        summary["files"].append("points.ply")
+    formats.write_json(out / "summary.json", summary)
+    return summary
+
+
+def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera_fps: float = 30.0,
+                              us_fps: float = 15.0, progress: bool = True) -> dict:
+    """A recording as a user's rig would produce it, from the simulation: ``left/`` and
+    ``right/`` camera frames at ``camera_fps``, ``us/`` ultrasound frames with
+    ``timestamps.csv`` at ``us_fps`` (shifted by half a camera frame: the clocks are not
+    in step), and ``probe.yaml`` (the true calibration). Returns the truth: the seed pixel
+    inside the tube on the first frame, the true diameter, the paths."""
+    from ..camera import StereoRig
+    from ..synth.render import render_stereo
+    from .bmode import simulate_bmode, tube_phantom
+    from .experiment import TRUE_DIAMETER_MM
+    from .probe import invert
+    from .simulate import ProbeSetup, sweep_poses
+
+    out = Path(out_dir)
+    for d in ("left", "right", "us"):
+        (out / d).mkdir(parents=True, exist_ok=True)
+    setup, rig = ProbeSetup(), StereoRig.default()
+    rng = np.random.default_rng(seed)
+    # One hand motion (9 mm/s along the tube), sampled by both clocks; the scanner's frames
+    # fall between the cameras' (half a camera frame late).
+    t_us = np.arange(n_frames) / us_fps + 0.5 / camera_fps
+    n_cam = int(np.floor(t_us[-1] * camera_fps)) + 2
+    t_cam = np.arange(n_cam) / camera_fps
+    t_all = np.concatenate([t_cam, t_us])
+    _, all_poses = sweep_poses(setup, rng, length_mm=9.0 * t_all.max(), times=t_all)
+    cam_poses, us_poses = all_poses[:n_cam], all_poses[n_cam:]
+    it = range(n_cam)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc="render", unit="pair", leave=False)
+    for k in it:
+        frame = render_stereo(rig, setup.marker_pose(cam_poses[k]), seed=rng)
+        cv2.imwrite(str(out / "left" / f"{k:05d}.png"), frame.images[0])
+        cv2.imwrite(str(out / "right" / f"{k:05d}.png"), frame.images[1])
+    phantom = tube_phantom()
+    with open(out / "us" / "timestamps.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["file", "timestamp_s"])
+        for k, (t, T) in enumerate(zip(t_us, us_poses)):
+            name = f"us_{k:05d}.png"
+            cv2.imwrite(str(out / "us" / name), simulate_bmode(phantom, T, setup.transducer, rng))
+            w.writerow([name, f"{t:.6f}"])
+    ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(out / "probe.yaml")
+    seed_px = invert(us_poses[0])[:3, 3][:2] / np.asarray(setup.transducer.spacing)
+    return {"seed_px": seed_px, "diameter_mm": TRUE_DIAMETER_MM, "camera_fps": camera_fps, "us_frames": n_frames,
+            "camera_frames": n_cam, "left": out / "left", "right": out / "right", "us": out / "us",
+            "calibration": out / "probe.yaml", "T_phantom_image": us_poses}
+
+
+__all__ = ["read_frames", "read_track_csv", "reconstruct_recording", "write_simulated_recording"]

@@ -1,0 +1,288 @@
+"""Freehand ultrasound: simulator, segmentation, calibration, reconstruction, files, CLI."""
+
+import json
+
+import numpy as np
+import pytest
+
+from markerpose import cli, formats
+from markerpose.geometry import rotation_about_axis
+from markerpose.ultrasound import (
+    ProbeCalibration,
+    ProbeSetup,
+    Transducer,
+    calibrate_probe,
+    compound,
+    fit_cylinder,
+    interpolate_poses,
+    point_target,
+    simulate_bmode,
+    sweep_normal,
+    sweep_points,
+    sweep_poses,
+    tracker_points,
+    tube_phantom,
+)
+from markerpose.ultrasound.bmode import crosswire_phantom
+from markerpose.ultrasound.probe import invert, rigid
+
+D_TRUE = 15.82
+
+
+def _random_rigid(rng, scale=50.0):
+    R = rotation_about_axis(rng.normal(size=3), rng.uniform(0, np.pi))
+    return rigid(R, rng.normal(size=3) * scale)
+
+
+# --- simulator --------------------------------------------------------------------------
+def test_bmode_tube_echo_at_the_interface():
+    setup = ProbeSetup()
+    tr = setup.transducer
+    T = setup.nominal_image_pose()
+    im = simulate_bmode(tube_phantom(), T, tr, rng=1)
+    assert im.shape == (tr.size[1], tr.size[0]) and im.dtype == np.uint8
+    # The column through the tube's axis: the brightest echo near the top of the tube lies
+    # at the outer surface's depth.
+    u = round(tr.size[0] / 2)
+    col = im[:, u - 1:u + 2].astype(float).mean(1)
+    top_px = (setup.depth_mm - D_TRUE / 2) / tr.spacing[1]
+    win = slice(int(top_px) - 8, int(top_px) + 9)
+    peak = win.start + int(np.argmax(col[win]))
+    assert abs(peak - top_px) <= 1.5
+    # Water is dark; the echo is far above it; the tube's lumen is water too.
+    assert col[peak] > 150 and np.median(im[:20]) < 60
+    centre_px = int(setup.depth_mm / tr.spacing[1])
+    assert np.median(im[centre_px - 5:centre_px + 5, u - 5:u + 5]) < 80
+
+
+def test_bmode_is_seeded_and_shadows_below_air():
+    tr = Transducer()
+    T = ProbeSetup().nominal_image_pose()
+    a = simulate_bmode(tube_phantom(), T, tr, rng=5)
+    b = simulate_bmode(tube_phantom(), T, tr, rng=5)
+    c = simulate_bmode(tube_phantom(), T, tr, rng=6)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    # Below the trough's outer wall there is air: nothing comes back but noise.
+    deep = a[-8:]
+    assert np.median(deep) < 60
+
+
+def test_point_target_finds_the_wire_crossing():
+    setup = ProbeSetup()
+    tr = setup.transducer
+    rng = np.random.default_rng(0)
+    from markerpose.ultrasound import calibration_poses
+
+    for T in calibration_poses(setup, rng, 5, elevation_sigma_mm=0.0):
+        uv = point_target(simulate_bmode(crosswire_phantom(), T, tr, rng))
+        truth = invert(T)[:3, 3][:2] / np.asarray(tr.spacing)
+        assert uv is not None and np.linalg.norm(uv - truth) < 0.5  # px (0.15 mm)
+    assert point_target(np.full((50, 60), 20, np.uint8)) is None
+
+
+# --- reconstruction pieces ---------------------------------------------------------------
+def test_fit_cylinder_recovers_an_exact_cylinder_with_outliers():
+    rng = np.random.default_rng(3)
+    d = np.array([0.3, -0.2, 0.93])
+    d /= np.linalg.norm(d)
+    e1 = np.cross(d, [1, 0, 0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(d, e1)
+    p0 = np.array([10.0, -20.0, 500.0])
+    a = rng.uniform(-0.7, 0.7, 2000) + np.where(rng.random(2000) < 0.5, 0, np.pi)  # top and bottom arcs
+    s = rng.uniform(-25, 25, 2000)
+    P = p0 + s[:, None] * d + 7.91 * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+    P[:100] += rng.normal(0, 3, (100, 3))  # gross outliers
+    fit = fit_cylinder(P, direction_hint=d + 0.05)
+    assert abs(fit.radius - 7.91) < 1e-6
+    assert abs(abs(fit.direction @ d) - 1) < 1e-10
+    assert np.linalg.norm(np.cross(fit.point - p0, d)) < 1e-6
+    assert fit.inliers[100:].all() and fit.inliers[:100].mean() < 0.2
+    with pytest.raises(ValueError):
+        fit_cylinder(P[:5])
+
+
+def test_tube_diameter_from_true_poses():
+    """Simulation → segmentation from one seed → 3D → cylinder: the floor the pose sources
+    are compared against."""
+    setup = ProbeSetup()
+    tr = setup.transducer
+    rng = np.random.default_rng(11)
+    _, sweep = sweep_poses(setup, rng, n_frames=24, length_mm=20.0)
+    images = [simulate_bmode(tube_phantom(), T, tr, rng) for T in sweep]
+    seed = invert(sweep[0])[:3, 3][:2] / np.asarray(tr.spacing) + [4.0, -3.0]
+    pts = sweep_points(images, seed, tr.spacing)
+    assert all(len(p) > 20 for p in pts)
+    calib = ProbeCalibration(setup.T_marker_image(), tr.spacing, tr.size)
+    poses = [setup.marker_pose(T) for T in sweep]
+    X, _ = tracker_points(pts, poses, calib)
+    fit = fit_cylinder(X, sweep_normal(poses, calib))
+    assert abs(fit.diameter - D_TRUE) < 0.05
+    assert fit.rms < 0.05
+
+
+def test_calibrate_probe_exact_and_noisy():
+    rng = np.random.default_rng(2)
+    T_mi = _random_rigid(rng, 60)
+    P = np.array([5.0, -3.0, 550.0])
+    spacing = (0.15, 0.12)
+    poses, uvs = [], []
+    for _ in range(20):
+        uv = rng.uniform([30, 40], [220, 300])
+        R = rotation_about_axis(rng.normal(size=3), rng.uniform(0, 0.6))
+        # Choose the marker pose that puts the pixel exactly on P.
+        T_li = rigid(R, [0, 0, 0])
+        p_img = np.array([uv[0] * spacing[0], uv[1] * spacing[1], 0.0])
+        T_li[:3, 3] = P - R @ p_img
+        poses.append(T_li @ invert(T_mi))
+        uvs.append(uv)
+    calib, P_fit, _ = calibrate_probe(poses, uvs, spacing, (256, 334))
+    assert np.abs(calib.T_marker_image - T_mi).max() < 1e-6 and np.linalg.norm(P_fit - P) < 1e-6
+    assert calib.rms_mm < 1e-6 and calib.size == (256, 334)
+    noisy = [uv + rng.normal(0, 0.5, 2) for uv in uvs]
+    calib2, _, err2 = calibrate_probe(poses, noisy, spacing)
+    assert 0.01 < calib2.rms_mm < 0.2 and len(err2) == 20
+    with pytest.raises(ValueError, match="at least 6"):
+        calibrate_probe(poses[:5], uvs[:5], spacing)
+
+
+def test_interpolate_poses_midpoint_gaps_and_span():
+    rng = np.random.default_rng(4)
+    A, B = _random_rigid(rng), _random_rigid(rng)
+    B[:3, :3] = A[:3, :3] @ rotation_about_axis([0, 0, 1], 0.2)
+    out = interpolate_poses([0.05, 0.0, 0.1, -0.01, 0.11], [0.0, 0.1], [A, B])
+    mid = out[0]
+    assert np.allclose(mid[:3, 3], (A[:3, 3] + B[:3, 3]) / 2)
+    assert np.allclose(mid[:3, :3], A[:3, :3] @ rotation_about_axis([0, 0, 1], 0.1))
+    assert np.allclose(out[1], A) and np.allclose(out[2], B)
+    assert out[3] is None and out[4] is None
+    # A lost marker: no pose across a gap longer than max_gap_s.
+    out = interpolate_poses([0.15, 0.45], [0.0, 0.1, 0.2, 0.3, 0.4, 0.5], [A, A, None, None, B, B], max_gap_s=0.15)
+    assert out[0] is None and out[1] is not None
+
+
+def test_compound_puts_each_pixel_where_its_pose_says():
+    rng = np.random.default_rng(5)
+    calib = ProbeCalibration(_random_rigid(rng, 30), (0.2, 0.2), (40, 30))
+    poses, images = [], []
+    for k in range(12):
+        T = _random_rigid(np.random.default_rng(9), 10)
+        T[:3, 3] += T[:3, :3] @ calib.T_marker_image[:3, :3] @ [0, 0, 0.5 * k]  # parallel slices 0.5 mm apart
+        poses.append(T)
+        images.append(np.full((30, 40), 10 * k + 5, np.uint8))
+    vol = compound(images, poses, calib, voxel_mm=0.25, fill_iterations=0)
+    for k in (0, 5, 11):
+        X, _ = tracker_points([np.array([[20.0, 15.0]])], [poses[k]], calib)
+        ijk = np.rint(np.linalg.solve(vol.directions, (X[0] - vol.origin))).astype(int)
+        assert vol.data[tuple(ijk)] == 10 * k + 5
+    with pytest.raises(ValueError):
+        compound(images, [None] * 12, calib)
+
+
+# --- files -------------------------------------------------------------------------------
+def test_sequence_volume_and_cloud_round_trips(tmp_path):
+    rng = np.random.default_rng(6)
+    calib = ProbeCalibration(_random_rigid(rng, 30), (0.15, 0.12), (20, 16))
+    frames = [rng.integers(0, 256, (16, 20), dtype=np.uint8) for _ in range(4)]
+    poses = [_random_rigid(rng), None, _random_rigid(rng), _random_rigid(rng)]
+    times = [0.0, 0.0667, 0.1333, 0.2]
+    formats.write_sequence(tmp_path / "s.seq.nrrd", frames, times, poses, calib.image_to_probe)
+    seq = formats.read_sequence(tmp_path / "s.seq.nrrd")
+    assert np.array_equal(seq["images"], np.array(frames))
+    assert np.allclose(seq["timestamps"], times)
+    assert seq["probe_to_tracker"][1] is None
+    for a, b in zip(seq["probe_to_tracker"], poses):
+        assert (a is None) == (b is None) and (a is None or np.allclose(a, b, atol=1e-6))
+    # The spacing travels inside ImageToProbe, as PLUS expects.
+    i2p = seq["image_to_probe"][0]
+    assert np.allclose(np.linalg.norm(i2p[:3, :3], axis=0), [0.15, 0.12, 1.0], atol=1e-8)
+    assert np.allclose(i2p, calib.image_to_probe, atol=1e-8)
+
+    poses = [_random_rigid(np.random.default_rng(9), 10) for _ in range(3)]
+    vol = compound(frames[:3], poses, calib, voxel_mm=0.2)
+    formats.write_volume(tmp_path / "v.nrrd", vol.data, vol.origin, vol.directions)
+    data, origin, directions = formats.read_volume(tmp_path / "v.nrrd")
+    assert np.array_equal(data, vol.data) and np.allclose(origin, vol.origin) and np.allclose(directions, vol.directions)
+    assert np.allclose(np.linalg.norm(directions, axis=0), 0.2)
+
+    P = rng.normal(size=(50, 3)) * 100
+    formats.write_ply(tmp_path / "p.ply", P, np.arange(50))
+    cloud = formats.read_ply(tmp_path / "p.ply")
+    assert np.allclose(np.column_stack([cloud["x"], cloud["y"], cloud["z"]]), P, atol=1e-4)
+    assert np.array_equal(cloud["frame"], np.arange(50))
+
+
+def test_probe_calibration_file(tmp_path):
+    rng = np.random.default_rng(7)
+    calib = ProbeCalibration(_random_rigid(rng, 30), (0.15, 0.12), (256, 334), 0.1)
+    calib.save(tmp_path / "probe.yaml")
+    back = ProbeCalibration.load(tmp_path / "probe.yaml")
+    assert np.allclose(back.T_marker_image, calib.T_marker_image) and back.spacing == calib.spacing
+    assert back.size == (256, 334) and back.rms_mm == pytest.approx(0.1)
+    (tmp_path / "bad.yaml").write_text("%YAML:1.0\n---\nspacing: [0.1, 0.1]\n")
+    with pytest.raises(ValueError, match="T_marker_image"):
+        ProbeCalibration.load(tmp_path / "bad.yaml")
+    with pytest.raises(ValueError, match="spacing"):
+        ProbeCalibration(calib.T_marker_image, (0.0, 0.1))
+    with pytest.raises(ValueError, match="rotation"):
+        ProbeCalibration(np.diag([1.0, 1.0, 2.0, 1.0]), (0.1, 0.1))
+
+
+# --- a recording, as a user would run it -------------------------------------------------
+def test_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
+    from markerpose.ultrasound.recording import write_simulated_recording
+
+    truth = write_simulated_recording(tmp_path, n_frames=10, seed=1, progress=False)
+    assert cli.main(["track", str(truth["left"]), str(truth["right"]), "--fps", "30",
+                     "--out", str(tmp_path / "poses.csv"), "--quiet"]) == 0
+    u, v = truth["seed_px"]
+    out = tmp_path / "rec"
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
+                     "--calibration", str(truth["calibration"]), "--seed", f"{u + 3:.1f},{v - 2:.1f}",
+                     "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == summary["frames_with_pose"] == 10
+    assert abs(summary["cylinder"]["diameter_mm"] - D_TRUE) < 0.1
+    seq = formats.read_sequence(out / "sweep.seq.nrrd")
+    calib = ProbeCalibration.load(truth["calibration"])
+    setup = ProbeSetup()
+    for T_est, T_pi in zip(seq["probe_to_tracker"], truth["T_phantom_image"]):
+        # The pose interpolated at each ultrasound frame's time puts the image centre where
+        # the truth does.
+        c = calib.pixels_to_marker([[128, 167]])[0]
+        T_true = setup.marker_pose(T_pi)
+        assert np.linalg.norm(T_est[:3, :3] @ c + T_est[:3, 3] - (T_true[:3, :3] @ c + T_true[:3, 3])) < 0.1
+    data, _, _ = formats.read_volume(out / "volume.nrrd")
+    assert data.ndim == 3 and data.max() > 100
+    assert formats.read_ply(out / "points.ply")["x"].size > 100
+    # User errors: one line, exit 2.
+    capsys.readouterr()
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "nope.csv"), "--images", str(truth["us"]),
+                     "--calibration", str(truth["calibration"])]) == 2
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["left"]),
+                     "--calibration", str(truth["calibration"])]) == 2
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
+                     "--calibration", str(tmp_path / "poses.csv")]) == 2
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
+                     "--calibration", str(truth["calibration"]), "--time-offset", "100"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 4 and all(line.startswith("error: ") for line in err)
+
+
+def test_demo_writes_the_report_results_and_files(tmp_path):
+    from markerpose.ultrasound import experiment
+
+    plan = experiment.Plan(n_acquisitions=1, n_frames=16, n_calibration=10, seed=3)
+    path = experiment.main(tmp_path, plan=plan, jobs=1, progress=False)
+    res = json.loads((tmp_path / "results.json").read_text())
+    for key in ("diameter_mm", "diameter_error_mm", "diameter_error_true_poses_mm",
+                "diameter_error_paper_classical_mm", "calibration_rms_mm", "n_acquisitions"):
+        assert key in res and res[key] is not None, key
+    assert res["n_acquisitions"] == 1
+    assert abs(res["diameter_mm"] - D_TRUE) < 0.06 and res["diameter_error_mm"] < 0.06
+    assert res["calibration_rms_mm"] < 0.5
+    for name in ("report.md", "reconstruction.png", "residuals.png", "calibration.png", "frames.png", "diameters.png",
+                 "sweep.seq.nrrd", "volume.nrrd", "points.ply", "probe.yaml"):
+        assert (tmp_path / name).is_file(), name
+    assert "15.999" in path.read_text()
+    assert len(formats.read_sequence(tmp_path / "sweep.seq.nrrd")["images"]) == 16
