@@ -403,7 +403,7 @@ def _pixel(text: str) -> tuple[float, float]:
     try:
         u, v = (float(x) for x in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected U,V in pixels, got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}") from None
     return u, v
 
 
@@ -433,6 +433,17 @@ def cmd_ultrasound_reconstruct(args):
         print(f"cylinder: diameter {c['diameter_mm']:.3f} mm, RMS {c['rms_mm']:.3f} mm, {c['inliers']} of {c['points']} points")
 
 
+def cmd_ultrasound_calibrate(args):
+    from .ultrasound.recording import calibrate_recording
+
+    _, rep = calibrate_recording(args.poses, args.images, args.spacing, out=args.out, fps=args.fps,
+                                 time_offset_s=args.time_offset, max_gap_s=args.max_gap)
+    skipped = f" ({rep['no_pose']} without a pose, {rep['no_crossing']} without a clear crossing)" if rep["used"] < rep["frames"] else ""
+    worst = max(rep["errors_mm"].items(), key=lambda kv: kv[1])
+    print(f"calibrated from {rep['used']} of {rep['frames']} frames{skipped}: RMS {rep['rms_mm']:.3f} mm "
+          f"(worst {worst[1]:.3f} mm, {worst[0]}); wrote {args.out}")
+
+
 def cmd_ultrasound_simulate(args):
     from .ultrasound.recording import write_simulated_recording
 
@@ -440,11 +451,16 @@ def cmd_ultrasound_simulate(args):
         raise ValueError(f"--frames must be >= 2, got {args.frames}")
     t = write_simulated_recording(args.out, n_frames=args.frames, seed=args.seed, progress=not args.quiet)
     u, v = t["seed_px"]
-    print(f"wrote {t['camera_frames']} stereo pairs (30 frames/s) and {t['us_frames']} ultrasound frames into {args.out}; "
-          f"the tube (diameter {t['diameter_mm']} mm) is at {u:.0f},{v:.0f} px on the first ultrasound frame. Next:\n"
-          f"  markerpose track {t['left']} {t['right']} --fps 30 --out {Path(args.out) / 'poses.csv'}\n"
-          f"  markerpose ultrasound reconstruct --poses {Path(args.out) / 'poses.csv'} --images {t['us']} "
-          f"--calibration {t['calibration']} --seed {u:.0f},{v:.0f} --out {Path(args.out) / 'reconstruction'}")
+    o, c = Path(args.out), Path(t["calibration"])
+    sx, sy = t["spacing"]
+    print(f"wrote a sweep ({t['camera_frames']} stereo pairs at 30 frames/s, {t['us_frames']} ultrasound frames) and a "
+          f"cross-wire calibration session into {o}; the tube (diameter {t['diameter_mm']} mm) is at {u:.0f},{v:.0f} px "
+          f"on the first ultrasound frame. Next:\n"
+          f"  markerpose track {c / 'left'} {c / 'right'} --fps 1 --out {c / 'poses.csv'}\n"
+          f"  markerpose ultrasound calibrate --poses {c / 'poses.csv'} --images {c / 'us'} --spacing {sx},{sy} --out {o / 'probe.yaml'}\n"
+          f"  markerpose track {t['left']} {t['right']} --fps 30 --out {o / 'poses.csv'}\n"
+          f"  markerpose ultrasound reconstruct --poses {o / 'poses.csv'} --images {t['us']} "
+          f"--calibration {o / 'probe.yaml'} --seed {u:.0f},{v:.0f} --out {o / 'reconstruction'}")
 
 
 def _eval_args(p, what: str):
@@ -560,7 +576,16 @@ def build_parser() -> argparse.ArgumentParser:
     ur.add_argument("--voxel-mm", type=float, default=0.3, help="volume spacing, mm (default 0.3)")
     ur.add_argument("--quiet", action="store_true", help="no progress bars")
     ur.set_defaults(func=cmd_ultrasound_reconstruct)
-    usim = usub.add_parser("simulate", help="write a simulated recording (stereo frames, ultrasound frames, calibration) to try reconstruct on")
+    uc = usub.add_parser("calibrate", help="probe calibration from a recorded cross-wire session (poses.csv + ultrasound frames) → probe.yaml")
+    uc.add_argument("--poses", required=True, help="poses.csv written by markerpose track for the session")
+    uc.add_argument("--images", required=True, help="folder of ultrasound frames showing the wire crossing, with timestamps.csv (file,timestamp_s)")
+    uc.add_argument("--spacing", required=True, type=_pixel, metavar="SX,SY", help="pixel size in mm (lateral, depth), as the scanner reports it")
+    uc.add_argument("--out", default="probe.yaml", help="calibration file to write (default probe.yaml)")
+    uc.add_argument("--fps", type=float, help="frame rate of the ultrasound frames when there is no timestamps.csv")
+    uc.add_argument("--time-offset", type=float, default=0.0, help="seconds added to the ultrasound times to reach the cameras' clock")
+    uc.add_argument("--max-gap", type=float, default=0.2, help="no pose is interpolated across a tracking gap longer than this, s (default 0.2)")
+    uc.set_defaults(func=cmd_ultrasound_calibrate)
+    usim = usub.add_parser("simulate", help="write a simulated recording (a sweep and a cross-wire session: stereo and ultrasound frames) to try calibrate and reconstruct on")
     usim.add_argument("--out", default="markerpose-us-recording", help="output folder (default: markerpose-us-recording)")
     usim.add_argument("--frames", type=int, default=30, help="ultrasound frames (15 frames/s; default 30)")
     usim.add_argument("--seed", type=int, default=0)

@@ -229,44 +229,62 @@ def test_probe_calibration_file(tmp_path):
 
 
 # --- a recording, as a user would run it -------------------------------------------------
-def test_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
+def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
+    """The user's journey on a simulated recording: track the calibration session,
+    calibrate, track the sweep, reconstruct."""
     from markerpose.ultrasound.recording import write_simulated_recording
 
-    truth = write_simulated_recording(tmp_path, n_frames=10, seed=1, progress=False)
+    truth = write_simulated_recording(tmp_path, n_frames=10, seed=1, calibration_frames=10, progress=False)
+    cal = truth["calibration"]
+    assert cli.main(["track", str(cal / "left"), str(cal / "right"), "--fps", "1", "--out", str(cal / "poses.csv"), "--quiet"]) == 0
+    sx, sy = truth["spacing"]
+    assert cli.main(["ultrasound", "calibrate", "--poses", str(cal / "poses.csv"), "--images", str(cal / "us"),
+                     "--spacing", f"{sx},{sy}", "--out", str(tmp_path / "probe.yaml")]) == 0
+    calib = ProbeCalibration.load(tmp_path / "probe.yaml")
+    true_calib = ProbeCalibration.load(truth["true_calibration"])
+    assert calib.size == true_calib.size and calib.rms_mm < 0.5
+    corners = [[0, 0], [255, 0], [0, 333], [255, 333]]
+    assert np.abs(calib.pixels_to_marker(corners) - true_calib.pixels_to_marker(corners)).max() < 1.5  # mm
     assert cli.main(["track", str(truth["left"]), str(truth["right"]), "--fps", "30",
                      "--out", str(tmp_path / "poses.csv"), "--quiet"]) == 0
     u, v = truth["seed_px"]
     out = tmp_path / "rec"
     assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(truth["calibration"]), "--seed", f"{u + 3:.1f},{v - 2:.1f}",
+                     "--calibration", str(truth["true_calibration"]), "--seed", f"{u + 3:.1f},{v - 2:.1f}",
                      "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == summary["frames_with_pose"] == 10
     assert abs(summary["cylinder"]["diameter_mm"] - D_TRUE) < 0.1
     seq = formats.read_sequence(out / "sweep.seq.nrrd")
-    calib = ProbeCalibration.load(truth["calibration"])
     setup = ProbeSetup()
+    c = true_calib.pixels_to_marker([[128, 167]])[0]
     for T_est, T_pi in zip(seq["probe_to_tracker"], truth["T_phantom_image"]):
         # The pose interpolated at each ultrasound frame's time puts the image centre where
         # the truth does.
-        c = calib.pixels_to_marker([[128, 167]])[0]
         T_true = setup.marker_pose(T_pi)
         assert np.linalg.norm(T_est[:3, :3] @ c + T_est[:3, 3] - (T_true[:3, :3] @ c + T_true[:3, 3])) < 0.1
     data, _, _ = formats.read_volume(out / "volume.nrrd")
     assert data.ndim == 3 and data.max() > 100
     assert formats.read_ply(out / "points.ply")["x"].size > 100
+    # The estimated calibration reconstructs the same tube.
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
+                     "--calibration", str(tmp_path / "probe.yaml"), "--seed", f"{u:.1f},{v:.1f}",
+                     "--out", str(tmp_path / "rec2"), "--quiet"]) == 0
+    d2 = json.loads((tmp_path / "rec2" / "summary.json").read_text())["cylinder"]["diameter_mm"]
+    assert abs(d2 - D_TRUE) < 0.1
     # User errors: one line, exit 2.
     capsys.readouterr()
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "nope.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(truth["calibration"])]) == 2
+    good = ["--images", str(truth["us"]), "--calibration", str(truth["true_calibration"])]
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "nope.csv"), *good]) == 2
     assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["left"]),
-                     "--calibration", str(truth["calibration"])]) == 2
+                     "--calibration", str(truth["true_calibration"])]) == 2
     assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
                      "--calibration", str(tmp_path / "poses.csv")]) == 2
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(truth["calibration"]), "--time-offset", "100"]) == 2
+    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), *good, "--time-offset", "100"]) == 2
+    assert cli.main(["ultrasound", "calibrate", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
+                     "--spacing", "0.15,0.15", "--out", str(tmp_path / "x.yaml")]) == 2  # a sweep has no crossing
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 4 and all(line.startswith("error: ") for line in err)
+    assert len(err) == 5 and all(line.startswith("error: ") for line in err)
 
 
 def test_demo_writes_the_report_results_and_files(tmp_path):

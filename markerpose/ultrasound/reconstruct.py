@@ -146,8 +146,9 @@ def interpolate_poses(times: np.ndarray, pose_times: np.ndarray, poses: list, ma
     """Poses at ``times`` from tracked poses at ``pose_times``: translation linear,
     rotation by spherical interpolation, between the two valid poses around each time.
 
-    A time outside the tracked span, or between two valid poses more than ``max_gap_s``
-    apart (the marker was lost), gets None: better no frame than a guessed one.
+    A time that falls on a valid pose's time (within a microsecond) gets that pose. A time
+    outside the tracked span, or between two valid poses more than ``max_gap_s`` apart
+    (the marker was lost), gets None: better no frame than a guessed one.
     """
     pt = np.asarray(pose_times, dtype=np.float64)
     valid = np.array([T is not None for T in poses])
@@ -166,6 +167,10 @@ def interpolate_poses(times: np.ndarray, pose_times: np.ndarray, poses: list, ma
     for t in np.atleast_1d(np.asarray(times, dtype=np.float64)):
         if t < t_ok[0] or t > t_ok[-1]:
             out.append(None)
+            continue
+        near = int(np.argmin(np.abs(t_ok - t)))
+        if abs(t_ok[near] - t) < 1e-6:
+            out.append(Ts[near].copy())
             continue
         j = int(np.clip(np.searchsorted(t_ok, t, side="right") - 1, 0, len(t_ok) - 2))
         if t_ok[j + 1] - t_ok[j] > max_gap_s:

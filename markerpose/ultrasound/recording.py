@@ -148,55 +148,111 @@ def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None,
     return summary
 
 
-def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera_fps: float = 30.0,
-                              us_fps: float = 15.0, progress: bool = True) -> dict:
-    """A recording as a user's rig would produce it, from the simulation: ``left/`` and
-    ``right/`` camera frames at ``camera_fps``, ``us/`` ultrasound frames with
-    ``timestamps.csv`` at ``us_fps`` (shifted by half a camera frame: the clocks are not
-    in step), and ``probe.yaml`` (the true calibration). Returns the truth: the seed pixel
-    inside the tube on the first frame, the true diameter, the paths."""
-    from ..camera import StereoRig
-    from ..synth.render import render_stereo
-    from .bmode import simulate_bmode, tube_phantom
-    from .experiment import TRUE_DIAMETER_MM
-    from .probe import invert
-    from .simulate import ProbeSetup, sweep_poses
+def calibrate_recording(poses_csv, images, spacing, out=None, fps: float | None = None, time_offset_s: float = 0.0,
+                        max_gap_s: float = 0.2, dynamic_range_db: float = 55.0) -> tuple[ProbeCalibration, dict]:
+    """Probe calibration from a recorded cross-wire session: each ultrasound frame shows the
+    wire crossing (found automatically, :func:`~markerpose.ultrasound.segment.point_target`)
+    while the cameras track the probe. Frames without a pose or without a clear crossing
+    are skipped and counted.
 
-    out = Path(out_dir)
+    Args:
+        poses_csv: ``markerpose track`` CSV of the session.
+        images: folder of the ultrasound frames (with ``timestamps.csv``, or ``fps``).
+        spacing: (sx, sy) mm per pixel, as the scanner reports it for its depth setting.
+        out: where to write the calibration YAML (None: not written).
+    Returns:
+        (calibration, report): the report has the frames used and skipped, the RMS and each
+        frame's reconstruction error of the crossing (mm).
+    """
+    from .calibrate import calibrate_probe
+    from .segment import point_target
+
+    p_times, p_poses = read_track_csv(poses_csv)
+    files, times = read_frames(images, fps)
+    poses = interpolate_poses(times + time_offset_s, p_times, p_poses, max_gap_s)
+    frames = [_load_gray(p, None) for p in files]
+    sizes = {f.shape for f in frames}
+    if len(sizes) != 1:
+        raise ValueError(f"{images}: the frames differ in size ({sorted(sizes)})")
+    pts = [point_target(f, dynamic_range_db=dynamic_range_db) for f in frames]
+    h, w = frames[0].shape
+    calib, P, err = calibrate_probe(poses, pts, spacing, (w, h))
+    used = [f.name for f, T, p in zip(files, poses, pts) if T is not None and p is not None]
+    report = {"frames": len(files), "used": len(used), "no_pose": sum(T is None for T in poses),
+              "no_crossing": sum(p is None for p in pts), "rms_mm": calib.rms_mm, "point_mm": P,
+              "errors_mm": dict(zip(used, err))}
+    if out is not None:
+        calib.save(out)
+    return calib, report
+
+
+def _write_session(out: Path, rig, marker_poses: list, us_images: list, times_cam, times_us, rng, progress: bool):
+    from ..synth.render import render_stereo
+
     for d in ("left", "right", "us"):
         (out / d).mkdir(parents=True, exist_ok=True)
+    it = range(len(marker_poses))
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=f"render {out.name}", unit="pair", leave=False)
+    for k in it:
+        frame = render_stereo(rig, marker_poses[k], seed=rng)
+        cv2.imwrite(str(out / "left" / f"{k:05d}.png"), frame.images[0])
+        cv2.imwrite(str(out / "right" / f"{k:05d}.png"), frame.images[1])
+    with open(out / "us" / "timestamps.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["file", "timestamp_s"])
+        for k, (t, im) in enumerate(zip(times_us, us_images)):
+            name = f"us_{k:05d}.png"
+            cv2.imwrite(str(out / "us" / name), im)
+            w.writerow([name, f"{t:.6f}"])
+
+
+def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera_fps: float = 30.0,
+                              us_fps: float = 15.0, calibration_frames: int = 12, progress: bool = True) -> dict:
+    """A recording as a user's rig would produce it, from the simulation:
+    - the sweep: ``left/`` and ``right/`` camera frames at ``camera_fps``, ``us/``
+      ultrasound frames with ``timestamps.csv`` at ``us_fps`` (half a camera frame late:
+      the clocks are not in step);
+    - ``calibration/``: the same three folders for a cross-wire session, one frame of each
+      per probe position, one position a second;
+    - ``probe_true.yaml``: the true calibration, to compare with.
+    Returns the truth: the seed pixel inside the tube on the first frame, the true
+    diameter, the paths."""
+    from ..camera import StereoRig
+    from .bmode import crosswire_phantom, simulate_bmode, tube_phantom
+    from .experiment import TRUE_DIAMETER_MM
+    from .probe import invert
+    from .simulate import ProbeSetup, calibration_poses, sweep_poses
+
+    out = Path(out_dir)
     setup, rig = ProbeSetup(), StereoRig.default()
     rng = np.random.default_rng(seed)
-    # One hand motion (9 mm/s along the tube), sampled by both clocks; the scanner's frames
-    # fall between the cameras' (half a camera frame late).
+    # The sweep: one hand motion (9 mm/s along the tube), sampled by both clocks; the
+    # scanner's frames fall between the cameras' (half a camera frame late).
     t_us = np.arange(n_frames) / us_fps + 0.5 / camera_fps
     n_cam = int(np.floor(t_us[-1] * camera_fps)) + 2
     t_cam = np.arange(n_cam) / camera_fps
     t_all = np.concatenate([t_cam, t_us])
     _, all_poses = sweep_poses(setup, rng, length_mm=9.0 * t_all.max(), times=t_all)
     cam_poses, us_poses = all_poses[:n_cam], all_poses[n_cam:]
-    it = range(n_cam)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc="render", unit="pair", leave=False)
-    for k in it:
-        frame = render_stereo(rig, setup.marker_pose(cam_poses[k]), seed=rng)
-        cv2.imwrite(str(out / "left" / f"{k:05d}.png"), frame.images[0])
-        cv2.imwrite(str(out / "right" / f"{k:05d}.png"), frame.images[1])
     phantom = tube_phantom()
-    with open(out / "us" / "timestamps.csv", "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(["file", "timestamp_s"])
-        for k, (t, T) in enumerate(zip(t_us, us_poses)):
-            name = f"us_{k:05d}.png"
-            cv2.imwrite(str(out / "us" / name), simulate_bmode(phantom, T, setup.transducer, rng))
-            w.writerow([name, f"{t:.6f}"])
-    ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(out / "probe.yaml")
+    us_images = [simulate_bmode(phantom, T, setup.transducer, rng) for T in us_poses]
+    _write_session(out, rig, [setup.marker_pose(T) for T in cam_poses], us_images, t_cam, t_us, rng, progress)
+    # The calibration session: the probe held still on the wire crossing, one second per
+    # position, the cameras and the scanner each taking one frame per position.
+    cal = calibration_poses(setup, rng, calibration_frames)
+    cw = crosswire_phantom()
+    t_cal = np.arange(calibration_frames, dtype=np.float64)
+    _write_session(out / "calibration", rig, [setup.marker_pose(T) for T in cal],
+                   [simulate_bmode(cw, T, setup.transducer, rng) for T in cal], t_cal, t_cal, rng, progress)
+    ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(out / "probe_true.yaml")
     seed_px = invert(us_poses[0])[:3, 3][:2] / np.asarray(setup.transducer.spacing)
     return {"seed_px": seed_px, "diameter_mm": TRUE_DIAMETER_MM, "camera_fps": camera_fps, "us_frames": n_frames,
             "camera_frames": n_cam, "left": out / "left", "right": out / "right", "us": out / "us",
-            "calibration": out / "probe.yaml", "T_phantom_image": us_poses}
+            "calibration": out / "calibration", "true_calibration": out / "probe_true.yaml",
+            "spacing": setup.transducer.spacing, "T_phantom_image": us_poses}
 
 
-__all__ = ["read_frames", "read_track_csv", "reconstruct_recording", "write_simulated_recording"]
+__all__ = ["calibrate_recording", "read_frames", "read_track_csv", "reconstruct_recording", "write_simulated_recording"]

@@ -143,11 +143,13 @@ def sweep_points(images, seed_px, spacing, search: RingSearch | None = None, pro
     return out
 
 
-def point_target(image: np.ndarray, smooth_px: float = 1.0, dynamic_range_db: float = 55.0) -> np.ndarray | None:
+def point_target(image: np.ndarray, smooth_px: float = 1.0, dynamic_range_db: float = 55.0,
+                 max_size_px: int = 40) -> np.ndarray | None:
     """Sub-pixel position (u, v) of the brightest compact echo (a wire crossing): the
     amplitude-weighted centroid of the connected bright region around the maximum, the
     8-bit log image mapped back to amplitude with ``dynamic_range_db``. None when nothing
-    stands out from the background."""
+    stands out from the background, or when the brightest echo is not compact (wider or
+    taller than ``max_size_px``: a surface, not a wire)."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"expected a gray (H, W) image, got shape {img.shape}")
@@ -160,6 +162,8 @@ def point_target(image: np.ndarray, smooth_px: float = 1.0, dynamic_range_db: fl
     _, lab = cv2.connectedComponents((g >= thr).astype(np.uint8))
     m = lab == lab[v, u]
     ys, xs = np.nonzero(m)
+    if np.ptp(xs) >= max_size_px or np.ptp(ys) >= max_size_px:
+        return None
     # The image is log-compressed: weight by amplitude above the threshold, not by dB.
     w = 10 ** ((g[ys, xs] - thr) * dynamic_range_db / (255.0 * 20.0)) - 1 + 1e-9
     return np.array([np.sum(w * xs) / w.sum(), np.sum(w * ys) / w.sum()])
