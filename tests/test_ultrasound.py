@@ -67,6 +67,17 @@ def test_bmode_is_seeded_and_shadows_below_air():
     assert np.median(deep) < 60
 
 
+def test_bmode_speckle_is_fully_developed():
+    """A homogeneous scattering medium gives Rayleigh speckle: the envelope's mean over its
+    standard deviation is 1.91."""
+    from markerpose.ultrasound.bmode import Medium, Phantom
+
+    tr = Transducer()
+    im = simulate_bmode(Phantom(Medium("tissue", 0.05, 0.0)), ProbeSetup().nominal_image_pose(), tr, rng=3)
+    env = 10 ** (im[60:200, 40:220].astype(float) / 255 * tr.dynamic_range_db / 20)
+    assert 1.7 < env.mean() / env.std() < 2.2
+
+
 def test_point_target_finds_the_wire_crossing():
     setup = ProbeSetup()
     tr = setup.transducer

@@ -23,7 +23,9 @@ class RingSearch:
         min_radius_mm, max_radius_mm: search range from the centre.
         sector_deg: half-width of the sectors around straight up and straight down.
         n_rays: rays per frame (split between the two sectors).
-        smooth_px: Gaussian smoothing of the image before the search, px.
+        smooth_px: Gaussian smoothing of the image before the search, px. Kept small: an
+            echo lies between dark water and the brighter speckle of the wall, and
+            smoothing pulls its peak toward the wall (inward).
         level: an echo counts when it rises this fraction of the way from the frame's
             background (median) to its brightest 0.1 %.
         max_shift_mm: a frame whose fitted centre moves more than this from the previous
@@ -34,7 +36,7 @@ class RingSearch:
     max_radius_mm: float = 12.0
     sector_deg: float = 40.0
     n_rays: int = 60
-    smooth_px: float = 1.0
+    smooth_px: float = 0.5
     level: float = 0.5
     max_shift_mm: float = 3.0
 
