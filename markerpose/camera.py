@@ -333,13 +333,14 @@ class StereoRig:
                 if m is None:
                     raise ValueError(f"{path}: missing key '{key}'")
                 vals[key] = m
+            bad_size = f"{path}: key 'image_size' must hold two numbers (width, height)"
             try:
                 arr = storage_array(fs, "image_size", path)
             except ValueError:
-                arr = np.zeros(0)
+                raise ValueError(bad_size) from None
             if arr is not None:
                 if arr.size != 2:
-                    raise ValueError(f"{path}: key 'image_size' must hold two numbers (width, height)")
+                    raise ValueError(bad_size)
                 vals["image_size"] = arr.ravel()
         finally:
             fs.release()

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .probe import invert
+
 
 @dataclass(frozen=True)
 class Transducer:
@@ -264,15 +266,15 @@ def simulate_bmode(
         above = trans[np.clip(row - 1, 0, H2), cols]
         np.add.at(spec, (rows, np.broadcast_to(cols[:, None], rows.shape)), (prof * above[:, None]).astype(np.float32))
     trans = trans[:H2]
+    Ti = invert(T)
+    sig_lat = tr.lateral_fwhm_mm / 2.3548
     for wire in phantom.wires:
         # Where the wire crosses the image plane (z = 0 in image coordinates).
-        Ti = np.linalg.inv(T)
         a = Ti[:3, :3] @ np.asarray(wire.point, float) + Ti[:3, 3]
         d = Ti[:3, :3] @ np.asarray(wire.direction, float)
         if abs(d[2]) < 1e-9:
             continue
         c = a - a[2] / d[2] * d  # crossing in image mm
-        sig_lat = tr.lateral_fwhm_mm / 2.3548
         blob = np.exp(-0.5 * (((y[:, None] - c[1]) / sig_ax) ** 2 + ((x[None, :] - c[0]) / sig_lat) ** 2))
         spec += (wire.amplitude * blob).astype(np.float32)
 

@@ -335,11 +335,18 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
     return "\n".join(lines) + "\n"
 
 
-def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Path]:
+def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
     import matplotlib
 
-    matplotlib.use("Agg")
+    matplotlib.use("Agg")  # files only; no display needed
     import matplotlib.pyplot as plt
+
+    from ..experiments.plots import _legend_below
+
+    def _save(fig, path: Path) -> Path:
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        return path
 
     paths = []
     colors = {"markerpose": "C0", "paper-classical": "C3", "true_poses": "C2", "floor": "C7"}
@@ -372,9 +379,7 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
         ax.set_title(f"Reconstruction, MarkerPose poses: Ø {fit.diameter:.3f} mm (true {TRUE_DIAMETER_MM})")
         fig.colorbar(sc, ax=ax, shrink=0.6, label="frame")
         fig.tight_layout()
-        paths.append(out / "reconstruction.png")
-        fig.savefig(paths[-1], dpi=110)
-        plt.close(fig)
+        paths.append(_save(fig, out / "reconstruction.png"))
 
     # Residuals of the cylinder fit.
     fig, axs = plt.subplots(1, 2, figsize=(10, 3.8))
@@ -391,12 +396,8 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
     axs[1].set_xlabel("position along the axis (mm)")
     axs[1].set_ylabel("residual (mm)")
     axs[1].set_ylim(-0.25, 0.25)
-    handles, labels = axs[0].get_legend_handles_labels()
-    fig.tight_layout(rect=(0, 0.12, 1, 1))
-    fig.legend(handles, labels, loc="lower center", ncol=3, frameon=False, fontsize=8)
-    paths.append(out / "residuals.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    _legend_below(fig, axs[0], ncol=3)
+    paths.append(_save(fig, out / "residuals.png"))
 
     # Calibration.
     fig, ax = plt.subplots(figsize=(7, 3.8))
@@ -409,9 +410,7 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
     ax.set_ylabel("crossing reconstruction error (mm)")
     ax.set_title("Probe calibration, first acquisition")
     fig.tight_layout()
-    paths.append(out / "calibration.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(_save(fig, out / "calibration.png"))
 
     # Frames with the segmented points.
     ims, pts = data["images"], data["points"]
@@ -427,9 +426,7 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
         a.axis("off")
     fig.suptitle("Sweep frames; orange: segmented outer wall; red +: the seed")
     fig.tight_layout()
-    paths.append(out / "frames.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    paths.append(_save(fig, out / "frames.png"))
 
     # Every acquisition's diameter.
     fig, ax = plt.subplots(figsize=(7, 3.8))
@@ -441,12 +438,8 @@ def _plots(out: Path, summary: dict, results: list[dict], data: dict) -> list[Pa
     ax.set_xlabel("acquisition")
     ax.set_ylabel("diameter (mm)")
     ax.set_title(f"The paper, on real data: {PAPER['diameter_mm']} mm")
-    fig.tight_layout(rect=(0, 0.14, 1, 1))
-    handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="lower center", ncol=3, frameon=False, fontsize=8)
-    paths.append(out / "diameters.png")
-    fig.savefig(paths[-1], dpi=110)
-    plt.close(fig)
+    _legend_below(fig, ax, ncol=3)
+    paths.append(_save(fig, out / "diameters.png"))
     return paths
 
 
@@ -459,18 +452,18 @@ def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, see
     from .. import formats
     from .reconstruct import compound
 
+    if plan is None:
+        plan = Plan.quick(seed) if quick else Plan(seed=seed)
+        if acquisitions is not None:
+            if acquisitions < 1:
+                raise ValueError(f"acquisitions must be >= 1, got {acquisitions}")
+            plan = Plan(acquisitions, plan.n_frames, plan.n_calibration, seed)
+    elif acquisitions is not None:
+        raise ValueError("give either plan or acquisitions")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file, not a folder")
     out.mkdir(parents=True, exist_ok=True)
-    if plan is None:
-        plan = Plan.quick(seed) if quick else Plan(seed=seed)
-    elif acquisitions is not None:
-        raise ValueError("give either plan or acquisitions")
-    if acquisitions is not None:
-        if acquisitions < 1:
-            raise ValueError(f"acquisitions must be >= 1, got {acquisitions}")
-        plan = Plan(acquisitions, plan.n_frames, plan.n_calibration, seed)
     t0 = time.perf_counter()
     results = run(plan, jobs=jobs, progress=progress)
     data = results[0].pop("_data")
@@ -486,7 +479,7 @@ def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, see
     if "markerpose" in data["fits"]:
         X, idx, _ = data["fits"]["markerpose"]
         formats.write_ply(out / "points.ply", X, idx)
-    _plots(out, summary, results, data)
+    _plots(out, results, data)
     seconds = time.perf_counter() - t0
     mp_s, tp, pc, fl = (summary.get(k) for k in ("markerpose", "true_poses", "paper-classical", "floor"))
     cal = [r.get("calibration_rms_markerpose_mm") for r in results if r.get("calibration_rms_markerpose_mm") is not None]

@@ -133,7 +133,7 @@ def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None,
                "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"]}
     if seed_px is not None:
         first = next(k for k, T in enumerate(poses) if T is not None)
-        posed = [k for k in range(first, len(frames))]
+        posed = list(range(first, len(frames)))
         pts = sweep_points([frames[k] for k in posed], seed_px, calib.spacing, search, progress=progress)
         X, idx = tracker_points(pts, [poses[k] for k in posed], calib)
         if len(X) < 10:

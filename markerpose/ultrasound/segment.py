@@ -55,7 +55,7 @@ def _fit_circle(p: np.ndarray) -> tuple[np.ndarray, float] | None:
     return c, float(np.sqrt(r2))
 
 
-def _outer_peaks(prof: np.ndarray, thr: float, step: float) -> np.ndarray:
+def _outer_peaks(prof: np.ndarray, thr: float) -> np.ndarray:
     """Per row of ``prof`` (rays × radius samples): the radius (in samples) of the outermost
     local maximum above ``thr``, refined by a quadratic over ±3 samples; NaN if none."""
     n, m = prof.shape
@@ -107,7 +107,7 @@ def ring_points(image: np.ndarray, center_px, spacing, search: RingSearch | None
     bg = float(np.median(g))
     top = float(np.percentile(g, 99.9))
     thr = bg + s.level * (top - bg)
-    k = _outer_peaks(prof, thr, step_mm)
+    k = _outer_peaks(prof, thr)
     ok = np.isfinite(k)
     rr = s.min_radius_mm + k[ok] * step_mm
     pts = np.column_stack([c[0] + np.cos(phis[ok]) * rr / sx, c[1] + np.sin(phis[ok]) * rr / sy])
