@@ -399,6 +399,16 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
     p.add_argument("--export", help="also write the best weights, slimmed, to this path")
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {n}")
+    return n
+
+
 def _pixel(text: str) -> tuple[float, float]:
     try:
         u, v = (float(x) for x in text.split(","))
@@ -417,6 +427,20 @@ def cmd_ultrasound_demo(args):
     path = experiment.main(args.out, quick=args.quick, seed=args.seed, jobs=args.jobs, acquisitions=args.acquisitions,
                            progress=not args.quiet, command=cmd)
     print(f"wrote {path} and the plots and files beside it ({time.perf_counter() - t0:.0f} s)")
+
+
+def cmd_peers(args):
+    from .peers import experiment
+
+    t0 = time.perf_counter()
+    cmd = "markerpose peers" + (" --quick" if args.quick else "") + f" --out {args.out}"
+    if args.pairs is not None:
+        cmd += f" --pairs {args.pairs}"
+    if args.systems:
+        cmd += " --systems " + " ".join(args.systems)
+    conf = experiment.plan(args.quick, pairs=args.pairs, seed=args.seed, systems=tuple(args.systems) if args.systems else None)
+    doc = experiment.main(conf, args.out, jobs=args.jobs, command=cmd, progress=not args.quiet)
+    print(f"wrote {doc['files'][0]} and the plots and results.json beside it ({time.perf_counter() - t0:.0f} s)")
 
 
 def cmd_ultrasound_reconstruct(args):
@@ -551,6 +575,16 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_marker_args(k)
     k.set_defaults(func=cmd_track)
+
+    pe = sub.add_parser("peers", help="markerpose beside AprilTag 3, ArUco, ChArUco and STag on the same rendered scenes")
+    pe.add_argument("--out", default="markerpose-peers", help="output folder (default: markerpose-peers)")
+    pe.add_argument("--quick", action="store_true", help="6 scenes per level instead of 40 (a few minutes)")
+    pe.add_argument("--pairs", type=_positive_int, help="scenes per darkness / blur level (default 40; --quick 6)")
+    pe.add_argument("--systems", nargs="+", choices=("markerpose", "apriltag", "aruco", "charuco", "stag"), help="systems to run (default: all installed)")
+    pe.add_argument("--seed", type=int, default=0)
+    pe.add_argument("--jobs", type=_positive_int, help="processes (default: up to 2)")
+    pe.add_argument("--quiet", action="store_true", help="no progress bar")
+    pe.set_defaults(func=cmd_peers)
 
     us = sub.add_parser("ultrasound", help="freehand 3D ultrasound with a tracked probe (the paper's section 5.3)")
     usub = us.add_subparsers(dest="ultrasound_command", required=True)

@@ -1,0 +1,561 @@
+"""``markerpose peers``: markerpose and the fiducials people already use, on the same frames.
+
+Every scene is one plate pose, one lighting, one motion blur, one pair of cluttered
+backgrounds and one noise seed; each system's target is printed on the same plate
+(:mod:`.targets`) and rendered into that scene by the same renderer, then measured by
+its own detector (:mod:`.systems`), mono (left view) and stereo.
+
+Scenes:
+
+- **levels**: ``pairs`` random plate poses per darkness α (down to 0.039) and per
+  motion-blur length (px, random direction), anywhere in the working volume
+  (350–800 mm, tilt 0–60°, any roll), the whole plate in both views;
+- **jitter**: ``jitter_poses`` static poses, each rendered ``jitter_repeats`` times
+  with fresh sensor noise (same background);
+- **marker-free**: ``marker_free`` pairs of clutter with ring distractors.
+
+A pose counts as a detection when the plate centre is within ``tolerance_mm`` and the
+rotation within ``tolerance_deg`` of the truth; any other pose is a wrong pose, and a
+wrong mono pose whose other IPPE solution is within tolerance is a flip (the planar
+ambiguity). Errors are measured at the plate centre, the same point for every system.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import StereoRig
+from ..formats import write_json
+from ..geometry import nearest_rotation, rotation_angle
+from ..synth import Imaging, look_at_pose
+from ..synth.background import clutter_background
+from . import systems, targets
+
+default_conf = {
+    "pairs": 40,  # random scenes per darkness / blur level
+    "alphas": (1.0, 0.5, 0.25, 0.125, 0.0625, 0.039),
+    "blurs": (5.0, 10.0, 15.0, 20.0, 25.0),  # px
+    "jitter_poses": 4,
+    "jitter_repeats": 10,
+    "marker_free": 40,
+    "tolerance_mm": 5.0,
+    "tolerance_deg": 5.0,
+    "systems": systems.SYSTEMS,
+    "seed": 0,
+}
+QUICK = {"pairs": 6, "jitter_poses": 2, "jitter_repeats": 5, "marker_free": 8}
+
+
+# --- scenes ----------------------------------------------------------------------------
+def _plate_visible(rig: StereoRig, T: np.ndarray, margin_px: float = 5.0) -> bool:
+    x0, y0, x1, y1 = targets.PLATE
+    corners = np.array([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], float)
+    for cam, Tc in zip(rig.cameras, (T, rig.T_right_left @ T)):
+        P = corners @ Tc[:3, :3].T + Tc[:3, 3]
+        if np.any(P[:, 2] <= 0):
+            return False
+        uv = cam.project(P)
+        w, h = cam.image_size
+        if np.any(uv < margin_px) or np.any(uv[:, 0] > w - 1 - margin_px) or np.any(uv[:, 1] > h - 1 - margin_px):
+            return False
+    return True
+
+
+def random_pose(rng: np.random.Generator, rig: StereoRig, distance=(350.0, 800.0), tilt=(0.0, 60.0)) -> tuple[np.ndarray, dict]:
+    """A plate pose in the working volume with the whole plate in both views, and its
+    conditions (distance of the plate centre, tilt)."""
+    while True:
+        z = rng.uniform(*distance)
+        t = rng.uniform(*tilt)
+        T = look_at_pose([0, 0, z], t, rng.uniform(0, 360), rng.uniform(0, 360))
+        T[:3, 3] = [rng.uniform(-0.1, 0.1) * z - 0.12 * (z - 560), rng.uniform(-0.15, 0.15) * z, z]
+        T[:3, 3] -= T[:3, :3] @ targets.CENTRE  # the plate centre at the sampled point
+        if _plate_visible(rig, T):
+            return T, {"distance": float(z), "tilt": float(t)}
+
+
+def scenes(conf: dict, rig: StereoRig) -> list[dict]:
+    """Every scene of the experiment, deterministic in ``conf["seed"]``."""
+    out = []
+    levels = [("alpha", a, a, 0.0) for a in conf["alphas"]] + [("blur", b, 1.0, b) for b in conf["blurs"]]
+    for k, (kind, value, alpha, blur) in enumerate(levels):
+        rng = np.random.default_rng([conf["seed"], 31, k])
+        for i in range(conf["pairs"]):
+            T, cond = random_pose(rng, rig)
+            out.append({"kind": kind, "level": float(value), "T": T, "alpha": alpha, "blur": blur,
+                        "angle": float(rng.uniform(0, 180)), "seed": [conf["seed"], 32, k, i], **cond})
+    rng = np.random.default_rng([conf["seed"], 33])
+    for p in range(conf["jitter_poses"]):
+        T, cond = random_pose(rng, rig, distance=(450.0, 600.0), tilt=(15.0, 40.0))
+        for r in range(conf["jitter_repeats"]):
+            # The same background (bg_seed) every repeat; fresh sensor noise (seed).
+            out.append({"kind": "jitter", "level": float(p), "T": T, "alpha": 1.0, "blur": 0.0, "angle": 0.0,
+                        "bg_seed": [conf["seed"], 34, p], "seed": [conf["seed"], 35, p, r], **cond})
+    for i in range(conf["marker_free"]):
+        out.append({"kind": "free", "level": 0.0, "T": None, "alpha": 1.0, "blur": 0.0, "angle": 0.0,
+                    "seed": [conf["seed"], 36, i]})
+    return out
+
+
+# --- one scene, every system -------------------------------------------------------------
+_SYSTEMS: dict = {}
+
+
+def _systems(names, rig) -> dict:
+    """The systems of this process, made once."""
+    for n in names:
+        if n not in _SYSTEMS:
+            _SYSTEMS[n] = systems.make(n, rig)
+    return {n: _SYSTEMS[n] for n in names}
+
+
+def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(plate-centre position error mm, rotation error deg)."""
+    c = targets.CENTRE
+    dt = np.linalg.norm((T_est[:3, :3] - T_true[:3, :3]) @ c + T_est[:3, 3] - T_true[:3, 3])
+    return float(dt), float(np.rad2deg(rotation_angle(T_est[:3, :3], T_true[:3, :3])))
+
+
+def _render(rig: StereoRig, scene: dict, target) -> tuple:
+    from ..calibration import render_target_view
+
+    im = Imaging(alpha=scene["alpha"], motion_blur=scene["blur"], motion_angle=scene["angle"])
+    bg_rng = np.random.default_rng(scene.get("bg_seed", scene["seed"]))
+    if scene["kind"] == "free":
+        bgs = [clutter_background(c.image_size, bg_rng, ring_distractors=int(bg_rng.integers(3, 11))) for c in rig.cameras]
+        T = np.eye(4)
+        T[:3, 3] = [0.0, 3000.0, 1000.0]  # far outside both views
+    else:
+        bgs = [clutter_background(c.image_size, bg_rng) for c in rig.cameras]
+        T = scene["T"]
+    noise = np.random.default_rng(scene["seed"] + [1])
+    return tuple(render_target_view(cam, Tc, target, im, bg, noise) for cam, Tc, bg in zip(rig.cameras, (T, rig.T_right_left @ T), bgs))
+
+
+def run_scene(scene: dict, names, rig: StereoRig) -> dict:
+    """Render ``scene`` for every system and measure it: {system: {"mono": ..., "stereo": ...}}."""
+    out = {}
+    free_images = None
+    for name, s in _systems(names, rig).items():
+        if scene["kind"] == "free":  # no target in view: one pair of images serves everyone
+            free_images = free_images or _render(rig, scene, s.target)
+            images = free_images
+        else:
+            images = _render(rig, scene, s.target)
+        out[name] = measure(s, rig, images, scene)
+    return out
+
+
+def measure(s, rig: StereoRig, images, scene: dict) -> dict:
+    """One system on one rendered pair: its mono and stereo results."""
+    T_true = scene["T"]
+    res = {}
+    if s.name == "markerpose":
+        T, dt = systems.timed(s.estimate, *images)
+        res["stereo"] = _judge([] if T is None else [T], T_true, dt)
+        res["mono"] = None
+        if scene["kind"] == "free":
+            res["false_views"] = int(sum(s.tracker.detect(im, view=k) is not None for k, im in enumerate(images)))
+        return res
+    left, t_left = systems.timed(s.observe, images[0])
+    right, t_right = systems.timed(s.observe, images[1])
+    poses, t_pnp = systems.timed(s.mono_poses, rig.left, left)
+    res["mono"] = _judge(poses, T_true, t_left + t_pnp)
+    T, t_tri = systems.timed(s.stereo_pose, rig, left, right)
+    res["stereo"] = _judge([] if T is None else [T], T_true, t_left + t_right + t_tri)
+    if scene["kind"] == "free":
+        res["false_views"] = int(sum(o is not None and not o.wrong_id for o in (left, right)))
+    return res
+
+
+def _judge(poses: list, T_true, seconds: float) -> dict:
+    """A pose (the first of ``poses``; the others are its alternatives) against the truth."""
+    out = {"seconds": seconds, "pose": bool(poses)}
+    if poses and T_true is not None:
+        errs = [_errors(T, T_true) for T in poses]
+        out["t_err"], out["r_err"] = errs[0]
+        out["alt"] = [list(e) for e in errs[1:]]
+        out["T"] = poses[0].tolist()
+    return out
+
+
+def _worker(args):
+    import cv2
+
+    cv2.setNumThreads(1)  # one core per worker: the workers already fill the machine
+    scene, names, rig_path = args
+    rig = StereoRig.default() if rig_path is None else StereoRig.load(rig_path)
+    return scene, run_scene(scene, names, rig)
+
+
+def run(conf: dict, jobs: int | None = None, progress: bool = True) -> list[tuple[dict, dict]]:
+    """Every scene of ``conf`` over ``jobs`` processes: [(scene, {system: result})]."""
+    rig = StereoRig.default()
+    todo = scenes(conf, rig)
+    jobs = jobs or max(1, min(2, os.cpu_count() or 1))
+    tasks = [(sc, tuple(conf["systems"]), None) for sc in todo]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), desc="scenes", unit="scene")
+    out = []
+    if jobs == 1:
+        for t in tasks:
+            out.append(_worker(t))
+            if bar:
+                bar.update()
+    else:
+        with ProcessPoolExecutor(jobs) as ex:
+            for f in as_completed([ex.submit(_worker, t) for t in tasks]):
+                out.append(f.result())
+                if bar:
+                    bar.update()
+    if bar:
+        bar.close()
+    return sorted(out, key=lambda r: (r[0]["kind"], r[0]["level"], r[0]["seed"]))
+
+
+# --- statistics ------------------------------------------------------------------------------
+def _ok(r: dict | None, conf: dict) -> bool:
+    return bool(r and r["pose"] and r["t_err"] <= conf["tolerance_mm"] and r["r_err"] <= conf["tolerance_deg"])
+
+
+def _flip(r: dict | None, conf: dict) -> bool:
+    """A wrong pose whose other IPPE solution is right: the planar ambiguity."""
+    return bool(r and r["pose"] and not _ok(r, conf)
+                and any(t <= conf["tolerance_mm"] and a <= conf["tolerance_deg"] for t, a in r.get("alt", [])))
+
+
+def _pct(values, q) -> float | None:
+    v = np.asarray(values, float)
+    return float(np.percentile(v, q)) if len(v) else None
+
+
+def level_stats(rows: list[dict], conf: dict) -> dict:
+    """Detection, wrong poses, flips and the errors of the detections over ``rows``
+    (one mode of one system on the scenes of one level)."""
+    from ..experiments.reproduce import wilson
+
+    good = [r for r in rows if _ok(r, conf)]
+    return {
+        "n": len(rows),
+        "detection": wilson(len(good), len(rows)),
+        "wrong": int(sum(bool(r["pose"]) and not _ok(r, conf) for r in rows)),
+        "flips": int(sum(_flip(r, conf) for r in rows)),
+        "t_err_median_mm": _pct([r["t_err"] for r in good], 50),
+        "t_err_p95_mm": _pct([r["t_err"] for r in good], 95),
+        "r_err_median_deg": _pct([r["r_err"] for r in good], 50),
+        "r_err_p95_deg": _pct([r["r_err"] for r in good], 95),
+        "seconds_median": _pct([r["seconds"] for r in rows], 50),
+    }
+
+
+def jitter_stats(groups: list[list[dict]], conf: dict) -> dict:
+    """Pooled RMS spread of the plate centre (mm) and of the rotation (deg) over repeated
+    renders of each static pose (only poses found within tolerance count)."""
+    d_pos, d_rot, found, total = [], [], 0, 0
+    for rows in groups:
+        total += len(rows)
+        Ts = [np.asarray(r["T"]) for r in rows if _ok(r, conf)]
+        found += len(Ts)
+        if len(Ts) < 2:
+            continue
+        c = np.stack([T[:3, :3] @ targets.CENTRE + T[:3, 3] for T in Ts])
+        d_pos.extend(np.sum((c - c.mean(0)) ** 2, axis=1))
+        R_mean = nearest_rotation(np.mean([T[:3, :3] for T in Ts], axis=0))
+        d_rot.extend(np.rad2deg(rotation_angle(T[:3, :3], R_mean)) ** 2 for T in Ts)
+    return {
+        "position_mm": float(np.sqrt(np.mean(d_pos))) if d_pos else None,
+        "rotation_deg": float(np.sqrt(np.mean(d_rot))) if d_rot else None,
+        "found": found,
+        "renders": total,
+    }
+
+
+def _bins(rows: list[tuple[dict, dict]], key: str, edges, conf: dict) -> list[dict]:
+    out = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = [r for sc, r in rows if lo <= sc[key] < hi and _ok(r, conf)]
+        out.append({"lo": lo, "hi": hi, "n": len(sel), "t_err_median_mm": _pct([r["t_err"] for r in sel], 50),
+                    "r_err_median_deg": _pct([r["r_err"] for r in sel], 50)})
+    return out
+
+
+DISTANCE_BINS = (350.0, 462.5, 575.0, 687.5, 800.01)
+TILT_BINS = (0.0, 15.0, 30.0, 45.0, 60.01)
+
+
+def summarize(results: list[tuple[dict, dict]], conf: dict) -> dict:
+    """Per system and mode: every level's statistics, jitter, false detections, errors by
+    distance and tilt (α = 1 level), and the headline figures."""
+    out = {}
+    names = [n for n in conf["systems"] if results and n in results[0][1]]
+    for name in names:
+        entry: dict = {"label": systems.LABELS[name]}
+        for mode in ("mono", "stereo"):
+            if name == "markerpose" and mode == "mono":
+                entry[mode] = None
+                continue
+            m: dict = {"alpha": {}, "blur": {}}
+            for kind in ("alpha", "blur"):
+                for lv in sorted({sc["level"] for sc, _ in results if sc["kind"] == kind}):
+                    rows = [r[name][mode] for sc, r in results if sc["kind"] == kind and sc["level"] == lv]
+                    m[kind][str(lv)] = level_stats(rows, conf)
+            if "1.0" in m["alpha"]:
+                m["blur"] = {"0.0": m["alpha"]["1.0"], **m["blur"]}
+            std = [(sc, r[name][mode]) for sc, r in results if sc["kind"] == "alpha" and sc["level"] == 1.0]
+            m["by_distance"] = _bins(std, "distance", DISTANCE_BINS, conf)
+            m["by_tilt"] = _bins(std, "tilt", TILT_BINS, conf)
+            every = [r[name][mode] for sc, r in results if sc["kind"] in ("alpha", "blur")]
+            m["all_levels"] = level_stats(every, conf)
+            groups = [[r[name][mode] for sc, r in results if sc["kind"] == "jitter" and sc["level"] == p]
+                      for p in sorted({sc["level"] for sc, _ in results if sc["kind"] == "jitter"})]
+            m["jitter"] = jitter_stats(groups, conf)
+            free = [r[name] for sc, r in results if sc["kind"] == "free"]
+            m["false_poses"] = {"k": int(sum(bool(f[mode]["pose"]) for f in free)), "n": len(free)}
+            entry[mode] = m
+        free = [r[name] for sc, r in results if sc["kind"] == "free"]
+        entry["false_views"] = {"k": int(sum(f["false_views"] for f in free)), "n": 2 * len(free)}
+        out[name] = entry
+    return out
+
+
+# --- report ----------------------------------------------------------------------------------
+def _f(x, nd=3) -> str:
+    return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
+
+
+def _det(s: dict) -> str:
+    d = s["detection"]
+    return "—" if not d["n"] else f"{100 * d['p']:.1f} %"
+
+
+def _rows(summary: dict):
+    """(system, mode, stats) for every measured mode, markerpose first."""
+    for name, e in summary.items():
+        for mode in ("stereo", "mono"):
+            if e.get(mode):
+                yield name, mode, e[mode]
+
+
+def setup_lines(conf: dict) -> list[str]:
+    x0, y0, x1, y1 = targets.PLATE
+    im = Imaging()
+    return [
+        f"- **Printed footprint**: every target is printed on the three-ring marker's plate, {x1 - x0:g} × {y1 - y0:g} mm. "
+        f"markerpose: three rings Ø20 mm. AprilTag tag36h11 (ID 0), ArUco `DICT_4X4_50` (ID 0) and STag HD21 (ID 0): a "
+        f"{targets.SQUARE_MM:g} mm black square centred on the plate. ChArUco: {targets.CHARUCO_SQUARES[0]} × "
+        f"{targets.CHARUCO_SQUARES[1]} squares of {targets.CHARUCO_SQUARE_MM:g} mm ({targets.CHARUCO_SQUARES[0] * targets.CHARUCO_SQUARE_MM:g} × "
+        f"{targets.CHARUCO_SQUARES[1] * targets.CHARUCO_SQUARE_MM:g} mm), `DICT_4X4_50` markers of {targets.CHARUCO_MARKER_MM:g} mm, "
+        f"{(targets.CHARUCO_SQUARES[0] - 1) * (targets.CHARUCO_SQUARES[1] - 1)} inner corners.",
+        "- **Scenes**: the default rig (two 1280×1024 cameras, f ≈ 2500 px, 175 mm baseline, mild barrel distortion), "
+        "the plate anywhere both cameras see all of it from 350 to 800 mm, tilt 0–60°, any roll, over cluttered "
+        f"backgrounds; the renderer and sensor model of every markerpose experiment (PSF σ = {im.psf_sigma} px, "
+        f"shot and read noise, 8 bits). Darkness α scales the exposure; motion blur is a line kernel in a random direction. "
+        "Every system sees the same pose, lighting, blur, backgrounds and noise seed.",
+        "- **Settings**: AprilTag `pupil_apriltags.Detector(families='tag36h11', quad_decimate=1.0, quad_sigma=0.0, "
+        "refine_edges=1, decode_sharpening=0.25, nthreads=1)`, its corners moved by −0.5 px into OpenCV's pixel-centre "
+        "convention; ArUco `cv2.aruco.ArucoDetector` with `CORNER_REFINE_SUBPIX` (the most accurate of OpenCV's three "
+        "refinements on these images); ChArUco `cv2.aruco.CharucoDetector` (same marker refinement; the detector "
+        "refines the chessboard corners), at least 4 corners for a pose; STag `stag.detectMarkers(image, 21)` (its own "
+        "ellipse-based corner refinement); markerpose `MarkerPose(rig, preset='default', threads=1).estimate`. "
+        "OpenCV one thread per process.",
+        "- **Mono** (as the peers' users run them): OpenCV's IPPE from the left view with the full lens model "
+        "(`SOLVEPNP_IPPE_SQUARE` for a square tag, `SOLVEPNP_IPPE` for the ChArUco corners), the better solution. "
+        "**Stereo**: the points found in both views triangulated with the rig and the rigid fit markerpose uses. "
+        "markerpose is stereo only.",
+        f"- **Counting**: a pose is a detection when the plate centre is within {conf['tolerance_mm']:g} mm and the "
+        f"rotation within {conf['tolerance_deg']:g}° of the truth; any other pose is a wrong pose; a wrong mono pose whose "
+        "other IPPE solution is right is a flip. Errors are those of the detections, at the plate centre (the same point "
+        "for every system). Jitter: each static pose rendered again with fresh sensor noise; pooled RMS about each pose's "
+        "mean. Time: one view (mono) or one pair (stereo), detection plus pose, median over every scene, measured in "
+        "the run (two worker processes on two cores, one thread each).",
+    ]
+
+
+def report_markdown(summary: dict, conf: dict, command: str, seconds: float, skipped: dict) -> str:
+    n_lv = conf["pairs"]
+    alphas, blurs = [str(float(a)) for a in conf["alphas"]], [str(float(b)) for b in conf["blurs"]]
+    darkest, longest = alphas[-1], blurs[-1] if blurs else None
+    L = [
+        "# markerpose and the fiducials people already use, on the same frames",
+        "",
+        f"Command: `{command}` ({seconds / 60:.1f} min on this machine). Every figure below comes from this run "
+        "(`results.json` holds every value).",
+        "",
+        *setup_lines(conf),
+        "",
+    ]
+    if skipped:
+        L += [f"Not installed, skipped: {', '.join(f'{k} (`pip install {v}`)' for k, v in skipped.items())}.", ""]
+    L += [
+        "## Summary",
+        "",
+        f"Detection per level over {n_lv} scenes (standard: α = 1, no blur). Errors: detections of the standard level. "
+        "Flips and wrong poses: over every darkness and blur scene.",
+        "",
+        f"| system | mode | detection, standard | darkest (α = {float(darkest):g}) | blur {float(longest):g} px | "
+        "position error median / p95 (mm) | rotation error median / p95 (°) | jitter position (mm) / rotation (°) | "
+        "wrong poses (flips) | marker-free: views with a detection / poses | time (ms) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, mode, m in _rows(summary):
+        std = m["alpha"].get("1.0")
+        j, a = m["jitter"], m["all_levels"]
+        fv, fp = summary[name]["false_views"], m["false_poses"]
+        L.append(
+            f"| {systems.LABELS[name]} | {mode} | {_det(std)} | {_det(m['alpha'][darkest])} | "
+            f"{_det(m['blur'][longest]) if longest else '—'} | {_f(std['t_err_median_mm'])} / {_f(std['t_err_p95_mm'])} | "
+            f"{_f(std['r_err_median_deg'])} / {_f(std['r_err_p95_deg'])} | {_f(j['position_mm'], 4)} / {_f(j['rotation_deg'], 4)} | "
+            f"{a['wrong']} ({a['flips']}) | {fv['k']}/{fv['n']} / {fp['k']}/{fp['n']} | "
+            f"{_f(1e3 * a['seconds_median'], 1)} |"
+        )
+    for kind, vals, title in (("alpha", alphas, "Detection versus darkness α"), ("blur", ["0.0"] + blurs, "Detection versus motion blur (px)")):
+        L += ["", f"## {title}", "", "| system | mode | " + " | ".join(f"{float(v):g}" for v in vals) + " |",
+              "|---|---|" + "---|" * len(vals)]
+        for name, mode, m in _rows(summary):
+            L.append(f"| {systems.LABELS[name]} | {mode} | " + " | ".join(_det(m[kind][v]) for v in vals) + " |")
+    L += ["", "## Errors by distance and tilt (standard level, detections)", "",
+          "Position error median (mm) / rotation error median (°) per bin.", ""]
+    for key, title in (("by_distance", "distance (mm)"), ("by_tilt", "tilt (°)")):
+        first = next(iter(_rows(summary)))[2][key]
+        L += ["| system | mode | " + " | ".join(f"{title} {b['lo']:g}–{min(b['hi'], 800 if key == 'by_distance' else 60):g}" for b in first) + " |",
+              "|---|---|" + "---|" * len(first)]
+        for name, mode, m in _rows(summary):
+            L.append(f"| {systems.LABELS[name]} | {mode} | " + " | ".join(
+                f"{_f(b['t_err_median_mm'])} / {_f(b['r_err_median_deg'], 2)} (n={b['n']})" for b in m[key]) + " |")
+        L.append("")
+    L += ["Plots: `detection.png` (detection versus darkness and blur), `accuracy.png` (errors versus distance and "
+          "tilt), `jitter-speed.png` (static jitter and time per frame).", ""]
+    return "\n".join(L)
+
+
+# --- plots -----------------------------------------------------------------------------------
+_COLORS = {"markerpose": "k", "apriltag": "tab:blue", "aruco": "tab:orange", "charuco": "tab:green", "stag": "tab:red"}
+_STYLE = {"stereo": "-", "mono": "--"}
+
+
+def _line_label(name: str, mode: str) -> str:
+    return f"{systems.LABELS[name]}, {mode}"
+
+
+def plots(summary: dict, out: Path) -> list[Path]:
+    """detection.png, accuracy.png and jitter-speed.png: one line (or bar) per system and mode."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..experiments.plots import _legend_below
+
+    paths = []
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
+    for ax, kind, xlabel in ((axes[0], "alpha", "darkness α (exposure scale)"), (axes[1], "blur", "motion blur length (px)")):
+        for name, mode, m in _rows(summary):
+            xs = sorted(m[kind], key=float)
+            ax.plot([float(x) for x in xs], [100 * m[kind][x]["detection"]["p"] for x in xs], _STYLE[mode], marker="o", ms=4,
+                    color=_COLORS[name], label=_line_label(name, mode))
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_xscale("log")
+    axes[0].invert_xaxis()
+    axes[0].set_ylabel("detection (% of scenes, pose within tolerance)")
+    axes[0].set_title("Darkness")
+    axes[1].set_title("Motion blur")
+    _legend_below(fig, axes[0], ncol=3)
+    paths.append(out / "detection.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharey="row")
+    for col, key, xlabel in ((0, "by_distance", "distance (mm)"), (1, "by_tilt", "tilt (°)")):
+        for row, metric, ylabel in ((0, "t_err_median_mm", "position error, median (mm)"), (1, "r_err_median_deg", "rotation error, median (°)")):
+            ax = axes[row, col]
+            for name, mode, m in _rows(summary):
+                b = m[key]
+                x = [(v["lo"] + v["hi"]) / 2 for v in b]
+                y = [np.nan if v[metric] is None else v[metric] for v in b]
+                ax.plot(x, y, _STYLE[mode], marker="o", ms=4, color=_COLORS[name], label=_line_label(name, mode))
+            ax.set_yscale("log")
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(ylabel)
+            ax.grid(alpha=0.3, which="both")
+    fig.suptitle("Accuracy of the detections (standard level), by distance and tilt")
+    _legend_below(fig, axes[1, 0], ncol=3)
+    paths.append(out / "accuracy.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4.8))
+    rows = list(_rows(summary))
+    labels = [_line_label(n, mo) for n, mo, _ in rows]
+    colors = [_COLORS[n] for n, _, _ in rows]
+    hatches = ["" if mo == "stereo" else "//" for _, mo, _ in rows]
+    vals = (
+        ([m["jitter"]["position_mm"] or np.nan for _, _, m in rows], "static jitter, position (mm RMS)"),
+        ([m["jitter"]["rotation_deg"] or np.nan for _, _, m in rows], "static jitter, rotation (° RMS)"),
+        ([1e3 * (m["all_levels"]["seconds_median"] or np.nan) for _, _, m in rows], "time per frame, median (ms)"),
+    )
+    y = np.arange(len(rows))
+    for ax, (v, title) in zip(axes, vals):
+        bars = ax.barh(y, v, color=colors, edgecolor="0.2")
+        for b, h in zip(bars, hatches):
+            b.set_hatch(h)
+        ax.set_xscale("log")
+        ax.set_title(title)
+        ax.set_yticks(y, labels if ax is axes[0] else [""] * len(rows), fontsize=8)
+        ax.invert_yaxis()
+        ax.grid(alpha=0.3, axis="x", which="both")
+    fig.tight_layout()
+    paths.append(out / "jitter-speed.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+# --- main ------------------------------------------------------------------------------------
+def plan(quick: bool = False, **overrides) -> dict:
+    """The experiment's configuration: the defaults, ``QUICK`` with ``quick``, then overrides."""
+    conf = {**default_conf, **(QUICK if quick else {}), **{k: v for k, v in overrides.items() if v is not None}}
+    unknown = [n for n in conf["systems"] if n not in systems.SYSTEMS]
+    if unknown:
+        raise ValueError(f"unknown system(s) {unknown}; known: {list(systems.SYSTEMS)}")
+    if conf["pairs"] < 1:
+        raise ValueError(f"need at least one scene per level, got pairs={conf['pairs']}")
+    return conf
+
+
+def main(conf: dict, out_dir: str | Path = "markerpose-peers", jobs: int | None = None, command: str = "markerpose peers",
+         progress: bool = True) -> dict:
+    """Run the comparison; write report.md, results.json and the plots into ``out_dir``."""
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    skipped = systems.missing([n for n in conf["systems"] if n in systems.PEERS])
+    for name, pkg in skipped.items():
+        print(f"skipping {name}: its detector is not installed (pip install {pkg}, or pip install -e \".[peers]\")")
+    conf = {**conf, "systems": tuple(n for n in conf["systems"] if n not in skipped)}
+    results = run(conf, jobs=jobs, progress=progress)
+    summary = summarize(results, conf)
+    seconds = time.perf_counter() - t0
+    doc = {
+        "command": command,
+        "seconds": seconds,
+        "conf": {k: list(v) if isinstance(v, tuple) else v for k, v in conf.items()},
+        "skipped": skipped,
+        "setup": setup_lines(conf),
+        **summary,
+    }
+    write_json(out / "results.json", doc)
+    paths = plots(summary, out)
+    (out / "report.md").write_text(report_markdown(summary, conf, command, seconds, skipped))
+    doc["files"] = [str(out / "report.md"), str(out / "results.json")] + [str(p) for p in paths]
+    return doc
