@@ -329,6 +329,34 @@ def summarize(results: list[tuple[dict, dict]], conf: dict) -> dict:
 
 
 # --- report ----------------------------------------------------------------------------------
+# The headline metrics: (label, getter, lower is better).
+HEADLINES = (
+    ("position error, median (standard), mm", lambda m: m["alpha"]["1.0"]["t_err_median_mm"], True),
+    ("rotation error, median (standard), °", lambda m: m["alpha"]["1.0"]["r_err_median_deg"], True),
+    ("static jitter, position RMS, mm", lambda m: m["jitter"]["position_mm"], True),
+    ("static jitter, rotation RMS, °", lambda m: m["jitter"]["rotation_deg"], True),
+    ("detection at the darkest level", lambda m: m["alpha"][max(m["alpha"], key=lambda a: -float(a))]["detection"]["p"], False),
+    ("detection at the longest blur", lambda m: m["blur"][max(m["blur"], key=float)]["detection"]["p"], False),
+    ("wrong poses, every level", lambda m: m["all_levels"]["wrong"], True),
+    ("time per frame (standard), ms", lambda m: 1e3 * m["alpha"]["1.0"]["seconds_median"], True),
+)
+
+
+def comparison(summary: dict) -> list[dict]:
+    """markerpose against the best peer (any mode) on each headline metric."""
+    if "markerpose" not in summary or not summary["markerpose"].get("stereo"):
+        return []
+    ours = summary["markerpose"]["stereo"]
+    out = []
+    for label, get, lower in HEADLINES:
+        peers = [(get(m), name, mode) for name, mode, m in _rows(summary) if name != "markerpose" and get(m) is not None]
+        if not peers:
+            continue
+        v, name, mode = (min if lower else max)(peers, key=lambda p: p[0])
+        out.append({"metric": label, "markerpose": get(ours), "best_peer": name, "mode": mode, "peer": v, "lower_is_better": lower})
+    return out
+
+
 def _f(x, nd=3) -> str:
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
 
@@ -402,7 +430,7 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
         f"Detection per level over {n_lv} scenes (standard: α = 1, no blur). Errors: detections of the standard level. "
         "Flips and wrong poses: over every darkness and blur scene.",
         "",
-        f"| system | mode | detection, standard | darkest (α = {float(darkest):g}) | blur {float(longest):g} px | "
+        f"| system | mode | detection, standard | darkest (α = {float(darkest):g}) | blur {float(longest or 0):g} px | "
         "position error median / p95 (mm) | rotation error median / p95 (°) | jitter position (mm) / rotation (°) | "
         "wrong poses (flips) | marker-free: views with a detection / poses | time (ms) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
@@ -416,8 +444,22 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
             f"{_det(m['blur'][longest]) if longest else '—'} | {_f(std['t_err_median_mm'])} / {_f(std['t_err_p95_mm'])} | "
             f"{_f(std['r_err_median_deg'])} / {_f(std['r_err_p95_deg'])} | {_f(j['position_mm'], 4)} / {_f(j['rotation_deg'], 4)} | "
             f"{a['wrong']} ({a['flips']}) | {fv['k']}/{fv['n']} / {fp['k']}/{fp['n']} | "
-            f"{_f(1e3 * a['seconds_median'], 1)} |"
+            f"{_f(1e3 * std['seconds_median'], 1)} |"
         )
+    comp = comparison(summary)
+    if comp:
+        L += ["", "## markerpose against the best peer on each metric", "",
+              "| metric | markerpose | best peer | its value | ratio |", "|---|---|---|---|---|"]
+        for c in comp:
+            a, b = c["markerpose"], c["peer"]
+            if c["metric"].startswith("detection"):
+                vals, ratio = (f"{100 * a:.1f} %", f"{100 * b:.1f} %"), "—"
+            elif c["metric"].startswith("wrong"):
+                vals, ratio = (str(a), str(b)), "—"
+            else:
+                vals = (_f(a, 4), _f(b, 4))
+                ratio = "—" if not a or not b else (f"markerpose {b / a:.1f}× better" if b >= a else f"peer {a / b:.1f}× better")
+            L.append(f"| {c['metric']} | {vals[0]} | {systems.LABELS[c['best_peer']]}, {c['mode']} | {vals[1]} | {ratio} |")
     for kind, vals, title in (("alpha", alphas, "Detection versus darkness α"), ("blur", ["0.0"] + blurs, "Detection versus motion blur (px)")):
         L += ["", f"## {title}", "", "| system | mode | " + " | ".join(f"{float(v):g}" for v in vals) + " |",
               "|---|---|" + "---|" * len(vals)]
@@ -450,6 +492,7 @@ def _line_label(name: str, mode: str) -> str:
 def plots(summary: dict, out: Path) -> list[Path]:
     """detection.png, accuracy.png and jitter-speed.png: one line (or bar) per system and mode."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -502,14 +545,18 @@ def plots(summary: dict, out: Path) -> list[Path]:
     vals = (
         ([m["jitter"]["position_mm"] or np.nan for _, _, m in rows], "static jitter, position (mm RMS)"),
         ([m["jitter"]["rotation_deg"] or np.nan for _, _, m in rows], "static jitter, rotation (° RMS)"),
-        ([1e3 * (m["all_levels"]["seconds_median"] or np.nan) for _, _, m in rows], "time per frame, median (ms)"),
+        ([1e3 * (m["alpha"]["1.0"]["seconds_median"] or np.nan) for _, _, m in rows], "time per frame, standard level, median (ms)"),
     )
     y = np.arange(len(rows))
     for ax, (v, title) in zip(axes, vals):
         bars = ax.barh(y, v, color=colors, edgecolor="0.2")
-        for b, h in zip(bars, hatches):
+        for b, h, val in zip(bars, hatches, v):
             b.set_hatch(h)
+            if np.isfinite(val):
+                ax.text(val * 1.08, b.get_y() + b.get_height() / 2, f"{val:.2g}", va="center", fontsize=7)
         ax.set_xscale("log")
+        ax.set_xlim(right=ax.get_xlim()[1] * 3)  # room for the values
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_title(title)
         ax.set_yticks(y, labels if ax is axes[0] else [""] * len(rows), fontsize=8)
         ax.invert_yaxis()
@@ -552,6 +599,7 @@ def main(conf: dict, out_dir: str | Path = "markerpose-peers", jobs: int | None 
         "conf": {k: list(v) if isinstance(v, tuple) else v for k, v in conf.items()},
         "skipped": skipped,
         "setup": setup_lines(conf),
+        "comparison": comparison(summary),
         **summary,
     }
     write_json(out / "results.json", doc)

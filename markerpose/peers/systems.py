@@ -46,7 +46,7 @@ PEERS = ("apriltag", "aruco", "charuco", "stag")
 SYSTEMS = ("markerpose",) + PEERS
 PIP = {"apriltag": "pupil-apriltags", "stag": "stag-python"}  # the others come with OpenCV
 LABELS = {
-    "markerpose": "markerpose (three rings, stereo)",
+    "markerpose": "markerpose (three rings)",
     "apriltag": "AprilTag 3 tag36h11",
     "aruco": "ArUco 4×4",
     "charuco": "ChArUco 5×6",
@@ -124,6 +124,31 @@ class System:
         return pose_rigid(X, self.target.points[common])
 
 
+def _apriltag_detector(**settings):
+    """A ``pupil_apriltags.Detector`` that is freed in the right order.
+
+    pupil-apriltags' own ``__del__`` frees the tag families before the detector, whose
+    destructor still reads them: an intermittent segfault whenever a detector is
+    collected. Freeing the detector first, then its families, is the C library's order.
+    """
+    import pupil_apriltags
+
+    class Detector(pupil_apriltags.Detector):
+        def __del__(self):
+            ptr = getattr(self, "tag_detector_ptr", None)
+            if ptr is None:
+                return
+            self.tag_detector_ptr = None
+            self.libc.apriltag_detector_destroy.restype = None
+            self.libc.apriltag_detector_destroy(ptr)
+            for family, tf in self.tag_families.items():
+                destroy = getattr(self.libc, f"{family}_destroy")
+                destroy.restype = None
+                destroy(tf)
+
+    return Detector(**settings)
+
+
 class AprilTag(System):
     name = "apriltag"
     tag_id = 0
@@ -133,9 +158,7 @@ class AprilTag(System):
 
     def __init__(self):
         super().__init__()
-        import pupil_apriltags
-
-        self.detector = pupil_apriltags.Detector(families="tag36h11", nthreads=1, quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25)
+        self.detector = _apriltag_detector(families="tag36h11", nthreads=1, quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25)
 
     def make_target(self):
         return targets.apriltag_target(self.tag_id)
