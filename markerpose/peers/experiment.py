@@ -457,7 +457,8 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
             elif c["metric"].startswith("wrong"):
                 vals, ratio = (str(a), str(b)), "—"
             else:
-                vals = (_f(a, 4), _f(b, 4))
+                nd = 1 if c["metric"].startswith("time") else 4
+                vals = (_f(a, nd), _f(b, nd))
                 ratio = "—" if not a or not b else (f"markerpose {b / a:.1f}× better" if b >= a else f"peer {a / b:.1f}× better")
             L.append(f"| {c['metric']} | {vals[0]} | {systems.LABELS[c['best_peer']]}, {c['mode']} | {vals[1]} | {ratio} |")
     for kind, vals, title in (("alpha", alphas, "Detection versus darkness α"), ("blur", ["0.0"] + blurs, "Detection versus motion blur (px)")):
@@ -553,7 +554,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
         for b, h, val in zip(bars, hatches, v):
             b.set_hatch(h)
             if np.isfinite(val):
-                ax.text(val * 1.08, b.get_y() + b.get_height() / 2, f"{val:.2g}", va="center", fontsize=7)
+                ax.text(val * 1.08, b.get_y() + b.get_height() / 2, f"{val:.2g}" if val < 100 else f"{val:.0f}", va="center", fontsize=7)
         ax.set_xscale("log")
         ax.set_xlim(right=ax.get_xlim()[1] * 3)  # room for the values
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
