@@ -102,6 +102,8 @@ default_conf: dict = {
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
+    "blur_fit_budget": None,  # ... and while this FitBudget (shared by one detection's
+    #                            refinements) has fits left; None: no limit
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
@@ -119,6 +121,21 @@ default_conf: dict = {
     "triple_shape_tol": 0.5,  # log-shapes of the three outer ellipses agree within this
     "max_triples": 8,  # triples kept per view (stereo matching considers these)
 }
+
+
+class FitBudget:
+    """How many blurred-ring model fits one detection may still run: the costliest
+    refinement, which an inconsistent pair would otherwise run on every hypothesis."""
+
+    def __init__(self, fits: int):
+        self.left = int(fits)
+
+    def take(self) -> bool:
+        """Spend one fit; False when none is left."""
+        if self.left <= 0:
+            return False
+        self.left -= 1
+        return True
 
 
 @dataclass
@@ -905,6 +922,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
         return rings
     if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
+        return rings
+    if c["blur_fit_budget"] is not None and not c["blur_fit_budget"].take():
         return rings
     from . import blurfit
 

@@ -54,6 +54,7 @@ class MarkerPose:
         self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
         self._history: list = []  # the last poses track() found, oldest first
+        self._fits_left: int | None = None  # work budget of the cold detection under way
         self.why: str | None = None  # after a call that found nothing: the first reason met
 
     def __repr__(self):
@@ -66,6 +67,7 @@ class MarkerPose:
 
     def _start(self) -> float:
         self.timings, self.why = {}, None
+        self.refiner.budget(None)  # tracking and single views: no work budget
         return time.perf_counter()
 
     def _timed(self, stage: str, fn, *args):
@@ -206,6 +208,8 @@ class MarkerPose:
                     self._failed(f"stage 1 decoded no triple in the {view} view")
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
         m = self.conf["match"]
+        self._fits_left = m["max_fits"]
+        self.refiner.budget(self.conf["refine"]["max_blur_fits"])
         for zoom in self.proposer.looks():
             cand = self._timed("propose", self.proposer.candidates, grays, zoom)
             triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
@@ -232,11 +236,24 @@ class MarkerPose:
         found = [self._timed("refine", self.refiner.triple, v, tri, cost, cam) for v, tri, cost, cam in zip(views, (il, ir), (cl, cr), self.rig.cameras)]
         return self._solved(found)
 
+    def _fit(self, fn, *args):
+        """One hypothesis refined (``fn(*args)``), charged to the cold detection's work
+        budget (``match.max_fits``); None, with the reason, once it is spent."""
+        if self._fits_left is not None:
+            if self._fits_left <= 0:
+                self._failed(f"work budget: {self.conf['match']['max_fits']} hypotheses refined, none accepted")
+                return None
+            self._fits_left -= 1
+        return self._timed("refine", fn, *args)
+
     def _first_accepted(self, grays: list, hypotheses: list) -> Estimate | None:
         """Each hypothesis (points of both views) refined and verified in turn: the first
         estimate that passes, or None."""
         for points in hypotheses:
-            est = self._accepted(self._timed("refine", self.refiner, grays, list(self.rig.cameras), points))
+            found = self._fit(self.refiner, grays, list(self.rig.cameras), points)
+            if found is None:
+                return None
+            est = self._accepted(found)
             if est is not None:
                 return est
         return None
@@ -282,7 +299,10 @@ class MarkerPose:
             sources = [u for u, k in zip(sources, keep) if k]
         for a, pts, s in sources[: m["transfer_sources"]]:
             b = 1 - a
-            det_a = self._timed("refine", self.refiner, [grays[a]], [cams[a]], [(pts, s)])[0]
+            det_a = self._fit(self.refiner, [grays[a]], [cams[a]], [(pts, s)])
+            if det_a is None:
+                return None
+            det_a = det_a[0]
             poses = verify.plate_poses(det_a, cams[a], mk, self.conf["verify"]["plate_tol"])
             for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
                 # Cheap first: the other view must show ring evidence where the pose puts the
@@ -299,8 +319,10 @@ class MarkerPose:
                 guided = self._timed("refine", self.refiner.from_ellipses, grays[b], cams[b], ellipses, s)
                 if guided is not None and (est := self._accepted([det_a, guided][:: 1 - 2 * a])) is not None:
                     return est
-                det_b = self._timed("refine", self.refiner, [grays[b]], [cams[b]], [(pred, s)])[0]
-                est = self._accepted([det_a, det_b][:: 1 - 2 * a])  # (left, right)
+                det_b = self._fit(self.refiner, [grays[b]], [cams[b]], [(pred, s)])
+                if det_b is None:
+                    return None
+                est = self._accepted([det_a, det_b[0]][:: 1 - 2 * a])  # (left, right)
                 if est is not None:
                     return est
         return None

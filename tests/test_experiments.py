@@ -17,6 +17,9 @@ def test_bench_runs_and_reports_every_configuration():
     assert res["configs"]["classical-subpixel"]["marker_free_ms"] > 0
     assert res["configs"]["classical-subpixel"]["blur_25_ms"] > 0
     assert res["configs"]["classical-subpixel"]["false_poses"] == 0
+    inc = res["configs"]["classical-subpixel"]["inconsistent"]
+    assert set(inc) == {"left view twice", "right view twice", "views swapped", "right view shifted 40 px"}
+    assert all(v["worst_ms"] > 0 for v in inc.values()) and "Inconsistent pairs" in bench.report(res)
     assert "classical-subpixel" in bench.report(res)
 
 

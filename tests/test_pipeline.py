@@ -215,3 +215,36 @@ def test_rejection_names_the_failed_check(rig, frame):
     assert re.match(r"epipolar check: c\d is \d+\.\d px from its epipolar line \(limit 3 px\)", verify.rejection(rig, [left, moved], tracker.marker, conf, True))
     unrefined = replace(right, refined=np.array([True, False, True]))
     assert verify.rejection(rig, [left, unrefined], tracker.marker, conf, True) == "the sub-pixel edge fit failed on c1 in the right view"
+
+
+@pytest.mark.parametrize("swap", [False, True], ids=["left view twice", "views swapped"])
+def test_inconsistent_pair_costs_a_bounded_amount_of_work(rig, frame, swap, monkeypatch):
+    """A pair no pose explains is given up after ``match.max_fits`` refined hypotheses and
+    ``refine.max_blur_fits`` blurred-ring fits, with no pose; a valid pair needs one."""
+    from markerpose import blurfit
+    from markerpose.stages import refine
+
+    calls = {"fits": 0, "blur": 0}
+    refine_call, blur_fit = refine.Refiner.__call__, blurfit.fit_blurred_rings
+
+    def counted_refine(self, *a, **k):
+        calls["fits"] += 1
+        return refine_call(self, *a, **k)
+
+    def counted_blur(*a, **k):
+        calls["blur"] += 1
+        return blur_fit(*a, **k)
+
+    monkeypatch.setattr(refine.Refiner, "__call__", counted_refine)
+    monkeypatch.setattr(blurfit, "fit_blurred_rings", counted_blur)
+    tracker = mp.MarkerPose(rig)
+    assert tracker.estimate(*frame.images) is not None and calls["fits"] == 1
+    blurred = render_stereo(rig, look_at_pose([15, -10, 560], 30, 40, 25), imaging=Imaging(motion_blur=25.0, motion_angle=30.0), seed=11)
+    left, right = blurred.images
+    calls.update(fits=0, blur=0)
+    assert tracker.estimate(*((right, left) if swap else (left, left))) is None
+    assert calls["fits"] <= tracker.conf["match"]["max_fits"] and calls["blur"] <= tracker.conf["refine"]["max_blur_fits"]
+    unbounded = mp.MarkerPose(rig, match={"max_fits": 100}, refine={"max_blur_fits": 100})
+    calls.update(fits=0, blur=0)
+    assert unbounded.estimate(*((right, left) if swap else (left, left))) is None
+    assert calls["fits"] > tracker.conf["match"]["max_fits"]  # the budget is what bounds it

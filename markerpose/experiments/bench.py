@@ -7,7 +7,9 @@ frames per second, the ratio to the reference preset (``paper`` when its network
 present, else ``paper-classical``), the median time of each stage, the median time on
 pairs with 25 px of motion blur (where the rings are refitted under a blur model), the
 median time on marker-free pairs (what a tracker spends while the marker is out of
-view) and the process's peak memory.
+view), the worst time on inconsistent pairs (a view given twice, the views swapped, two
+different frames, the right view shifted by 40 px: what a mis-wired rig or a dropped
+frame feeds a tracker) and the process's peak memory.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ default_conf = {
     "empty_pairs": 4,  # marker-free pairs (the marker out of both views, clutter with ring distractors)
     "repeats": 3,  # passes over the pairs (the first pass also warms up)
     "seed": 0,
+    "inconsistent": True,  # also time the inconsistent pairs built from the first two pairs
     "threads": None,  # torch threads (None: torch's default, all cores)
     "configs": None,  # preset names (markerpose.presets); None = all available
 }
@@ -49,6 +52,20 @@ def _pairs(n: int, seed: int, blur: float = 0.0):
         if all(v.in_image.all() for v in f.views):
             frames.append(f)
     return rig, marker, frames
+
+
+def inconsistent_pairs(frames: list) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(kind, left, right) pairs that no marker pose explains, from the valid ``frames``."""
+    out = []
+    for f in frames[:2]:
+        left, right = f.images
+        shifted = np.empty_like(right)
+        shifted[:, 40:], shifted[:, :40] = right[:, :-40], right[:, :1]
+        out += [("left view twice", left, left), ("right view twice", right, right), ("views swapped", right, left),
+                ("right view shifted 40 px", left, shifted)]
+    if len(frames) >= 2:
+        out.append(("two different frames", frames[0].images[0], frames[1].images[1]))
+    return out
 
 
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
@@ -71,15 +88,23 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     times_blur = {name: [] for name in trackers}
     found_blur = {name: 0 for name in trackers}
     false_poses = {name: 0 for name in trackers}
-    with tqdm(total=c["repeats"] * (len(frames) + len(blurred) + len(empty)), desc="bench", unit="pair", disable=not progress) as bar:
+    odd = inconsistent_pairs(frames) if c["inconsistent"] else []
+    worst = {name: {} for name in trackers}  # kind -> (worst ms, poses returned)
+    items = [(f.images, "marker") for f in frames] + [(f.images, "blur") for f in blurred] + [(f.images, "empty") for f in empty]
+    items += [((lft, rgt), kind) for kind, lft, rgt in odd]
+    with tqdm(total=c["repeats"] * len(items), desc="bench", unit="pair", disable=not progress) as bar:
         for rep in range(c["repeats"]):
-            for f, kind in [(f, "marker") for f in frames] + [(f, "blur") for f in blurred] + [(f, "empty") for f in empty]:
+            for images, kind in items:
                 for name, tr in trackers.items():
                     t0 = time.perf_counter()
-                    est = tr.estimate(*f.images)
+                    est = tr.estimate(*images)
                     dt = time.perf_counter() - t0
                     if rep == 0:
                         continue  # warm-up pass: caches, lazy initialisation
+                    if kind not in ("marker", "blur", "empty"):
+                        ms, poses = worst[name].get(kind, (0.0, 0))
+                        worst[name][kind] = (max(ms, 1000 * dt), poses + (est is not None))
+                        continue
                     if kind == "empty":
                         times_empty[name].append(dt)
                         false_poses[name] += est is not None
@@ -107,6 +132,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
             "blur_25_found": found_blur[name] / len(times_blur[name]) if times_blur[name] else float("nan"),
             "marker_free_ms": 1000 * float(np.median(times_empty[name])) if times_empty[name] else float("nan"),
             "false_poses": false_poses[name],
+            "inconsistent": {k: {"worst_ms": ms, "poses": p} for k, (ms, p) in worst[name].items()},
         }
     res["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     if out:
@@ -128,6 +154,16 @@ def report(res: dict) -> str:
         free = f"{r['marker_free_ms']:.1f}" + (f" ({r['false_poses']} false poses)" if r["false_poses"] else "")
         blur = f"{r.get('blur_25_ms', float('nan')):.1f} ({r.get('blur_25_found', float('nan')):.2f})"
         lines.append(f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} | {blur} | {free} |")
+    kinds = list(dict.fromkeys(k for r in res["configs"].values() for k in r.get("inconsistent", {})))
+    if kinds:
+        runs = res["conf"]["repeats"] - 1
+        lines += ["", f"Inconsistent pairs (no marker pose explains them): the worst time of {runs} runs per pair, ms "
+                  "(poses returned, where any; each kind is built from the first two pairs).", "",
+                  "| configuration | " + " | ".join(kinds) + " | worst |", "|---|" + "---|" * (len(kinds) + 1)]
+        for name, r in res["configs"].items():
+            inc = r.get("inconsistent", {})
+            cells = [f"{inc[k]['worst_ms']:.0f}" + (f" ({inc[k]['poses']} poses)" if inc[k]["poses"] else "") if k in inc else "—" for k in kinds]
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {max((v['worst_ms'] for v in inc.values()), default=float('nan')):.0f} |")
     return "\n".join(lines)
 
 

@@ -48,6 +48,10 @@ default_conf = {
     "transfer_min_evidence": 0.1,  # sources with less ring evidence are not refined (decoy
     #                                triples on marker-free pairs cost refits); 0: every one
     "pair_epipolar_tol": 3.0,  # classical: max epipolar distance of same-ID centres, px
+    "max_fits": 3,  # neural: hypotheses refined (a triple fitted in one or both views) per
+    #                 cold detection, over both looks; then the pair gives no pose. A valid
+    #                 pair needs one or two, an inconsistent one (a view given twice, views
+    #                 swapped) would otherwise try every triple and transfer (seconds)
 }
 METHODS = ("stereo", "layout", "head")
 

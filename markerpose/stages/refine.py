@@ -32,6 +32,8 @@ default_conf = {
     "edge_refit": True,  # ellipsegnet: fit the outer edge in the image from the mask's ellipse (ours)
     "subpixel": True,  # classical fits: sub-pixel edges (False: the paper's contour ellipse)
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
+    "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
+    #                      refinement; two hypotheses of a blurred pair (both views) need four
 }
 METHODS = ("ellipsegnet", "classical", "none")
 
@@ -60,6 +62,10 @@ class Refiner:
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
         # Whether refined detections carry the rings' ellipses (what the plate check needs).
         self.gives_ellipses = self.edge_refit or conf["method"] == "classical"
+
+    def budget(self, fits: int | None) -> None:
+        """Allow ``fits`` blurred-ring model fits from now on (None: no limit)."""
+        self.classical["blur_fit_budget"] = None if fits is None else classical.FitBudget(fits)
 
     def __call__(self, grays: list, cameras: list, points: list) -> list:
         """Per view, the Detection near (points (3, 2), score), or None where None is given."""
