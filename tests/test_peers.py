@@ -25,7 +25,7 @@ def scene_result():
 
 
 def test_every_system_finds_its_target_with_an_accurate_pose(scene_result):
-    scene, res = scene_result
+    _, res = scene_result
     assert set(res) == set(systems.SYSTEMS)
     for name, r in res.items():
         assert r["stereo"]["pose"], name

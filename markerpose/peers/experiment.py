@@ -22,7 +22,7 @@ ambiguity). Errors are measured at the plate centre, the same point for every sy
 
 from __future__ import annotations
 
-import json
+import itertools
 import math
 import os
 import time
@@ -282,7 +282,7 @@ def jitter_stats(groups: list[list[dict]], conf: dict) -> dict:
 
 def _bins(rows: list[tuple[dict, dict]], key: str, edges, conf: dict) -> list[dict]:
     out = []
-    for lo, hi in zip(edges[:-1], edges[1:]):
+    for lo, hi in itertools.pairwise(edges):
         sel = [r for sc, r in rows if lo <= sc[key] < hi and _ok(r, conf)]
         out.append({"lo": lo, "hi": hi, "n": len(sel), "t_err_median_mm": _pct([r["t_err"] for r in sel], 50),
                     "r_err_median_deg": _pct([r["r_err"] for r in sel], 50)})

@@ -101,7 +101,7 @@ def aruco_target(marker_id: int = 0) -> PrintedTarget:
     return _square_tag(m, quiet=0)
 
 
-def charuco_board() -> "cv2.aruco.CharucoBoard":
+def charuco_board() -> cv2.aruco.CharucoBoard:
     return cv2.aruco.CharucoBoard(CHARUCO_SQUARES, CHARUCO_SQUARE_MM, CHARUCO_MARKER_MM, aruco_dictionary("DICT_4X4_50"))
 
 
