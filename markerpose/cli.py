@@ -680,7 +680,7 @@ def build_parser() -> argparse.ArgumentParser:
     ee.set_defaults(func=cmd_eval_ellipses)
     ep = esub.add_parser("pipeline", help="end to end on held-out stereo pairs: detection, centres, pose, per configuration")
     ep.add_argument("--pairs", type=int, default=200, help="pairs per set")
-    ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25, marker_free (the default) and far (0.8-1.6 m)")
+    ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25, marker_free (the default), far (0.8-1.6 m), and realism (the nine realism_<effect> sets: shadow, light_gradient, defocus, gamma, jpeg, resample, toner, occluded_border, ring_object)")
     ep.add_argument("--configs", nargs="*", help="preset names (default: all available)")
     ep.add_argument("--single-view", action="store_true", help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs")
     ep.add_argument("--workers", type=int, default=1, help="processes running sets at once (one torch thread each; figures unchanged)")

@@ -215,3 +215,43 @@ def test_regression_plate_one_pixel_inside_the_image(rig):
         T[1, 3] = -(m.plate[1] + m.plate[3]) / 2  # plate centred vertically (y is flipped)
         img, truth = render_view(cam, T, m, Imaging(noise=False), seed=0)
         assert img.shape == (48, 64)
+
+
+def test_realism_effects_change_what_they_say(rig):
+    """Each effect of real recordings acts where and how it says, deterministically."""
+    from markerpose.synth import realism
+
+    T = look_at_pose([0, 0, 500], 10, 30, 0)
+    base = render_view(rig.left, T, imaging=Imaging(noise=False), seed=2)[0].astype(float)
+    mk = mp.Marker()
+
+    def view(**kw):
+        return render_view(rig.left, T, imaging=Imaging(noise=False, **kw), seed=2)[0].astype(float)
+
+    # A shadow darkens part of the plate only (the background is untouched).
+    shaded = view(plate_light=lambda mx, my: np.where(mx < 10.0, 0.3, 1.0))
+    changed = np.abs(shaded - base) > 2
+    plate = render_view(rig.left, T, imaging=Imaging(noise=False, paper=0.99, ink=0.99), seed=2)[0] != base.astype(np.uint8)
+    plate = cv2.dilate(plate.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0  # the PSF's reach
+    assert changed.any() and not (changed & ~plate).any()
+    assert (shaded <= base + 1).all()
+    # Gamma > 1 darkens mid-tones, keeps black and white; resampling and JPEG keep size and type.
+    g = view(gamma=2.0)
+    mid = (base > 60) & (base < 200)
+    assert (g[mid] < base[mid]).all()
+    for kw in ({"resample": 4.0}, {"jpeg_quality": 30}):
+        out = render_view(rig.left, T, imaging=Imaging(noise=False, **kw), seed=2)[0]
+        assert out.dtype == np.uint8 and out.shape == base.shape and 0 < np.abs(out - base).mean() < 10
+    # Every effect draws its settings from the stated ranges, the same for the same seed.
+    for name in realism.EFFECTS:
+        a = realism.imaging_settings(name, np.random.default_rng(5), mk)
+        b = realism.imaging_settings(name, np.random.default_rng(5), mk)
+        assert a.keys() == b.keys()
+        for k in a:
+            if callable(a[k]):
+                xy = np.random.default_rng(0).uniform(-20, 60, (2, 50))
+                assert np.allclose(a[k](*xy), b[k](*xy)) and np.all((a[k](*xy) > 0) & (a[k](*xy) <= 1))
+            else:
+                assert a[k] == b[k]
+    with pytest.raises(ValueError, match="unknown effect"):
+        realism.imaging_settings("fog", np.random.default_rng(0), mk)

@@ -28,7 +28,7 @@ from ..camera import StereoRig
 from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
-from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
+from ..synth import Imaging, clutter_background, look_at_pose, realism, render_stereo
 from .configs import available
 
 SETS = {
@@ -40,6 +40,10 @@ SETS = {
     # what stage 1's second look is for. Not among the default sets.
     "far": {"seed": 3005, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "distance": (800.0, 1600.0)},
 }
+# The realism sets: the standard set's conditions with one effect of real recordings each
+# (markerpose.synth.realism); `--sets realism` names them all. Not among the default sets.
+REALISM = tuple(f"realism_{e}" for e in realism.EFFECTS)
+SETS.update({name: {"seed": 3100 + k, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "effect": e} for k, (name, e) in enumerate(zip(REALISM, realism.EFFECTS))})
 
 default_conf = {
     "pairs": 200,  # per set
@@ -79,8 +83,13 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
         T[:3, 3] -= T[:3, :3] @ marker.points3d.mean(0)
         alpha, blur = _draw(rng, spec["alpha"]), _draw(rng, spec["blur"])
         angle = rng.uniform(0, 180)
-        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle)
-        frame = render_stereo(rig, T, marker, im, seed=rng)
+        effect = spec.get("effect")
+        extra = realism.imaging_settings(effect, rng, marker) if effect else {}
+        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle, **extra)
+        bgs = None
+        if effect == "ring_object":
+            bgs = realism.ring_object_backgrounds(rig, T, marker, tuple(clutter_background(c.image_size, rng) for c in rig.cameras), rng)
+        frame = render_stereo(rig, T, marker, im, bgs, seed=rng)
         if not all(v.in_image.all() for v in frame.views):
             continue
         made += 1
@@ -235,6 +244,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     """
     c = {**default_conf, **(conf or {})}
     available(c["configs"])  # unknown names fail here, before any work
+    c["sets"] = tuple(dict.fromkeys(m for n in c["sets"] for m in (REALISM if n == "realism" else (n,))))
     unknown = [n for n in c["sets"] if n not in SETS]
     if unknown:
         raise ValueError(f"unknown set(s) {unknown}; known: {list(SETS)}")

@@ -53,6 +53,13 @@ class Imaging:
         quantize: round to 8 bits (False returns the float image ×255, for tests).
         supersample: S for the S x S anti-aliasing grid of edge pixels.
         paper, ink: reflectance of the paper and of the printed black.
+        plate_light: None, or a function of marker-plane points (mx, my) in mm giving the
+            light on the plate relative to the rest of the scene (shadows, uneven light on
+            the plate; :mod:`markerpose.synth.realism`).
+        gamma: camera response: the 8-bit output raised to this power (1 = linear).
+        resample: the image shrunk by this factor and enlarged back (1 = none), as an
+            image passed through a smaller format is.
+        jpeg_quality: JPEG-compressed at this quality (0 = not compressed).
     """
 
     alpha: float = 1.0
@@ -70,6 +77,10 @@ class Imaging:
     supersample: int = 16
     paper: float = 0.85
     ink: float = 0.04
+    plate_light: object = None
+    gamma: float = 1.0
+    resample: float = 1.0
+    jpeg_quality: int = 0
 
     def __post_init__(self):
         if not self.alpha > 0:
@@ -242,6 +253,9 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
             smx, smy = _plane_coords(Hinv, sx, sy)
             v = _texture(marker, smx, smy, imaging.paper, imaging.ink, bg[yy, xx][:, None])
             val[yy, xx] = v.mean(axis=1)
+    if imaging.plate_light is not None:
+        on = (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
+        val[on] = val[on] * imaging.plate_light(mx[on], my[on])
     scene[by0:by1, bx0:bx1] = val
     return mask
 
@@ -298,7 +312,25 @@ def _expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator)
     if imaging.motion_blur > 1:
         img = cv2.filter2D(img, -1, motion_kernel(imaging.motion_blur, imaging.motion_angle), borderType=cv2.BORDER_REFLECT)
     dn = img * np.float32(imaging.alpha * imaging.exposure * 255.0)
-    return sensor_readout(dn, imaging, rng)
+    return _recorded(sensor_readout(dn, imaging, rng), imaging)
+
+
+def _recorded(image: np.ndarray, imaging: Imaging) -> np.ndarray:
+    """What the camera's output goes through before a detector sees it: the response
+    curve, a resampling, JPEG compression (8-bit images only)."""
+    if image.dtype != np.uint8:
+        return image
+    if imaging.gamma != 1.0:
+        lut = np.clip(np.rint(255.0 * (np.arange(256) / 255.0) ** imaging.gamma), 0, 255).astype(np.uint8)
+        image = cv2.LUT(image, lut)
+    if imaging.resample > 1.0:
+        h, w = image.shape
+        small = cv2.resize(image, (round(w / imaging.resample), round(h / imaging.resample)), interpolation=cv2.INTER_AREA)
+        image = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
+    if imaging.jpeg_quality:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(imaging.jpeg_quality)])
+        image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    return image
 
 
 def sensor_readout(dn: np.ndarray, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
