@@ -328,7 +328,7 @@ def _recorded(image: np.ndarray, imaging: Imaging) -> np.ndarray:
         small = cv2.resize(image, (round(w / imaging.resample), round(h / imaging.resample)), interpolation=cv2.INTER_AREA)
         image = cv2.resize(small, (w, h), interpolation=cv2.INTER_LINEAR)
     if imaging.jpeg_quality:
-        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(imaging.jpeg_quality)])
+        buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(imaging.jpeg_quality)])[1]
         image = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     return image
 
