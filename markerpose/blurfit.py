@@ -39,7 +39,10 @@ default_conf: dict = {
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
     "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
-    "stride": 2,  # the fit uses every stride-th pixel in x and y
+    "stride": 2,  # the fit uses every stride-th pixel in x and y ...
+    "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
+    #                        marker's rings give about half as many at the nearest working
+    #                        distance, a large ring-like decoy several times more (seconds)
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
     "xtol": 1e-4,  # convergence: relative parameter change ...
     "ftol": 1e-4,  # ... or relative cost change
@@ -348,8 +351,13 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
             if best is None or cost < best[0]:
                 best = (cost, p)
     p0 = best[1]
-    if not prob.pixels(c["margin"], stride=c["stride"], motion=(p0[-3], 1.3 * np.exp(p0[-2]))):
+    motion = (p0[-3], 1.3 * np.exp(p0[-2]))
+    if not prob.pixels(c["margin"], stride=c["stride"], motion=motion):
         return None
+    if len(prob.v) > c["max_pixels"]:
+        stride = int(np.ceil(c["stride"] * np.sqrt(len(prob.v) / c["max_pixels"])))
+        if not prob.pixels(c["margin"], stride=stride, motion=motion):
+            return None
     try:
         p, nfev = _robust_lm(prob, p0, c)
     except (np.linalg.LinAlgError, ValueError):

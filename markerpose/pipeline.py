@@ -101,15 +101,19 @@ class MarkerPose:
                 self.why = None if det is not None else "stage 1 decoded no triple in this view"
                 return det
             tried = 0
+            self._fits_left = self.conf["match"]["max_fits"]  # the cold detection's work budget
+            self.refiner.budget(self.conf["refine"]["max_blur_fits"])
             for zoom in self.proposer.looks():  # ours: layout triples, best first, until one fits a plate
                 cand = self._timed("propose", self.proposer.candidates, [gray], zoom)[0]
                 for pts, s in self._view_triples(gray, cand, zoom):
+                    found = self._fit(self.refiner, [gray], [cam], [(pts, s)])
+                    if found is None:
+                        break
                     tried += 1
-                    det = self._timed("refine", self.refiner, [gray], [cam], [(pts, s)])[0]
-                    if verify.plate_poses(det, cam, self.marker, self.conf["verify"]["plate_tol"]):
-                        return det
-            self.why = (f"none of {tried} layout triples refined to rings on one plate" if tried else
-                        "no triple of stage-1 candidates has the marker's layout and enough ring evidence")
+                    if verify.plate_poses(found[0], cam, self.marker, self.conf["verify"]["plate_tol"]):
+                        return found[0]
+            self.why = self.why or (f"none of {tried} layout triples refined to rings on one plate" if tried else
+                                    "no triple of stage-1 candidates has the marker's layout and enough ring evidence")
             return None
         finally:
             self.timings["total"] = time.perf_counter() - t0

@@ -93,6 +93,28 @@ def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
     assert err.max() < 0.1, err
 
 
+def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):
+    """Above ``max_pixels`` the fit samples a sparser grid: fewer pixels, the same answer
+    to a fraction of a pixel (what keeps a large decoy from costing seconds)."""
+    rig, img, truth = blurred_view
+    gray = C.to_gray(img)
+    start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
+    used = []
+    lm = blurfit._robust_lm
+
+    def counted(prob, p, conf):
+        used.append(len(prob.v))
+        return lm(prob, p, conf)
+
+    monkeypatch.setattr(blurfit, "_robust_lm", counted)
+    full = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray))
+    capped = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf={"max_pixels": used[0] // 3})
+    assert used[1] <= used[0] // 3 < used[0]
+    err = np.linalg.norm(np.array([c for c, _ in capped["cqs"]]) - truth.outer_centers, axis=1)
+    assert err.max() < 0.2, err
+    assert full is not None
+
+
 def test_refinement_under_heavy_blur_beats_the_edge_fit(blurred_view):
     rig, img, truth = blurred_view
     rects = _truth_rects(truth)
