@@ -96,7 +96,7 @@ def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
 def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):
     """Above ``max_pixels`` the fit samples a sparser grid: fewer pixels, the same answer
     to a fraction of a pixel (what keeps a large decoy from costing seconds)."""
-    rig, img, truth = blurred_view
+    _, img, truth = blurred_view
     gray = C.to_gray(img)
     start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
     used = []
