@@ -67,8 +67,15 @@ class MarkerPose:
 
     def _start(self) -> float:
         self.timings, self.why = {}, None
-        self.refiner.budget(None)  # tracking and single views: no work budget
+        self._fits_left = None  # no work budget until a cold detection sets one (_budget)
+        self.refiner.budget(None)
         return time.perf_counter()
+
+    def _budget(self) -> None:
+        """Start a cold detection's work budget: ``match.max_fits`` refined hypotheses,
+        ``refine.max_blur_fits`` blurred-ring fits."""
+        self._fits_left = self.conf["match"]["max_fits"]
+        self.refiner.budget(self.conf["refine"]["max_blur_fits"])
 
     def _timed(self, stage: str, fn, *args):
         t = time.perf_counter()
@@ -101,8 +108,7 @@ class MarkerPose:
                 self.why = None if det is not None else "stage 1 decoded no triple in this view"
                 return det
             tried = 0
-            self._fits_left = self.conf["match"]["max_fits"]  # the cold detection's work budget
-            self.refiner.budget(self.conf["refine"]["max_blur_fits"])
+            self._budget()
             for zoom in self.proposer.looks():  # ours: layout triples, best first, until one fits a plate
                 cand = self._timed("propose", self.proposer.candidates, [gray], zoom)[0]
                 for pts, s in self._view_triples(gray, cand, zoom):
@@ -212,8 +218,7 @@ class MarkerPose:
                     self._failed(f"stage 1 decoded no triple in the {view} view")
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
         m = self.conf["match"]
-        self._fits_left = m["max_fits"]
-        self.refiner.budget(self.conf["refine"]["max_blur_fits"])
+        self._budget()
         for zoom in self.proposer.looks():
             cand = self._timed("propose", self.proposer.candidates, grays, zoom)
             triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,

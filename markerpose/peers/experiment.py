@@ -24,14 +24,13 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import StereoRig
+from ..experiments.parallel import run_tasks
 from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
 from ..synth import Imaging, look_at_pose
@@ -190,36 +189,24 @@ def _worker(args):
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker: the workers already fill the machine
-    scene, names, rig_path = args
-    rig = StereoRig.default() if rig_path is None else StereoRig.load(rig_path)
-    return scene, run_scene(scene, names, rig)
+    scene, names = args
+    return scene, run_scene(scene, names, _rig())
+
+
+_RIG: list = []
+
+
+def _rig() -> StereoRig:
+    """This process's rig, loaded once."""
+    if not _RIG:
+        _RIG.append(StereoRig.default())
+    return _RIG[0]
 
 
 def run(conf: dict, jobs: int | None = None, progress: bool = True) -> list[tuple[dict, dict]]:
     """Every scene of ``conf`` over ``jobs`` processes: [(scene, {system: result})]."""
-    rig = StereoRig.default()
-    todo = scenes(conf, rig)
-    jobs = jobs or max(1, min(2, os.cpu_count() or 1))
-    tasks = [(sc, tuple(conf["systems"]), None) for sc in todo]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(tasks), desc="scenes", unit="scene")
-    out = []
-    if jobs == 1:
-        for t in tasks:
-            out.append(_worker(t))
-            if bar:
-                bar.update()
-    else:
-        with ProcessPoolExecutor(jobs) as ex:
-            for f in as_completed([ex.submit(_worker, t) for t in tasks]):
-                out.append(f.result())
-                if bar:
-                    bar.update()
-    if bar:
-        bar.close()
+    tasks = [(sc, tuple(conf["systems"])) for sc in scenes(conf, _rig())]
+    out = run_tasks(_worker, tasks, jobs, desc="scenes", unit="scene", progress=progress)
     return sorted(out, key=lambda r: (r[0]["kind"], r[0]["level"], r[0]["seed"]))
 
 

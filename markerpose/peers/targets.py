@@ -156,7 +156,3 @@ def stag_target(marker_id: int = 0) -> PrintedTarget:
         raise ValueError("only the STag HD21 marker of ID 0 is available")
     return _square_tag(stag_modules(), quiet=0)
 
-
-def marker_points() -> np.ndarray:
-    """The three-ring marker's measured points (ring centres), marker frame, mm."""
-    return Marker().points3d

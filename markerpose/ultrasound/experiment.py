@@ -11,15 +11,14 @@ true poses with the true calibration is the floor that segmentation alone leaves
 
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..camera import StereoRig
+from ..experiments.parallel import run_tasks
 from ..synth.render import render_stereo
 from .bmode import crosswire_phantom, simulate_bmode, tube_phantom
 from .calibrate import calibrate_probe
@@ -178,28 +177,8 @@ def _worker(args):
 def run(plan: Plan, jobs: int | None = None, progress: bool = True) -> list[dict]:
     """All acquisitions of ``plan`` (the first keeps its data for plots and files), over
     ``jobs`` processes (default: up to 2; each runs the networks on one thread)."""
-    jobs = jobs or max(1, min(2, os.cpu_count() or 1, plan.n_acquisitions))
     tasks = [(i, plan, i == 0) for i in range(plan.n_acquisitions)]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(tasks), desc="acquisitions", unit="acq")
-    results = []
-    if jobs == 1:
-        for t in tasks:
-            results.append(_worker(t))
-            if bar:
-                bar.update()
-    else:
-        with ProcessPoolExecutor(jobs) as ex:
-            futs = [ex.submit(_worker, t) for t in tasks]
-            for f in as_completed(futs):
-                results.append(f.result())
-                if bar:
-                    bar.update()
-    if bar:
-        bar.close()
+    results = run_tasks(_worker, tasks, jobs, desc="acquisitions", unit="acq", progress=progress)
     return sorted(results, key=lambda r: r["seed"])
 
 
