@@ -1,6 +1,7 @@
 """Ring evidence: how much the image around a triple of ring centres looks like the
-printed marker (dark bands on one evenly lit white plate). An appearance gate used by
-single-view detection, the transfer fallback and the ``verify`` decoding."""
+printed marker (dark bands on white paper, each judged against the paper right beside
+it). An appearance gate used by single-view detection, the transfer fallback and the
+``verify`` decoding."""
 
 from __future__ import annotations
 
@@ -13,54 +14,74 @@ from .geometry import layout_affine
 from .marker import Marker
 
 _MARKER = Marker()  # the default marker
+_ANGLES = 16  # samples around each circle
 
 
 def _evidence_points(marker: Marker) -> dict:
-    """Where :func:`ring_evidence` looks, in the marker's frame (mm): per ring, circles of
-    16 points inside the white centre, across the black band and just outside the ring;
-    and a grid on the plate away from every ring (plate white)."""
+    """Where :func:`ring_evidence` looks, in the marker's frame (mm).
+
+    Per ring, circles of :data:`_ANGLES` points at the same angles: inside the white
+    centre, twice across the black band and just outside the ring; a grid on the plate
+    away from every ring, with its neighbouring pairs; and, for each point outside a
+    ring, the nearest grid point when it is close (links from each ring to the plate)."""
     R, r = marker.outer_radius, marker.inner_radius
-    ang = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    ang = np.linspace(0, 2 * np.pi, _ANGLES, endpoint=False)
     unit = np.stack([np.cos(ang), np.sin(ang)], 1)
     c = marker.centers2d
 
-    def circles(*radii):  # (3, 16 * len(radii), 2)
-        return np.concatenate([c[:, None, :] + rho * unit[None] for rho in radii], 1)
+    def circle(rho):  # (3, _ANGLES, 2)
+        return c[:, None, :] + rho * unit[None]
 
     x0, y0, x1, y1 = marker.plate
-    inset, step = 0.4 * R, 0.4 * R
+    inset = step = 0.4 * R
     gx, gy = np.meshgrid(np.arange(x0 + inset, x1 - inset + 1e-9, step), np.arange(y0 + inset, y1 - inset + 1e-9, step))
     grid = np.column_stack([gx.ravel(), gy.ravel()])
-    far = np.min(np.linalg.norm(grid[:, None] - c[None], axis=2), axis=1) >= 1.4 * R
+    grid = grid[np.min(np.linalg.norm(grid[:, None] - c[None], axis=2), axis=1) >= 1.4 * R]
+    d = np.linalg.norm(grid[:, None] - grid[None], axis=2)
+    i, j = np.nonzero(np.triu((d > 0) & (d < 1.01 * step)))
+    outside = circle(1.3 * R)
+    to_grid = np.linalg.norm(outside[:, :, None] - grid[None, None], axis=3)  # (3, _ANGLES, G)
     return {
-        "inner": np.concatenate([c[:, None, :], circles(0.35 * r)], 1),
-        "band": circles(r + 0.3 * (R - r), r + 0.7 * (R - r)),
-        "outside": circles(1.3 * R),
-        "plate": grid[far],
+        "inner": circle(0.35 * r),
+        "band": np.stack([circle(r + 0.3 * (R - r)), circle(r + 0.7 * (R - r))], 2),  # (3, _ANGLES, 2, 2)
+        "outside": outside,
+        "plate": grid,
+        "pairs": (i, j),
+        "nearest": to_grid.argmin(2),
+        "linked": to_grid.min(2) < 0.8 * R,
     }
 
 
 _EVIDENCE = {}  # marker → its evidence points (computed once per marker geometry)
 
 
-def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None) -> np.ndarray:
+def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8) -> np.ndarray:
     """How much the image around each triple of ring centres looks like the printed marker.
 
     Each triple (c0, c1, c2) fixes the affine map from the marker's layout to the image
     (near enough to the perspective one over a marker), so the image is sampled where the
-    marker would be: the plate away from the rings, each ring's black band, its white
-    centre and the plate just outside it. The marker shows black bands on one evenly lit
-    white plate, and paper of the plate's brightness inside and around every ring; three
-    ring-like things that merely lie in a marker-like triangle (decoys, clutter) fail some
-    of these. Samples outside the image are left out; the plate's brightness is a plane
-    fitted to its samples (:func:`_plate_level`: light falls off smoothly), evaluated at
-    each ring. The product of four factors, each in [0, 1]:
+    marker would be: each ring's white centre, its black band and the paper just outside
+    it, and the plate away from the rings. Light on a real plate is anything but even
+    (a hand's shadow, a lamp's gradient, a camera's response curve), so every test
+    compares paper with the paper right beside it, never with the plate elsewhere:
+    along each ray from a ring's centre the band is judged against the brighter of the
+    centre and the outside (a shadow's edge crosses a ray once, so one of them shares
+    the band's light), and the plate must be smooth from one sample to the next (a
+    shadow's edge spoils only the few neighbours it separates, clutter most). Three
+    ring-like things that merely lie in a marker-like triangle (decoys, clutter) fail
+    some of these. Samples outside the image are left out (with fewer than ``min_pairs``
+    neighbouring plate pairs in the image, the plate is not tested). The product of four factors,
+    each in [0, 1], the worst ring deciding:
 
-    - band contrast: sqrt of the smallest ring's (plate - band) / plate and
-      (outside - band) / outside;
-    - plate evenness: 1 - (10-90 % spread of the plate's residuals to its plane) / plate;
-    - no ring brighter inside than the plate: 1 - 2 max((centre - plate) / plate);
-    - the plate's level right outside every ring: 1 - max |outside - plate| / plate.
+    - band contrast: median over rays of 1 - band / paper, with the brighter of two
+      samples across the band (a triple in a wrong order or at a wrong scale puts one
+      of them on paper);
+    - plate smoothness: 1 - 4 x the 75th percentile of the relative step between
+      neighbouring plate samples;
+    - no ring brighter inside than just outside: 1 - 2 x median over rays of
+      (centre - outside) / outside;
+    - each ring on the plate: 1 - median relative step from the paper outside it to
+      the nearest plate sample.
 
     Args:
         image: (H, W) float32 in [0, 1] (the network input, or any resolution the
@@ -89,53 +110,27 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
         inside = (flat[..., 0] >= 0) & (flat[..., 0] <= w - 1) & (flat[..., 1] >= 0) & (flat[..., 1] <= h - 1)
         return np.where(inside, v, np.nan).reshape(q.shape[:-1])
 
+    def step(a, b):  # relative difference of two paper samples
+        return np.abs(a - b) / (np.fmax(a, b) + eps)
+
     eps = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
-        band = np.nanmedian(sample(zones["band"]), axis=2)  # (T, 3)
-        inner = np.nanmedian(sample(zones["inner"]), axis=2)
-        outside = np.nanmedian(sample(zones["outside"]), axis=2)
-        level, spread = _plate_level(sample(zones["plate"]), zones["plate"], L, np.nanmedian(outside, axis=1), eps)
-        contrast = np.minimum((level - band) / (level + eps), (outside - band) / (outside + eps)).min(1)
+        inner, outside, plate = sample(zones["inner"]), sample(zones["outside"]), sample(zones["plate"])  # (T, 3, A) ×2, (T, G)
+        band = sample(zones["band"]).max(-1)  # (T, 3, A): both radii across the band must be dark
+        paper = np.fmax(inner, outside)
+        i, j = zones["pairs"]
+        steps = step(plate[:, i], plate[:, j])  # (T, pairs)
+        rough = np.where(np.isfinite(steps).sum(1) >= min_pairs, np.nanpercentile(steps, 75, axis=1), 0.0)
+        link = np.where(zones["linked"], step(outside, plate[:, zones["nearest"]]), np.nan)
+        off_plate = np.nan_to_num(np.nanmax(np.nanmedian(link, axis=2), axis=1), nan=0.0)  # no link in the image: no test
         factors = [
-            np.sqrt(np.clip(contrast, 0, 1)),
-            1 - spread,
-            1 - 2 * np.clip((inner - level) / (level + eps), 0, None).max(1),
-            1 - (np.abs(outside - level) / (level + eps)).max(1),
+            np.nanmedian(1 - band / (paper + eps), axis=2).min(1),
+            1 - 4 * rough,
+            1 - 2 * np.clip(np.nanmedian((inner - outside) / (outside + eps), axis=2), 0, None).max(1),
+            1 - off_plate,
         ]
     return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
-
-
-def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallback: np.ndarray, eps: float, min_points: int = 8):
-    """The plate's brightness at each ring and its unevenness, from plate samples.
-
-    Light falls off smoothly across a plate (a gradient, vignetting), so a plane in the
-    marker's coordinates is fitted to the samples inside the image (NaN elsewhere):
-    its value at each ring centre is that ring's plate level, and the 10-90 % spread of
-    the residuals over the plane's value at the samples' centroid (+ ``eps``) is the
-    unevenness (clutter is uneven, paper is not). With fewer than ``min_points`` samples in the image the level is ``fallback``
-    (e.g. the rings' surroundings) and the unevenness 0.
-
-    Args:
-        values: (T, K) samples; pts: (K, 2) where they are, mm; centers: (3, 2) mm;
-        fallback: (T,); eps: added to the level divided by.
-    Returns:
-        (level (T, 3), spread (T,)).
-    """
-    ok = np.isfinite(values)
-    X = np.column_stack([np.ones(len(pts)), pts - pts.mean(0)])  # (K, 3)
-    W = ok.astype(np.float64)
-    M = np.einsum("tk,ki,kj->tij", W, X, X) + np.diag([1e-9, 1e-3, 1e-3]) * len(pts)  # slopes damped; no samples: solvable
-    b = np.einsum("tk,ki,tk->ti", W, X, np.nan_to_num(values))
-    coef = np.linalg.solve(M, b[..., None])[..., 0]  # (T, 3)
-    level = np.column_stack([np.ones(3), centers - pts.mean(0)]) @ coef.T  # (3, T)
-    resid = values - coef @ X.T
-    lo, hi = np.nanpercentile(np.where(ok, resid, np.nan), [10, 90], axis=1)
-    spread = (hi - lo) / (np.abs(coef[:, 0]) + eps)
-    few = ok.sum(1) < min_points
-    level = np.where(few[:, None], fallback[:, None], level.T)
-    return level, np.where(few, 0.0, spread)
-
 
 
 __all__ = ["ring_evidence"]

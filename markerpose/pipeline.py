@@ -116,10 +116,10 @@ class MarkerPose:
                     if found is None:
                         break
                     tried += 1
-                    if verify.plate_poses(found[0], cam, self.marker, self.conf["verify"]["plate_tol"]):
+                    reason = verify.plate_rejection(found[0], cam, self.marker, self.conf["verify"]["plate_tol"], verify.VIEWS[view])
+                    if reason is None:
                         return found[0]
-            self.why = self.why or (f"none of {tried} layout triples refined to rings on one plate" if tried else
-                                    "no triple of stage-1 candidates has the marker's layout and enough ring evidence")
+                    self._failed(reason)
             return None
         finally:
             self.timings["total"] = time.perf_counter() - t0
@@ -128,13 +128,17 @@ class MarkerPose:
         """One view's layout triples to refine, best first: by score x ring evidence,
         without those under ``min_evidence`` (0: by score alone)."""
         m = self.conf["match"]
-        if not m["min_evidence"]:
-            return view_triples(cand, self.marker.centers2d, max_triples=m["view_triples"])
-        triples = view_triples(cand, self.marker.centers2d, max_triples=None)
+        triples = view_triples(cand, self.marker.centers2d, max_triples=None if m["min_evidence"] else m["view_triples"])
         if not triples:
+            self._failed(f"no triple of the {len(cand)} stage-1 candidates has the marker's layout" if len(cand) >= 3 else
+                         f"stage 1 found {len(cand)} ring candidate{'s' * (len(cand) != 1)}, fewer than three")
             return []
+        if not m["min_evidence"]:
+            return triples
         ev = self.proposer.evidence(gray, np.stack([p for p, _ in triples]), zoom)
         kept = [(p, s * e) for (p, s), e in zip(triples, ev) if e >= m["min_evidence"]]
+        if not kept:
+            self._failed(f"ring evidence: the best of {len(triples)} layout triples has {ev.max():.3f} (min_evidence {m['min_evidence']:g})")
         return sorted(kept, key=lambda t: -t[1])[: m["view_triples"]]
 
     def _pair(self, left, right) -> list:

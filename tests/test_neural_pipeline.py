@@ -247,6 +247,37 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     every = mp.MarkerPose(rig, match={"min_evidence": 0.0})._view_triples(empty, cand, 1.0)
     assert len(kept) <= len(every)
     assert tracker.detect(empty) is None
+    # The gate says by how much it rejected the best triple.
+    strict = mp.MarkerPose(rig, match={"min_evidence": 1.01})
+    assert strict.detect(gray) is None
+    best = float(strict.why.split(" has ")[1].split()[0])
+    assert strict.why.startswith("ring evidence: the best of ") and "(min_evidence 1.01)" in strict.why
+    assert best == pytest.approx(tracker.proposer.evidence(gray, np.stack([p for p, _ in _every_triple(strict, gray)])).max(), abs=1e-3)
+
+
+def _every_triple(tracker, gray):
+    """Every layout triple of the first look's candidates."""
+    from markerpose.stages.match import view_triples
+
+    return view_triples(tracker.proposer.candidates([gray])[0], tracker.marker.centers2d, max_triples=None)
+
+
+def test_hard_shadow_across_the_plate_with_soft_edges(rig, tracker):
+    """A frontal marker, rings ~85 px across, a hand's shadow over two of the rings and most
+    of the plate (light down to 30 %, a hard edge) and soft focus (10-90 % edges over ~5 px),
+    on dark clutter: found in each view alone and as a pair, at the right place. (The ring
+    evidence that compared every ring with the plate's overall level rejected such views.)"""
+    rng = np.random.default_rng(21)
+    bgs = tuple(0.4 * mp.synth.clutter_background(c.image_size, rng) for c in rig.cameras)
+    shadow = Imaging(alpha=0.8, psf_sigma=2.0, plate_light=lambda mx, my: np.where(mx + my > 20.0, 0.3, 1.0))
+    f = render_stereo(rig, look_at_pose([0, 0, 590], 5, 20, 0), imaging=shadow, background=bgs, seed=22)
+    for view in (0, 1):
+        det = tracker.detect(f.images[view], view=view)
+        assert det is not None, tracker.why
+        assert np.abs(det.centers - f.views[view].outer_centers).max() < 0.5
+    est = tracker.estimate(*f.images)
+    assert est is not None, tracker.why
+    assert np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.5  # mm
 
 
 @pytest.mark.parametrize("preset", ["neural-layout", "neural-layout-rigid", "neural-stereo"])

@@ -58,11 +58,26 @@ def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -
         return f"epipolar check: c{i} is {d[i]:.1f} px from its epipolar line (limit {tol[i]:g} px)"
     if conf["plate_check"]:
         for det, cam, view in zip(found, rig.cameras, VIEWS):
-            if det.ellipses is not None and det.refined.all() and not plate_poses(det, cam, marker, conf["plate_tol"]):
-                poses = view_poses(cam, det.centers, det.ellipses, marker.points3d, marker.outer_radius)
-                misfit = f"{poses[0][0]:.3f}" if poses else "no pose"
-                return f"plate check: the {view} view's rings fit no pose of the marker (misfit {misfit}, limit {conf['plate_tol']:g})"
+            if det.ellipses is not None and det.refined.all():
+                reason = plate_rejection(det, cam, marker, conf["plate_tol"], view)
+                if reason is not None:
+                    return reason
     return None
+
+
+def plate_rejection(det: Detection, camera, marker: Marker, tol: float, view: str) -> str | None:
+    """Why one view's refined rings fit no pose of the marker plate within ``tol`` (the
+    misfit and the limit), or None when they do."""
+    if det is None:
+        return f"the {view} view's rings could not be refined"
+    if plate_poses(det, camera, marker, tol):
+        return None
+    if not det.refined.all() or det.ellipses is None:
+        rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
+        return f"the sub-pixel edge fit failed on {rings or 'every ring'} in the {view} view"
+    poses = view_poses(camera, det.centers, det.ellipses, marker.points3d, marker.outer_radius)
+    misfit = f"{poses[0][0]:.3f}" if poses else "no pose"
+    return f"plate check: the {view} view's rings fit no pose of the marker (misfit {misfit}, limit {tol:g})"
 
 
 def pair(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> bool:
@@ -83,4 +98,4 @@ def shape(points3d: np.ndarray, marker: Marker, conf: dict) -> bool:
     return shape_error(points3d, marker.points3d) <= conf["max_shape_error"]
 
 
-__all__ = ["default_conf", "pair", "plate_poses", "rejection", "shape", "shape_error"]
+__all__ = ["default_conf", "pair", "plate_poses", "plate_rejection", "rejection", "shape", "shape_error"]
