@@ -55,7 +55,7 @@ def _evidence_points(marker: Marker) -> dict:
 _EVIDENCE = {}  # marker → its evidence points (computed once per marker geometry)
 
 
-def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8) -> np.ndarray:
+def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8, search: float = 0.0) -> np.ndarray:
     """How much the image around each triple of ring centres looks like the printed marker.
 
     Each triple (c0, c1, c2) fixes the affine map from the marker's layout to the image
@@ -98,39 +98,73 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     zones = _EVIDENCE[key]
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
+    img = np.ascontiguousarray(image, np.float32)
+    if search > 0:
+        P = _aligned(img, P, zones, L, search)
     A = layout_affine(P, L)
     t = P[:, 0] - A @ L[0]
-    img = np.ascontiguousarray(image, np.float32)
-    h, w = img.shape
 
     def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
-        q = np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,))
-        flat = q.reshape(len(P), -1, 2).astype(np.float32)
-        v = cv2.remap(img, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        inside = (flat[..., 0] >= 0) & (flat[..., 0] <= w - 1) & (flat[..., 1] >= 0) & (flat[..., 1] <= h - 1)
-        return np.where(inside, v, np.nan).reshape(q.shape[:-1])
+        return _sample(img, np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,)))
 
     def step(a, b):  # relative difference of two paper samples
-        return np.abs(a - b) / (np.fmax(a, b) + eps)
+        return np.abs(a - b) / (np.fmax(a, b) + _EPS)
 
-    eps = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
         inner, outside, plate = sample(zones["inner"]), sample(zones["outside"]), sample(zones["plate"])  # (T, 3, A) ×2, (T, G)
-        band = sample(zones["band"]).max(-1)  # (T, 3, A): both radii across the band must be dark
-        paper = np.fmax(inner, outside)
         i, j = zones["pairs"]
         steps = step(plate[:, i], plate[:, j])  # (T, pairs)
         rough = np.where(np.isfinite(steps).sum(1) >= min_pairs, np.nanpercentile(steps, 75, axis=1), 0.0)
         link = np.where(zones["linked"], step(outside, plate[:, zones["nearest"]]), np.nan)
         off_plate = np.nan_to_num(np.nanmax(np.nanmedian(link, axis=2), axis=1), nan=0.0)  # no link in the image: no test
         factors = [
-            np.nanmedian(1 - band / (paper + eps), axis=2).min(1),
+            _contrast(inner, sample(zones["band"]), outside).min(1),
             1 - 4 * rough,
-            1 - 2 * np.clip(np.nanmedian((inner - outside) / (outside + eps), axis=2), 0, None).max(1),
+            1 - 2 * np.clip(np.nanmedian((inner - outside) / (outside + _EPS), axis=2), 0, None).max(1),
             1 - off_plate,
         ]
     return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
+
+
+_EPS = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
+
+
+def _sample(img: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at image points ``q`` (..., 2); NaN outside the image."""
+    h, w = img.shape
+    flat = q.reshape(-1, 2).astype(np.float32)
+    n, cols = len(flat), 4096  # remap's maps are at most 32767 wide: rows of 4096
+    grid = np.pad(flat, ((0, -n % cols), (0, 0))).reshape(-1, cols, 2)
+    v = cv2.remap(img, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
+    inside = (flat[:, 0] >= 0) & (flat[:, 0] <= w - 1) & (flat[:, 1] >= 0) & (flat[:, 1] <= h - 1)
+    return np.where(inside, v, np.nan).reshape(q.shape[:-1])
+
+
+def _contrast(inner: np.ndarray, band: np.ndarray, outside: np.ndarray) -> np.ndarray:
+    """A ring's band contrast from samples along its rays (..., A) (band: (..., A, 2)):
+    median over rays of 1 - the brighter band sample / the brighter of core and outside."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(1 - band.max(-1) / (np.fmax(inner, outside) + _EPS), axis=-1)
+
+
+def _aligned(img: np.ndarray, P: np.ndarray, zones: dict, L: np.ndarray, search: float) -> np.ndarray:
+    """Triples (T, 3, 2) with each ring's centre moved, within ``search`` px, to where its
+    band contrast is highest (the ring's shape from the triple's affine map): stage-1
+    points are ~1 px off, which at a steep tilt puts samples off a band a few pixels wide."""
+    A = layout_affine(P, L)
+    d = np.linspace(-search, search, 5)
+    D = np.stack(np.meshgrid(d, d), -1).reshape(-1, 2)  # (K, 2)
+
+    def around(pts):  # (3, A[, 2], 2) mm → (T, 3, K, A[, 2], 2) image points around each moved centre
+        rel = pts - L.reshape((3,) + (1,) * (pts.ndim - 2) + (2,))
+        q = np.einsum("tij,r...j->tr...i", A, rel)[:, :, None]
+        shift = (P[:, :, None] + D[None, None]).reshape(P.shape[:2] + (len(D),) + (1,) * (pts.ndim - 2) + (2,))
+        return q + shift
+
+    c = _contrast(_sample(img, around(zones["inner"])), _sample(img, around(zones["band"])), _sample(img, around(zones["outside"])))  # (T, 3, K)
+    return P + D[np.nan_to_num(c, nan=-np.inf).argmax(-1)]
 
 
 __all__ = ["ring_evidence"]

@@ -24,7 +24,7 @@ from .images import as_gray, check_size
 from .marker import Marker
 from .results import Detection, Estimate
 from .stages import match, propose, refine, solve, track, verify
-from .stages.match import stereo_triples, transfer, transfer_sources, view_triples
+from .stages.match import best_per_set, layout_orders, stereo_triples, transfer, transfer_sources
 
 class MarkerPose:
     """Stereo pose of the three-ring marker.
@@ -128,18 +128,21 @@ class MarkerPose:
         """One view's layout triples to refine, best first: by score x ring evidence,
         without those under ``min_evidence`` (0: by score alone)."""
         m = self.conf["match"]
-        triples = view_triples(cand, self.marker.centers2d, max_triples=None if m["min_evidence"] else m["view_triples"])
-        if not triples:
+        p, s, sets = layout_orders(cand, self.marker.centers2d, m["view_min_ratio"]) if m["min_evidence"] else layout_orders(cand, self.marker.centers2d)
+        if not len(p):
             self._failed(f"no triple of the {len(cand)} stage-1 candidates has the marker's layout" if len(cand) >= 3 else
                          f"stage 1 found {len(cand)} ring candidate{'s' * (len(cand) != 1)}, fewer than three")
             return []
         if not m["min_evidence"]:
-            return triples
-        ev = self.proposer.evidence(gray, np.stack([p for p, _ in triples]), zoom)
-        kept = [(p, s * e) for (p, s), e in zip(triples, ev) if e >= m["min_evidence"]]
+            return [(p[k], float(s[k])) for k in best_per_set(s, sets)[: m["view_triples"]]]
+        # Every order of a triple, not only the most marker-like one: at a steep tilt a
+        # wrong order can have the larger layout ratio, and its rings the wrong sizes.
+        ev = self.proposer.evidence(gray, p, zoom)
+        best = best_per_set(s * ev, sets)
+        kept = [(p[k], float(s[k] * ev[k])) for k in best if ev[k] >= m["min_evidence"]]
         if not kept:
-            self._failed(f"ring evidence: the best of {len(triples)} layout triples has {ev.max():.3f} (min_evidence {m['min_evidence']:g})")
-        return sorted(kept, key=lambda t: -t[1])[: m["view_triples"]]
+            self._failed(f"ring evidence: the best of {len(best)} layout triples has {ev.max():.3f} (min_evidence {m['min_evidence']:g})")
+        return kept[: m["view_triples"]]
 
     def _pair(self, left, right) -> list:
         gl, gr = as_gray(left, "left image"), as_gray(right, "right image")

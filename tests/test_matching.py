@@ -6,7 +6,7 @@ import pytest
 import markerpose as mp
 from markerpose.classical import refine_points
 from markerpose.geometry import rotation_angle
-from markerpose.geometry import ring_ellipses, view_poses
+from markerpose.geometry import ring_ellipses, signed_areas, view_poses
 from markerpose.stages.match import side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
 
@@ -130,6 +130,30 @@ def test_view_triples_names_the_marker_by_its_layout(rig):
     mirror = p * [-1, 1] + [1280, 0]
     assert all(np.abs(f[0] - mirror).max() > 1 for f in view_triples(_cands(mirror, np.ones(3)), m.centers2d, max_triples=5))
     assert view_triples(_cands(p[:2], np.ones(2)), m.centers2d) == []
+
+
+def test_layout_orders_keeps_every_marker_like_order_and_view_triples_the_best(rig):
+    """layout_orders: every order of every triple with the marker's handedness and ratio,
+    the true order among them; view_triples: each set once, in its best order, best first."""
+    from markerpose.stages.match import best_per_set, layout_orders
+
+    m = mp.Marker()
+    p = _project(rig, look_at_pose([0, 0, 500], 30, 40, 25), m.points3d)[0]
+    decoys = np.random.default_rng(4).uniform(0, 1000, (3, 2))
+    cand = _cands(np.vstack([p[::-1], decoys]), np.linspace(0.9, 0.4, 6))
+    pts, score, sets = layout_orders(cand, m.centers2d)
+    assert pts.shape == (len(score), 3, 2) and sets.shape == score.shape
+    assert (signed_areas(pts) < 0).all()
+    assert min(np.abs(q - p).max() for q in pts) < 1e-9
+    assert len(np.unique(sets)) < len(sets)  # some triple with more than one order
+    best = best_per_set(score, sets)
+    assert len(best) == len(np.unique(sets)) and (np.diff(score[best]) <= 0).all()
+    for k in best:  # the best of its set
+        assert score[k] == score[sets == sets[k]].max()
+    found = view_triples(cand, m.centers2d, max_triples=None)
+    assert [f[1] for f in found] == pytest.approx(list(score[best]))
+    # A lower ratio bound lets steeper (or more wrongly ordered) triples in.
+    assert len(layout_orders(cand, m.centers2d, 0.1)[1]) >= len(score)
 
 
 def test_transfer_of_degenerate_triples_gives_finite_points_or_none(rig):

@@ -40,6 +40,8 @@ default_conf = {
     "view_triples": 4,  # single views and the transfer: layout triples tried per view
     "min_evidence": 0.1,  # single views: layout triples with less ring evidence are not
     #                       refined, the others are tried by score x evidence; 0: by score
+    "view_min_ratio": 0.25,  # single views with evidence: smallest layout ratio (cos 75°;
+    #                          the evidence, not the ratio, tells a steep marker's ID order)
     "transfer": True,  # stereo: carry one view's refined rings into the other (below)
     "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
     "transfer_shape_tol": 0.6,
@@ -116,32 +118,49 @@ def stereo_triples(
     return found[:max_triples]
 
 
-def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int | None = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
-    """Triples of one view's candidates named by the marker's 2D layout, best first.
+def layout_orders(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, top: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every triple of one view's candidates in every order that could be the marker.
 
     Args:
         cand: (N, 3) candidates (x, y, score), best first; the ``top`` first are used.
         layout: (3, 2) the marker's ring centres in mm (``Marker.centers2d``).
         min_ratio: smallest singular-value ratio of the affine map from the layout
             (:func:`~markerpose.keypoints.layout_ratio`; cos 60° = 0.5).
-        max_triples: how many to return (distinct sets of candidates; None: all).
     Returns:
-        up to ``max_triples`` of (points (3, 2) ordered c0, c1, c2, score); the score is the
-        geometric mean of the three candidates' scores times the layout ratio.
+        (points (M, 3, 2) ordered c0, c1, c2; scores (M,), the geometric mean of the
+        three candidates' scores times the layout ratio; which set of candidates each is
+        (M,)): the orders with the marker's handedness and at least ``min_ratio``.
     """
     cand = np.asarray(cand, np.float64).reshape(-1, 3)[:top]
     idx = triple_orders(len(cand))  # every triple in every order; idx[m, j] = the candidate named c_j
     if len(idx) == 0:
-        return []
+        return np.zeros((0, 3, 2)), np.zeros(0), np.zeros(0, int)
     p = cand[idx, :2]
     r = layout_ratios(p, layout)
     ok = (signed_areas(p) < 0) & (r >= min_ratio)  # not a mirror image, not degenerate; the layout's shape
-    s = np.where(ok, np.prod(cand[idx, 2], axis=1) ** (1 / 3) * r, -np.inf).reshape(-1, 6)
-    order = s.argmax(1)  # each triple's best order
-    best = s[np.arange(len(s)), order]
-    trios = np.nonzero(np.isfinite(best))[0]
-    trios = trios[np.argsort(-best[trios], kind="stable")][:max_triples]
-    return [(p[6 * t + order[t]], float(best[t])) for t in trios]
+    s = np.prod(cand[idx, 2], axis=1) ** (1 / 3) * r
+    return p[ok], s[ok], (np.arange(len(idx)) // 6)[ok]  # triple_orders gives each set's 6 orders in a row
+
+
+def best_per_set(scores: np.ndarray, sets: np.ndarray) -> np.ndarray:
+    """Indices of each set's best-scored entry, best first (ties: the first)."""
+    order = np.argsort(-scores, kind="stable")
+    _, first = np.unique(sets[order], return_index=True)
+    return order[np.sort(first)]
+
+
+def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int | None = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
+    """Triples of one view's candidates named by the marker's 2D layout, best first: each
+    set of candidates in its order of highest score (:func:`layout_orders`).
+
+    Args:
+        cand, layout, min_ratio, top: as in :func:`layout_orders`.
+        max_triples: how many to return (distinct sets of candidates; None: all).
+    Returns:
+        up to ``max_triples`` of (points (3, 2) ordered c0, c1, c2, score).
+    """
+    p, s, sets = layout_orders(cand, layout, min_ratio, top)
+    return [(p[k], float(s[k])) for k in best_per_set(s, sets)[:max_triples]]
 
 
 def transfer(rig: StereoRig, view: int, poses: list, model: np.ndarray, max_poses: int = 2) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -213,4 +232,4 @@ def pair_triples(rig: StereoRig, left: tuple, right: tuple, epipolar_tol: float 
     return None if best is None else best[1:]
 
 
-__all__ = ["METHODS", "default_conf", "pair_triples", "side_lengths", "stereo_triples", "transfer", "transfer_sources", "view_triples"]
+__all__ = ["METHODS", "best_per_set", "default_conf", "layout_orders", "pair_triples", "side_lengths", "stereo_triples", "transfer", "transfer_sources", "view_triples"]
