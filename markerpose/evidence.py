@@ -55,7 +55,7 @@ def _evidence_points(marker: Marker) -> dict:
 _EVIDENCE = {}  # marker → its evidence points (computed once per marker geometry)
 
 
-def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8, search: float = 0.0) -> np.ndarray:
+def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8) -> np.ndarray:
     """How much the image around each triple of ring centres looks like the printed marker.
 
     Each triple (c0, c1, c2) fixes the affine map from the marker's layout to the image
@@ -99,8 +99,6 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
     img = np.ascontiguousarray(image, np.float32)
-    if search > 0:
-        P = _aligned(img, P, zones, L, search)
     A = layout_affine(P, L)
     t = P[:, 0] - A @ L[0]
 
@@ -147,24 +145,6 @@ def _contrast(inner: np.ndarray, band: np.ndarray, outside: np.ndarray) -> np.nd
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         return np.nanmedian(1 - band.max(-1) / (np.fmax(inner, outside) + _EPS), axis=-1)
-
-
-def _aligned(img: np.ndarray, P: np.ndarray, zones: dict, L: np.ndarray, search: float) -> np.ndarray:
-    """Triples (T, 3, 2) with each ring's centre moved, within ``search`` px, to where its
-    band contrast is highest (the ring's shape from the triple's affine map): stage-1
-    points are ~1 px off, which at a steep tilt puts samples off a band a few pixels wide."""
-    A = layout_affine(P, L)
-    d = np.linspace(-search, search, 5)
-    D = np.stack(np.meshgrid(d, d), -1).reshape(-1, 2)  # (K, 2)
-
-    def around(pts):  # (3, A[, 2], 2) mm → (T, 3, K, A[, 2], 2) image points around each moved centre
-        rel = pts - L.reshape((3,) + (1,) * (pts.ndim - 2) + (2,))
-        q = np.einsum("tij,r...j->tr...i", A, rel)[:, :, None]
-        shift = (P[:, :, None] + D[None, None]).reshape(P.shape[:2] + (len(D),) + (1,) * (pts.ndim - 2) + (2,))
-        return q + shift
-
-    c = _contrast(_sample(img, around(zones["inner"])), _sample(img, around(zones["band"])), _sample(img, around(zones["outside"])))  # (T, 3, K)
-    return P + D[np.nan_to_num(c, nan=-np.inf).argmax(-1)]
 
 
 __all__ = ["ring_evidence"]
