@@ -14,7 +14,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .evidence import ring_evidence
+from .evidence import plate_evidence
 from .geometry import layout_ratio, layout_ratios, signed_area, signed_areas, triple_orders
 from .marker import Marker
 
@@ -36,7 +36,7 @@ default_conf = {
     "ids": "layout",
     "min_ratio": 0.35,  # layout: minimum singular-value ratio (cos 60° = 0.5, less perspective)
     "id_weight": 0.25,  # layout: exponent of the ID head's probabilities in the score
-    # Ours: weigh every triple by its ring evidence (evidence.ring_evidence), which decoys
+    # Ours: weigh every triple by its ring evidence (evidence.plate_evidence), which decoys
     # in a marker-like triangle lack. Needs the image.
     "verify": False,
     # Ours: zoom of a second look at an image in which the first finds no marker (1: none);
@@ -240,7 +240,7 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     a triple that no assignment makes consistent is rejected. With ``ids="layout"`` the
     marker's shape chooses the order instead (see :data:`default_conf`), and triples
     compete with the layout ratio softened by ``ratio_full``. With ``verify``
-    every allowed (triple, order) is then weighed by :func:`ring_evidence`. With
+    every allowed (triple, order) is then weighed by :func:`plate_evidence`. With
     ``align`` the ``align_top`` best triples are refined by :func:`align_triple` and
     scored again (layout ratio and evidence of the refined points); the best of them,
     and ``min_score``, decide.
@@ -273,7 +273,7 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
         return None
     ev = np.ones(len(p))
     if c["verify"]:
-        ev[keep] = ring_evidence(image, p[keep], marker)
+        ev[keep] = plate_evidence(image, p[keep], marker)
     # Each triple in its best ID order (a wrong order puts a ring in the wrong place:
     # a small ratio), then the triples against each other — with the softened ratio, so
     # a steeply tilted marker is not outscored by a flatter decoy (ratio_full; the ID
@@ -301,7 +301,7 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
                 if cc is not None and rq >= c["min_ratio"]:
                     found = float(s[o] * _ratio_weight(rq, c["ratio_full"])) * max(cc, 0.0) ** float(c["align_cc_power"])
                     if c["verify"]:
-                        found *= float(ring_evidence(image, q[None], marker)[0])
+                        found *= float(plate_evidence(image, q[None], marker)[0])
                 elif o == k and r[k] >= c["min_ratio"]:  # the unrefined triple stands
                     q, found = p[k], float(value[j])
                 else:

@@ -1,7 +1,8 @@
 """Ring evidence: how much the image around a triple of ring centres looks like the
-printed marker (dark bands on white paper, each judged against the paper right beside
-it). An appearance gate used by single-view detection, the transfer fallback and the
-``verify`` decoding."""
+printed marker. :func:`ring_evidence` (dark bands on white paper, each judged against
+the paper right beside it) is the gate of single-view detection and of the transfer
+fallback; :func:`plate_evidence` (dark bands on one evenly lit plate) weighs the stage-1
+decoding's triples (``verify``)."""
 
 from __future__ import annotations
 
@@ -55,6 +56,13 @@ def _evidence_points(marker: Marker) -> dict:
 _EVIDENCE = {}  # marker → its evidence points (computed once per marker geometry)
 
 
+def _zones(marker: Marker) -> dict:
+    key = (tuple(marker.centers2d.ravel()), marker.outer_radius, marker.inner_radius, marker.plate)
+    if key not in _EVIDENCE:
+        _EVIDENCE[key] = _evidence_points(marker)
+    return _EVIDENCE[key]
+
+
 def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None, min_pairs: int = 8) -> np.ndarray:
     """How much the image around each triple of ring centres looks like the printed marker.
 
@@ -92,10 +100,7 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
         (T,) evidence in [0, 1].
     """
     marker = marker or _MARKER
-    key = (tuple(marker.centers2d.ravel()), marker.outer_radius, marker.inner_radius, marker.plate)
-    if key not in _EVIDENCE:
-        _EVIDENCE[key] = _evidence_points(marker)
-    zones = _EVIDENCE[key]
+    zones = _zones(marker)
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
     img = np.ascontiguousarray(image, np.float32)
@@ -147,4 +152,77 @@ def _contrast(inner: np.ndarray, band: np.ndarray, outside: np.ndarray) -> np.nd
         return np.nanmedian(1 - band.max(-1) / (np.fmax(inner, outside) + _EPS), axis=-1)
 
 
-__all__ = ["ring_evidence"]
+def plate_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None) -> np.ndarray:
+    """The stage-1 decoding's ring evidence (``verify``): dark bands on one evenly lit
+    white plate, every ring judged against the whole plate's brightness.
+
+    Sampled where :func:`ring_evidence` samples (plus each ring's centre), the plate's
+    brightness a plane fitted to its samples (:func:`_plate_level`). The product of four
+    factors in [0, 1]: band contrast (sqrt of the smallest ring's (plate - band) / plate
+    and (outside - band) / outside), plate evenness (1 - 10-90 % spread of the plate's
+    residuals to its plane / plate), no ring brighter inside than the plate, and the
+    plate's level right outside every ring. A shadow across the plate fails it, which is
+    why the pipeline's gates use :func:`ring_evidence`; the decoding keeps this one, with
+    which its thresholds were tuned at export.
+
+    Args and returns: as :func:`ring_evidence`.
+    """
+    marker = marker or _MARKER
+    zones = _zones(marker)
+    P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
+    L = marker.centers2d
+    A = layout_affine(P, L)
+    t = P[:, 0] - A @ L[0]
+    img = np.ascontiguousarray(image, np.float32)
+
+    def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
+        return _sample(img, np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,)))
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
+        band = np.nanmedian(sample(zones["band"]).reshape(len(P), 3, -1), axis=2)  # (T, 3)
+        inner = np.nanmedian(sample(np.concatenate([L[:, None, :], zones["inner"]], 1)), axis=2)
+        outside = np.nanmedian(sample(zones["outside"]), axis=2)
+        level, spread = _plate_level(sample(zones["plate"]), zones["plate"], L, np.nanmedian(outside, axis=1), _EPS)
+        contrast = np.minimum((level - band) / (level + _EPS), (outside - band) / (outside + _EPS)).min(1)
+        factors = [
+            np.sqrt(np.clip(contrast, 0, 1)),
+            1 - spread,
+            1 - 2 * np.clip((inner - level) / (level + _EPS), 0, None).max(1),
+            1 - (np.abs(outside - level) / (level + _EPS)).max(1),
+        ]
+    return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
+
+
+def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallback: np.ndarray, eps: float, min_points: int = 8):
+    """The plate's brightness at each ring and its unevenness, from plate samples.
+
+    Light falls off smoothly across a plate (a gradient, vignetting), so a plane in the
+    marker's coordinates is fitted to the samples inside the image (NaN elsewhere):
+    its value at each ring centre is that ring's plate level, and the 10-90 % spread of
+    the residuals over the plane's value at the samples' centroid (+ ``eps``) is the
+    unevenness (clutter is uneven, paper is not). With fewer than ``min_points`` samples in the image the level is ``fallback``
+    (e.g. the rings' surroundings) and the unevenness 0.
+
+    Args:
+        values: (T, K) samples; pts: (K, 2) where they are, mm; centers: (3, 2) mm;
+        fallback: (T,); eps: added to the level divided by.
+    Returns:
+        (level (T, 3), spread (T,)).
+    """
+    ok = np.isfinite(values)
+    X = np.column_stack([np.ones(len(pts)), pts - pts.mean(0)])  # (K, 3)
+    W = ok.astype(np.float64)
+    M = np.einsum("tk,ki,kj->tij", W, X, X) + np.diag([1e-9, 1e-3, 1e-3]) * len(pts)  # slopes damped; no samples: solvable
+    b = np.einsum("tk,ki,tk->ti", W, X, np.nan_to_num(values))
+    coef = np.linalg.solve(M, b[..., None])[..., 0]  # (T, 3)
+    level = np.column_stack([np.ones(3), centers - pts.mean(0)]) @ coef.T  # (3, T)
+    resid = values - coef @ X.T
+    lo, hi = np.nanpercentile(np.where(ok, resid, np.nan), [10, 90], axis=1)
+    spread = (hi - lo) / (np.abs(coef[:, 0]) + eps)
+    few = ok.sum(1) < min_points
+    level = np.where(few[:, None], fallback[:, None], level.T)
+    return level, np.where(few, 0.0, spread)
+
+
+__all__ = ["plate_evidence", "ring_evidence"]

@@ -635,7 +635,7 @@ def _decode_by_loop(det, ids, conf, image=None):
                 s = np.prod(cand[perm, 2]) ** (1 / 3) * np.prod(p_id) ** (c["id_weight"] / 3)
                 soft = r if c["ratio_full"] is None else min(1.0, r / c["ratio_full"])
             if c["verify"]:
-                s *= evidence_mod.ring_evidence(image, p[None])[0]
+                s *= evidence_mod.plate_evidence(image, p[None])[0]
             if order is None or s * r > order[1]:
                 order = (p, s * r, s * soft)
         if order is not None and (best is None or order[2] > best[1]):

@@ -165,7 +165,7 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert np.rad2deg(mp.geometry.rotation_angle(est.R, T[:3, :3])) < 0.05
     # The transfer's sources are gated by ring evidence: the default gate lets the
     # marker's own triple through (above); a gate no evidence reaches stops every source.
-    assert mp.presets.default_conf["match"]["transfer_min_evidence"] == 0.1
+    assert mp.presets.default_conf["match"]["transfer_min_evidence"] == 0.05
     assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer_min_evidence": 1.01}).estimate(*f.images) is None
 
 
@@ -273,6 +273,28 @@ def test_hard_shadow_across_the_plate_with_soft_edges(rig, tracker):
     est = tracker.estimate(*f.images)
     assert est is not None, tracker.why
     assert np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.5  # mm
+
+
+def test_ring_evidence_holds_under_a_shadow_where_plate_evidence_does_not(rig):
+    """The pipeline's gate (ring_evidence, each ring against the paper beside it) keeps a
+    marker half in shadow; the decoding's plate_evidence (one evenly lit plate) does not.
+    Both score the marker in even light high and its rings in a wrong order low."""
+    from markerpose.evidence import plate_evidence, ring_evidence
+    from markerpose.keypoints import to_input
+    from markerpose.synth import render_view
+
+    T = look_at_pose([0, 0, 560], 20, 40, 0)
+    scores = {}
+    for name, light in (("even", None), ("shadow", lambda mx, my: np.where(mx + my > 20.0, 0.3, 1.0))):
+        img, truth = render_view(rig.left, T, imaging=Imaging(alpha=0.8, plate_light=light), seed=3)
+        small, scale = to_input(img)
+        tri = (truth.centers + 0.5) / scale - 0.5
+        triples = np.stack([tri, tri[[0, 2, 1]]])
+        scores[name] = (ring_evidence(small, triples), plate_evidence(small, triples))
+    (ring_even, plate_even), (ring_shadow, plate_shadow) = scores["even"], scores["shadow"]
+    assert ring_even[0] > 0.6 and plate_even[0] > 0.6
+    assert ring_even[1] < ring_even[0] / 2 and plate_even[1] < plate_even[0] / 2
+    assert ring_shadow[0] > 0.6 and plate_shadow[0] < 0.1
 
 
 def test_single_view_finds_a_marker_tilted_70_degrees(rig, tracker):

@@ -47,8 +47,10 @@ default_conf = {
     "transfer_shape_tol": 0.6,
     "transfer_attempts": 2,  # ... and how many loose triples are tried
     "transfer_sources": 4,  # one view's triples refined and carried over, at most
-    "transfer_min_evidence": 0.1,  # sources with less ring evidence are not refined (decoy
-    #                                triples on marker-free pairs cost refits); 0: every one
+    "transfer_min_evidence": 0.05,  # sources with less ring evidence are not refined (decoy
+    #                                 triples on marker-free pairs cost refits); 0: every one.
+    #                                 Lower than min_evidence: a source from the steep view
+    #                                 is pixels off, and its evidence runs lower
     "pair_epipolar_tol": 3.0,  # classical: max epipolar distance of same-ID centres, px
     "max_fits": 3,  # neural: hypotheses refined (a triple fitted in one or both views) per
     #                 cold detection, over both looks; then the pair gives no pose. A valid
