@@ -122,7 +122,8 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
         link = np.where(zones["linked"], step(outside, plate[:, zones["nearest"]]), np.nan)
         off_plate = np.nan_to_num(np.nanmax(np.nanmedian(link, axis=2), axis=1), nan=0.0)  # no link in the image: no test
         factors = [
-            _contrast(inner, sample(zones["band"]), outside).min(1),
+            # Band contrast along each ray: the brighter band sample against the brighter of core and outside.
+            np.nanmedian(1 - sample(zones["band"]).max(-1) / (np.fmax(inner, outside) + _EPS), axis=-1).min(1),
             1 - 4 * rough,
             1 - 2 * np.clip(np.nanmedian((inner - outside) / (outside + _EPS), axis=2), 0, None).max(1),
             1 - off_plate,
@@ -142,14 +143,6 @@ def _sample(img: np.ndarray, q: np.ndarray) -> np.ndarray:
     v = cv2.remap(img, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
     inside = (flat[:, 0] >= 0) & (flat[:, 0] <= w - 1) & (flat[:, 1] >= 0) & (flat[:, 1] <= h - 1)
     return np.where(inside, v, np.nan).reshape(q.shape[:-1])
-
-
-def _contrast(inner: np.ndarray, band: np.ndarray, outside: np.ndarray) -> np.ndarray:
-    """A ring's band contrast from samples along its rays (..., A) (band: (..., A, 2)):
-    median over rays of 1 - the brighter band sample / the brighter of core and outside."""
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(1 - band.max(-1) / (np.fmax(inner, outside) + _EPS), axis=-1)
 
 
 def plate_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None) -> np.ndarray:

@@ -133,11 +133,10 @@ class MarkerPose:
             self._failed(f"no triple of the {len(cand)} stage-1 candidates has the marker's layout" if len(cand) >= 3 else
                          f"stage 1 found {len(cand)} ring candidate{'s' * (len(cand) != 1)}, fewer than three")
             return []
-        if not m["min_evidence"]:
-            return [(p[k], float(s[k])) for k in best_per_set(s, sets)[: m["view_triples"]]]
-        # Every order of a triple, not only the most marker-like one: at a steep tilt a
-        # wrong order can have the larger layout ratio, and its rings the wrong sizes.
-        ev = self.proposer.evidence(gray, p, zoom)
+        # With evidence, every order of a triple, not only the most marker-like one: at a
+        # steep tilt a wrong order can have the larger layout ratio, and its rings the
+        # wrong sizes. Without, each triple in its order of highest score.
+        ev = self.proposer.evidence(gray, p, zoom) if m["min_evidence"] else np.ones(len(s))
         best = best_per_set(s * ev, sets)
         kept = [(p[k], float(s[k] * ev[k])) for k in best if ev[k] >= m["min_evidence"]]
         if not kept:

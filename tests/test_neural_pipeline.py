@@ -253,7 +253,7 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     assert strict.detect(gray) is None
     best = float(strict.why.split(" has ")[1].split()[0])
     assert strict.why.startswith("ring evidence: the best of ") and "(min_evidence 1.01)" in strict.why
-    every_order = layout_orders(strict.proposer.candidates([gray])[0], strict.marker.centers2d)[0]
+    every_order = layout_orders(strict.proposer.candidates([gray])[0], strict.marker.centers2d, strict.conf["match"]["view_min_ratio"])[0]
     assert best == pytest.approx(tracker.proposer.evidence(gray, every_order).max(), abs=1e-3)
 
 
