@@ -53,6 +53,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
+from . import edges
 from .camera import Camera
 from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd
 from .images import as_gray
@@ -186,7 +187,8 @@ def to_gray(image, name: str = "image") -> np.ndarray:
 
 # --- ellipse helpers ------------------------------------------------------------------------
 def fit_ellipse(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-    """Direct least-squares ellipse fit (Fitzgibbon; Halir-Flusser's stable form).
+    """Direct least-squares ellipse fit (Fitzgibbon; Halir-Flusser's stable form; one
+    ellipse of :func:`markerpose.edges.fit_ellipses`).
 
     Args:
         points: (N, 2) points, N >= 6.
@@ -194,48 +196,10 @@ def fit_ellipse(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[
     Returns:
         (centre (2,), Q (2, 2)) with (x - c)^T Q (x - c) = 1, or None if degenerate.
     """
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    if len(p) < 6:
-        return None
-    m = p.mean(0)
-    s = np.sqrt(((p - m) ** 2).sum(1).mean())
-    if not s > 0:
-        return None
-    x, y = ((p - m) / s).T  # normalised: well-conditioned scatter matrices
-    D1 = np.column_stack([x * x, x * y, y * y])
-    D2 = np.column_stack([x, y, np.ones_like(x)])
-    if weights is not None:
-        sw = np.sqrt(np.asarray(weights, np.float64).reshape(-1, 1))
-        D1, D2 = D1 * sw, D2 * sw
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        T = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        return None
-    M = S1 + S2 @ T
-    M = np.array([M[2] / 2, -M[1], M[0] / 2])
-    w, v = np.linalg.eig(M)
-    v = np.real(v)
-    cond = 4 * v[0] * v[2] - v[1] ** 2
-    ok = np.nonzero(cond > 0)[0]
-    if len(ok) == 0:
-        return None
-    a1 = v[:, ok[0]]
-    A, B, C = a1
-    Dd, E, F = T @ a1
-    A2 = np.array([[A, B / 2], [B / 2, C]])
-    b2 = np.array([Dd / 2, E / 2])
-    try:
-        uc = -np.linalg.solve(A2, b2)
-    except np.linalg.LinAlgError:
-        return None
-    fc = F + b2 @ uc
-    if fc == 0:
-        return None
-    Qu = A2 / (-fc)
-    if not (np.all(np.isfinite(Qu)) and np.linalg.eigvalsh(Qu)[0] > 0):
-        return None
-    return m + s * uc, Qu / s**2
+    p = np.asarray(points, dtype=np.float64).reshape(1, -1, 2)
+    w = None if weights is None else np.asarray(weights, np.float64).reshape(1, -1)
+    cen, Q, ok = edges.fit_ellipses(p, np.ones(p.shape[:2], bool), w)
+    return (cen[0], Q[0]) if ok[0] else None
 
 
 def concentric_center(outer_cq, inner_cq) -> np.ndarray | None:
@@ -264,7 +228,8 @@ def concentric_center(outer_cq, inner_cq) -> np.ndarray | None:
 
 # --- binarisation ----------------------------------------------------------------------------
 def noise_sigma(gray: np.ndarray) -> float:
-    """Robust estimate of the per-pixel noise sigma (grey levels) of a float image.
+    """Robust estimate of the per-pixel noise sigma (grey levels) of a grey image (float,
+    or uint8 as it is).
 
     Median absolute value of ``I - mean(4-neighbours)`` over a subsampled grid (edges and
     texture are a minority of pixels, so the median sees the noise).
@@ -272,9 +237,22 @@ def noise_sigma(gray: np.ndarray) -> float:
     # Residuals at every k-th pixel (with its direct neighbours): ~60k samples suffice.
     k = max(1, int(np.sqrt(gray.size / 60_000)))
     g = gray
-    r = g[1:-1:k, 1:-1:k] - 0.25 * (g[:-2:k, 1:-1:k] + g[2::k, 1:-1:k] + g[1:-1:k, :-2:k] + g[1:-1:k, 2::k])
+    if g.dtype == np.uint8:
+        # 4 x the residual is an integer: its exact median from a histogram, with no float
+        # copy of the image (equal to the float computation's).
+        def part(a):
+            return a.astype(np.int16)
+
+        r4 = 4 * part(g[1:-1:k, 1:-1:k]) - (part(g[:-2:k, 1:-1:k]) + part(g[2::k, 1:-1:k]) + part(g[1:-1:k, :-2:k]) + part(g[1:-1:k, 2::k]))
+        cum = np.cumsum(np.bincount(np.abs(r4).ravel()))
+        n = cum[-1]
+        mid = np.searchsorted(cum, [(n - 1) // 2 + 1, n // 2 + 1])  # the two middle order statistics
+        med = np.float32(0.125 * (mid[0] + mid[1]))
+    else:
+        r = g[1:-1:k, 1:-1:k] - 0.25 * (g[:-2:k, 1:-1:k] + g[2::k, 1:-1:k] + g[1:-1:k, :-2:k] + g[1:-1:k, 2::k])
+        med = np.median(np.abs(r))
     # var(r) = sigma^2 (1 + 4/16) for white noise; MAD → sigma for a Gaussian.
-    return float(1.4826 * np.median(np.abs(r)) / np.sqrt(1.25))
+    return float(1.4826 * med / np.sqrt(1.25))
 
 
 def binarize(gray: np.ndarray, conf: dict | None = None, noise: float | None = None) -> list[np.ndarray]:
@@ -318,28 +296,6 @@ def _inset(rect, d: float) -> np.ndarray:
     return rect_to_cq(((cx, cy), (max(w + d, 0.5), max(h + d, 0.5)), ang))[1]
 
 
-def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples of ``img`` at float coordinates (any shape); also a validity mask.
-
-    Done in float64 numpy, not ``cv2.remap``, whose fixed-point weights quantise positions
-    to 1/32 px.
-    """
-    h, w = img.shape
-    valid = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    xc = np.clip(x, 0, w - 1.000001)
-    yc = np.clip(y, 0, h - 1.000001)
-    x0 = np.floor(xc).astype(np.intp)
-    y0 = np.floor(yc).astype(np.intp)
-    fx, fy = xc - x0, yc - y0
-    flat = img.ravel()
-    i00 = y0 * w + x0
-    v00, v01 = flat[i00], flat[i00 + 1]
-    v10, v11 = flat[i00 + w], flat[i00 + w + 1]
-    top = v00 + fx * (v01 - v00)
-    bot = v10 + fx * (v11 - v10)
-    return top + fy * (bot - top), valid
-
-
 def _contrast_check(gray, c, Q, rho, gap, offset, n=32):
     """Fraction of rays where the ring band is darker than the hole and the surround."""
     L = sqrtm_spd(Q, -0.5)
@@ -347,7 +303,7 @@ def _contrast_check(gray, c, Q, rho, gap, offset, n=32):
     u = L @ np.stack([np.cos(t), np.sin(t)])  # (2, n) ellipse points relative to c
     lams = np.array([0.5 * rho, 0.5 * (1 + rho), 1 + 0.5 * gap])
     P = c[:, None, None] + u[:, None, :] * lams[None, :, None]  # (2, 3, n)
-    v, ok = _bilinear(gray, P[0], P[1])
+    v, ok = edges.bilinear(gray, P[0], P[1])
     hole, band, out = v
     good = (band < hole - offset) & (band < out - offset) & ok.all(0)
     contrast = float(np.median(np.minimum(hole, out) - band))
@@ -511,261 +467,6 @@ def _nms(cands: list[Ring], c: dict) -> list[Ring]:
 
 
 # --- sub-pixel refinement ------------------------------------------------------------------
-def _crossings(f, lam, r):
-    """Per ray: 50 % crossing nearest the window centre (lambda), its validity, and the
-    10-90 % width of the transition around it (px)."""
-    n, S = f.shape
-    rows = np.arange(n)
-    dl = lam[1] - lam[0]
-    above = f >= 0.5
-    cross = above[:, :-1] & ~above[:, 1:]
-    dist = np.where(cross, np.abs(np.arange(S - 1)[None, :] - (S - 1) / 2), np.inf)
-    j = np.argmin(dist, axis=1)
-    found = np.isfinite(dist[rows, j])
-    f0, f1 = f[rows, j], f[rows, j + 1]
-    e = lam[j] + dl * (f0 - 0.5) / np.where(f0 - f1 != 0, f0 - f1, 1.0)
-    # Only the run of in-between samples around the crossing counts: in dark images noise
-    # puts isolated plateau samples in (0.1, 0.9).
-    mid = (f > 0.1) & (f < 0.9)
-    idx = np.arange(S)[None, :]
-    last_out = np.maximum.accumulate(np.where(~mid, idx, -1), axis=1)
-    next_out = (S - 1) - np.maximum.accumulate(np.where(~mid, (S - 1) - idx, -1)[:, ::-1], axis=1)[:, ::-1]
-    run = np.maximum(next_out[rows, j] - last_out[rows, j], next_out[rows, j + 1] - last_out[rows, j + 1]) - 1
-    return e, found, np.maximum(run, 0) * dl * r, j
-
-
-def _plane_levels(xy, values, use, center, scale, floor):
-    """Fit ``values ≈ a + g . (xy - center)`` on the rays ``use``; evaluate at all rays.
-
-    Robust: rays farther than max(3 MAD, ``floor``) from the median, then from the fit, are
-    left out (a dark occluder across a few rays must not tilt the plane). The gradient is
-    ridge-regularised (weight ~ (0.15 scale)^2 per ray), so directions the used rays do not
-    span — e.g. only two opposite sectors are clean under motion blur — fall back to a
-    constant level instead of an extrapolated slope.
-    """
-    A = np.column_stack([np.ones(len(xy)), xy - center])
-    pen = np.diag([0.0, 1.0, 1.0]) * (0.15 * scale) ** 2
-    res = values - np.median(values[use])
-    coef = np.array([np.median(values[use]), 0.0, 0.0])
-    for _ in range(2):
-        mad = 1.4826 * np.median(np.abs(res[use]))
-        sel = use & (np.abs(res) <= max(3 * mad, floor))
-        if sel.sum() < 6:
-            break
-        Au = A[sel]
-        coef = np.linalg.solve(Au.T @ Au + len(Au) * pen, Au.T @ values[sel])
-        res = values - A @ coef
-    return A @ coef
-
-
-def _edge_points(gray, cq, half, dark_inside, c, contrast_floor, others=()):
-    """Sub-pixel edge points along rays of the ellipse ``cq``.
-
-    Rays run from the centre through the ellipse (radial lines are images of the circle's
-    radii under an affine map, so each ray crosses the edge once); each is sampled over
-    ``lambda in [1 - half, 1 + half]`` (lambda = 1 on the ellipse).
-
-    Plateau levels (ink, paper) are fitted as planes over the ring from the rays that
-    reach them — those whose transition is narrow compared with the window and which do
-    not look toward a neighbour. Under motion blur the rays along the motion never reach
-    a plateau inside the window; levels taken from their own ends would put the 50 %
-    level wherever the window happens to be, so the estimate would not move toward the edge.
-
-    Args:
-        cq: (centre, Q) of the current ellipse.
-        half: half-window in units of the ellipse.
-        dark_inside: polarity (True for the outer edge of a ring).
-        contrast_floor: smallest inner/outer level difference, grey levels.
-        others: (centre, Q) outer ellipses of neighbouring rings: rays whose window ends
-            within a blur width of them are dropped (their light bleeds into the profile).
-    Returns:
-        (P (K, 2) valid edge points, number of rays not dropped for a neighbour, their fit
-        weights (K,), the 75th percentile of their 10-90 % edge widths in px).
-    """
-    cen, Q = cq
-    L = sqrtm_spd(Q, -0.5)
-    eig = np.linalg.eigvalsh(Q)
-    a, b = 1 / np.sqrt(eig[0]), 1 / np.sqrt(eig[1])
-    perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
-    n = 2 * int(np.clip(round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2))  # even
-    S = int(np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200)) + 1
-    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    u = L @ np.stack([np.cos(t), np.sin(t)])  # (2, n): edge point at lambda = 1
-    r = np.hypot(u[0], u[1])  # px per unit lambda along each ray
-    lam = 1.0 + np.linspace(-half, half, S)  # (S,)
-    X = cen[0] + u[0][:, None] * lam[None, :]
-    Y = cen[1] + u[1][:, None] * lam[None, :]
-    v, ok = _bilinear(gray, X, Y)  # (n, S)
-    ok = ok.all(1)
-    edge = cen[:, None] + u  # (2, n) current edge points
-
-    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
-    m = max(2, int(round(c["level_samples"] * S)))
-    v_in = v[:, :m].mean(1)
-    v_out = v[:, -m:].mean(1)
-    diff = v_in - v_out  # > 0 when the inner side is brighter
-    f = (v - v_out[:, None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[:, None]
-    e, found, w1090, _ = _crossings(f, lam, r)
-    contrast = -diff if dark_inside else diff
-    sane = ok & found & (contrast > contrast_floor)
-    width = float(np.percentile(w1090[sane], 75)) if sane.any() else 0.0
-    far = np.ones(n, bool)
-    n_use = n
-    if len(others):
-        # A blurred neighbour darkens this profile's outer plateau when its edge is closer
-        # than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
-        reach = half * r + 0.65 * width + 1.0
-        for co, Qo in others:
-            d = edge - co[:, None]
-            lam_o = np.sqrt(np.einsum("in,ij,jn->n", d, Qo, d))
-            b_o = 1 / np.sqrt(np.linalg.eigvalsh(Qo)[1])
-            far &= (lam_o - 1.0) * b_o > reach  # lower bound on the distance to its edge, px
-        # Drop the opposite rays too: the blurred edge is centrally symmetric about the
-        # centre (not an ellipse under motion blur), so a symmetric point set keeps the
-        # fitted centre unbiased where a one-sided gap would not.
-        far &= np.roll(far, n // 2)
-        n_use = int(far.sum())
-        if n_use >= c["min_free_frac"] * n:
-            ok &= far
-        else:  # better contaminated rays than none
-            far[:] = True
-            n_use = n
-
-    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
-    clean = sane & far & (w1090 < 1.2 * half * r)
-    if clean.sum() >= max(6, 0.1 * n):
-        xy, scale = edge.T, np.sqrt(a * b)
-        raw_in, raw_out = v_in, v_out
-        floor = 0.1 * abs(np.median(v_in[clean]) - np.median(v_out[clean]))
-        v_in = _plane_levels(xy, v_in, clean, cen, scale, floor)
-        v_out = _plane_levels(xy, v_out, clean, cen, scale, floor)
-        # Blur moves both ends of a profile toward the middle by about the same amount;
-        # something dark or bright next to the ring (an occluder, clutter, a neighbour)
-        # moves one end only. Such rays are dropped.
-        lopsided = np.abs((raw_in - v_in) + (raw_out - v_out)) > c["level_tol"] * np.abs(v_in - v_out)
-        ok &= ~lopsided
-    else:
-        # Too few: smooth the local levels along the ellipse (circularly) instead.
-        k = max(1, int(round(c["level_smooth"] * n)))
-        if k > 1:
-            ker = np.ones(k) / k
-            v_in = np.convolve(np.r_[v_in[-k:], v_in, v_in[:k]], ker, "same")[k:-k]
-            v_out = np.convolve(np.r_[v_out[-k:], v_out, v_out[:k]], ker, "same")[k:-k]
-    diff = v_in - v_out
-    contrast = -diff if dark_inside else diff
-    med = np.median(contrast[ok]) if ok.any() else 0.0
-    ok &= contrast > max(contrast_floor, 0.3 * med)
-    f = (v - v_out[:, None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[:, None]  # 1 inside, 0 outside
-    e, found, w1090, _ = _crossings(f, lam, r)
-    ok &= found
-    if c["edge_method"] == "area":
-        # Integral of the normalised profile over [e - h, e + h] is the edge position minus
-        # (e - h) for any symmetric blur, and exact for area-sampled pixels. The window
-        # grows with the blur (a high quantile: motion blur widens one direction only).
-        width = float(np.percentile(w1090[ok], 75)) if ok.any() else 0.0
-        h = (c["area_window"][0] * width + c["area_window"][1]) / r
-        lo_, hi_ = np.maximum(e - h, lam[0]), np.minimum(e + h, lam[-1])
-        e = lo_ + _integral(f, lam, hi_) - _integral(f, lam, lo_)
-    # The edge must lie well inside the window.
-    lo, hi = lam[0] + 0.15 * (lam[-1] - lam[0]), lam[-1] - 0.15 * (lam[-1] - lam[0])
-    ok &= (e > lo) & (e < hi)
-    P = cen[None, :] + (u * e[None, :]).T
-    # Edge position noise ~ noise x transition width / contrast: under motion blur the rays
-    # along the motion are smeared and uncertain, those across it sharp.
-    # (The ellipse fit does not depend on the weights' overall scale.)
-    W = (np.abs(contrast) / np.maximum(w1090, 1.0)) ** 2 if c["edge_weights"] else np.ones(n)
-    width = float(np.percentile(w1090[ok], 75)) if ok.any() else 0.0
-    return P[ok], n_use, W[ok], width
-
-
-def _integral(f: np.ndarray, lam: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Per row, the integral from lam[0] to x[row] of the piecewise-linear profile f[row]."""
-    n, S = f.shape
-    dl = lam[1] - lam[0]
-    seg = 0.5 * (f[:, 1:] + f[:, :-1]) * dl
-    F = np.concatenate([np.zeros((n, 1)), np.cumsum(seg, axis=1)], axis=1)  # at the samples
-    pos = np.clip((x - lam[0]) / dl, 0, S - 1 - 1e-9)
-    j = np.floor(pos).astype(np.intp)
-    t = pos - j
-    rows = np.arange(n)
-    f0, f1 = f[rows, j], f[rows, np.minimum(j + 1, S - 1)]
-    return F[rows, j] + dl * (t * f0 + 0.5 * t * t * (f1 - f0))
-
-
-_SUBSETS: dict = {}  # (n, count) → the fixed random 5-point subsets of n points
-
-
-def _subsets(n: int, count: int) -> np.ndarray:
-    """(count, 5) random 5-point subsets of ``n`` points from a fixed seed, drawn once per
-    (n, count): the same subsets every call, without drawing them again."""
-    key = (n, count)
-    if key not in _SUBSETS:
-        rng = np.random.default_rng(0)
-        _SUBSETS[key] = np.stack([rng.choice(n, 5, replace=False) for _ in range(count)])
-        _SUBSETS[key].flags.writeable = False
-    return _SUBSETS[key]
-
-
-def _lmeds_inliers(P, frame, c, n_subsets: int = 40):
-    """Inliers of edge points by least-median-of-squares on a linearised ellipse model.
-
-    Near the current ellipse ``frame``, a slightly different ellipse moves the edge along
-    each ray by ``a0 + a1 cos t + b1 sin t + a2 cos 2t + b2 sin 2t`` (size, centre, shape).
-    Fitting this 5-parameter model to the radial offsets on random 5-point subsets and
-    keeping the one with the smallest median residual tolerates a contiguous spoilt sector
-    (an occluder across the edge) that a least-squares fit would bend toward and so hide.
-    The subsets come from a fixed seed: the result is deterministic.
-    """
-    cen, Q = frame
-    d = P - cen
-    W = sqrtm_spd(Q)
-    q = d @ W.T  # unit-circle frame
-    lam = np.hypot(q[:, 0], q[:, 1])
-    t = np.arctan2(q[:, 1], q[:, 0])
-    off = (lam - 1.0) * np.hypot(d[:, 0], d[:, 1]) / np.maximum(lam, 1e-9)  # radial offset, px
-    X = np.column_stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)])
-    n = len(P)
-    idx = _subsets(n, n_subsets)
-    A = X[idx]  # (S, 5, 5)
-    good = np.abs(np.linalg.det(A)) > 1e-6
-    if not good.any():
-        return np.ones(n, bool)
-    coef = np.linalg.solve(A[good], off[idx[good]][..., None])[..., 0]  # (S', 5)
-    res = np.abs(off[None, :] - coef @ X.T)
-    med = np.median(res, axis=1)
-    best = int(np.argmin(med))
-    sigma = 1.4826 * (1 + 5.0 / max(n - 5, 1)) * med[best]
-    return res[best] <= max(2.5 * sigma, c["outlier_min_px"])
-
-
-def _fit_robust(P, c, frame=None, weights=None):
-    """Ellipse fit with iterative rejection of points far from the fitted curve
-    (after a least-median-of-squares screen around ``frame`` if given); ``weights``
-    (K,) weigh the points in the fit."""
-    keep = np.ones(len(P), bool)
-    if frame is not None and len(P) >= 12:
-        keep = _lmeds_inliers(P, frame, c)
-    fit = None
-    for _ in range(3):
-        if keep.sum() < 6:
-            return None, keep
-        fit = fit_ellipse(P[keep], None if weights is None else weights[keep])
-        if fit is None:
-            return None, keep
-        cen, Q = fit
-        d = P - cen
-        lam = np.sqrt(np.einsum("ni,ij,nj->n", d, Q, d))
-        # Radial residual in px: (lambda - 1) times the ray's length to the curve.
-        res = (lam - 1.0) * np.linalg.norm(d, axis=1) / np.maximum(lam, 1e-9)
-        r = res[keep]
-        sig = 1.4826 * np.median(np.abs(r - np.median(r)))
-        new = np.abs(res) <= max(c["outlier_k"] * sig, c["outlier_min_px"])
-        if np.array_equal(new, keep):
-            break
-        keep = new
-    return fit, keep
-
-
 def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
     """(N, 2) ideal (undistorted) pixels → distorted pixels of ``camera``."""
     K = camera.K
@@ -775,37 +476,69 @@ def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
     return camera.distort(np.column_stack([x, y]))
 
 
-def _refine_edge(gray, cq, half, dark_inside, c, floor, others, camera):
-    """Iterated edge sampling + robust fit; (ellipse in image px, ellipse in ideal px | None,
-    edge width px (see :func:`_edge_points`)) or None.
-
-    Iterates until the ellipse moves less than conf["refine_tol"] px: under heavy blur the
-    plateau levels are only reached near the true edge, so each pass halves the error at best.
-    """
-    found = None
-    for it in range(max(1, c["refine_iters"])):
-        P, n, W, width = _edge_points(gray, cq, half, dark_inside, c, floor, others)
-        need = max(6, c["min_valid_frac"] * n)
-        if len(P) < need:
-            break
-        fit, keep = _fit_robust(P, c, cq, W)
-        if fit is None or keep.sum() < need:
-            break
-        # Largest displacement of the curve: centre shift plus change of the semi-axes.
-        move = np.linalg.norm(fit[0] - cq[0]) + np.abs(
-            np.sqrt(1 / np.linalg.eigvalsh(fit[1])) - np.sqrt(1 / np.linalg.eigvalsh(cq[1]))
-        ).max()
-        cq, found, found_w, found_width = fit, P[keep], W[keep], width
-        if it >= 1 and move < c["refine_tol"]:
-            break
-    if found is None:
-        return None
-    ideal = None
-    if camera is not None:
-        # The imaged circle is an ellipse in ideal (undistorted) pixels, not in the raw
-        # image: fit there (the centre is mapped back by the caller).
-        ideal = fit_ellipse(camera.undistort_points(found), found_w)
-    return cq, ideal, found_width
+def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Marker, c: dict, noises: list, cameras: list) -> list:
+    """:func:`refine_ring` of several rings at once (of one or more images; ring k is in
+    ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``): one
+    batch of edge fits (:func:`markerpose.edges.refine_edges`) for all outer edges, one for
+    all inner ones."""
+    if not rings:
+        return []
+    rho = marker.inner_diameter / marker.outer_diameter
+    gap = _marker_gap(marker)
+    # Half-windows in units of the ellipse: up to the middle of the black band on one side
+    # and to the middle of the gap between rings (outer) or deep into the hole (inner).
+    half_band = 0.5 * (1 - rho)  # outer radii
+    w_out = 0.9 * min(half_band, 0.5 * gap)
+    w_in = 0.9 * min(half_band / rho, 0.8)
+    view = np.asarray(view, np.intp)
+    floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
+    oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
+    outer = edges.refine_edges(grays, view, np.array([r._outer_cq[0] for r in rings]), np.array([r._outer_cq[1] for r in rings]),
+                               w_out, True, c, floor, oth, cameras)
+    # The inner ellipses: from the hole's, or from the outer one scaled by rho.
+    inner_cqs = [None] * len(rings)
+    for k, (r, out) in enumerate(zip(rings, outer)):
+        if out is not None:
+            inner_cqs[k] = r._inner_cq if r._inner_cq is not None and not r.from_hole else (out[0][0], out[0][1] / rho**2)
+    inner: list = [None] * len(rings)
+    todo = [k for k in range(len(rings)) if inner_cqs[k] is not None]
+    if (c["refine_inner"] or c["center"] == "concentric") and todo:
+        fits = edges.refine_edges(grays, view[todo], np.array([inner_cqs[k][0] for k in todo]), np.array([inner_cqs[k][1] for k in todo]),
+                                  w_in, False, c, floor[todo], [[] for _ in todo], cameras)
+        for k, f in zip(todo, fits):
+            inner[k] = f
+    result = []
+    for k, ring in enumerate(rings):
+        if outer[k] is None:
+            result.append(ring)
+            continue
+        outer_cq, outer_ideal, width = outer[k]
+        camera = None if cameras is None else cameras[view[k]]
+        inner_cq, inner_ideal = inner_cqs[k], None
+        if inner[k] is not None:
+            inner_cq, inner_ideal, _ = inner[k]
+        use_ideal = camera is not None and outer_ideal is not None
+        center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
+        if c["center"] == "concentric" and inner[k] is not None:
+            if use_ideal and inner_ideal is not None:
+                cc = concentric_center(outer_ideal, inner_ideal)
+                cc = None if cc is None else _ideal_to_pixels(camera, cc)[0]
+            else:
+                cc = concentric_center(outer_cq, inner_cq)
+            # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
+            if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
+                center = cc
+        result.append(replace(
+            ring,
+            center=center,
+            outer=cq_to_rect(*outer_cq),
+            inner=cq_to_rect(*inner_cq) if inner[k] is not None else ring.inner,
+            refined=True,
+            _outer_cq=outer_cq,
+            _inner_cq=inner_cq,
+            _edge_width=width,
+        ))
+    return result
 
 
 def refine_ring(
@@ -819,6 +552,10 @@ def refine_ring(
 ) -> Ring:
     """Sub-pixel ellipses of one ring candidate: the outer one, and the inner one when
     conf["refine_inner"] is set or conf["center"] is "concentric".
+
+    The edges are sampled along rays of the current ellipse and fitted again, until the
+    ellipse stops moving (:mod:`markerpose.edges`). :func:`refine_views` does the same for
+    several rings at once.
 
     Args:
         gray: (H, W) float32 grey image (see :func:`to_gray`), not blurred.
@@ -837,51 +574,39 @@ def refine_ring(
         input unchanged when too few edge points are found (occlusion, image border).
     """
     c = _merge_conf(conf)
-    rho = marker.inner_diameter / marker.outer_diameter
-    gap = _marker_gap(marker)
-    # Half-windows in units of the ellipse: up to the middle of the black band on one side
-    # and to the middle of the gap between rings (outer) or deep into the hole (inner).
-    half_band = 0.5 * (1 - rho)  # outer radii
-    w_out = 0.9 * min(half_band, 0.5 * gap)
-    w_in = 0.9 * min(half_band / rho, 0.8)
     noise = noise_sigma(gray) if noise is None else noise
-    floor = max(1.0, 2.0 * noise)  # smallest edge contrast, grey levels
-    others = [o._outer_cq for o in others if o is not ring]
-    out = _refine_edge(gray, ring._outer_cq, w_out, True, c, floor, others, camera)
-    if out is None:
-        return ring
-    outer_cq, outer_ideal, width = out
-    # The inner ellipse: start from the hole's, or from the outer one scaled by rho.
-    inner_cq = ring._inner_cq
-    if inner_cq is None or ring.from_hole:
-        inner_cq = (outer_cq[0], outer_cq[1] / rho**2)
-    inn = None
-    if c["refine_inner"] or c["center"] == "concentric":
-        inn = _refine_edge(gray, inner_cq, w_in, False, c, floor, (), camera)
-    inner_ideal = None
-    if inn is not None:
-        inner_cq, inner_ideal, _ = inn
-    use_ideal = camera is not None and outer_ideal is not None
-    center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
-    if c["center"] == "concentric" and inn is not None:
-        if use_ideal and inner_ideal is not None:
-            cc = concentric_center(outer_ideal, inner_ideal)
-            cc = None if cc is None else _ideal_to_pixels(camera, cc)[0]
-        else:
-            cc = concentric_center(outer_cq, inner_cq)
-        # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
-        if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
-            center = cc
-    return replace(
-        ring,
-        center=center,
-        outer=cq_to_rect(*outer_cq),
-        inner=cq_to_rect(*inner_cq) if inn is not None else ring.inner,
-        refined=True,
-        _outer_cq=outer_cq,
-        _inner_cq=inner_cq,
-        _edge_width=width,
-    )
+    return _refine_batch([gray], [0], [ring], [list(others)], marker, c, [noise], [camera])[0]
+
+
+def refine_views(
+    grays: list,
+    rings: list,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    noises: list | None = None,
+    cameras: list | None = None,
+) -> list:
+    """:func:`refine_ring` of every ring of one or more views in one batch, each ring's
+    neighbours being the other rings of its view.
+
+    Args:
+        grays: per view, a (H, W) float32 grey image.
+        rings: per view, a list of :class:`Ring` or None (kept None).
+        noises: per view, the noise sigma if known (else :func:`noise_sigma`).
+        cameras: per view, a :class:`~markerpose.camera.Camera` or None.
+    Returns:
+        per view, the list of refined rings (see :func:`refine_ring`).
+    """
+    c = _merge_conf(conf)
+    noises = [noise_sigma(g) if noises is None or noises[v] is None else noises[v] for v, g in enumerate(grays)]
+    flat = [(v, k, r) for v, rs in enumerate(rings) for k, r in enumerate(rs) if r is not None]
+    present = [[r for r in rs if r is not None] for rs in rings]
+    done = _refine_batch(grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], marker, c,
+                         noises, cameras)
+    out = [list(rs) for rs in rings]
+    for (v, k, _), r in zip(flat, done):
+        out[v][k] = r
+    return out
 
 
 def _sizes_fit_spacing(cqs: list, marker: Marker, tol: float) -> bool:
@@ -929,7 +654,7 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
 
     noise = noise_sigma(gray) if noise is None else noise
     rho = marker.inner_diameter / marker.outer_diameter
-    fit = blurfit.fit_blurred_rings(gray, [r._outer_cq for r in rings], rho, noise)
+    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise)
     if fit is None:
         return rings
     out = []
@@ -1038,7 +763,7 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera)
     c = _merge_conf(conf)
     chosen = [rings[k] for k in tri]
     if subpixel:
-        chosen = [refine_ring(gray, r, marker, c, noise, others=chosen, camera=camera) for r in chosen]
+        chosen = refine_views([gray], [chosen], marker, c, [noise], [camera])[0]
         chosen = refine_blurred(gray, chosen, marker, c, noise)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)))
@@ -1133,9 +858,8 @@ def refine_points(
                 best = (dist, r)
         rings.append(None if best is None else _shift_ring(best[1], off))
     found = np.array([r is not None for r in rings])
-    present = [r for r in rings if r is not None]
     if subpixel:
-        rings = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
+        rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
         rings = refine_blurred(gray, rings, marker, c, noise)
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     return centers, found, [None if r is None else r.outer for r in rings]
@@ -1150,7 +874,8 @@ def refine_ellipses(
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Sub-pixel outer ellipses of rings whose approximate outer ellipses are known (e.g.
     fitted to EllipSegNet's masks): the image's edges are sampled along rays of each
-    ellipse and fitted again (:func:`refine_ring`).
+    ellipse and fitted again (:func:`refine_ring`), then the blurred-ring fit where the
+    edges are wide (:func:`refine_blurred`).
 
     Args:
         image: uint8 gray (H, W) or BGR.
@@ -1161,24 +886,50 @@ def refine_ellipses(
         (None given, too few edge points) the given ellipse's centre is kept (NaN for
         None) and ``refined`` is False.
     """
+    return refine_ellipses_views([image], [ellipses], marker, conf, [camera])[0]
+
+
+def refine_ellipses_views(
+    images: list,
+    ellipses: list,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    cameras: list | None = None,
+    noises: list | None = None,
+) -> list:
+    """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
+    fits in one batch.
+
+    Args:
+        images: per view, uint8 gray (H, W) or BGR.
+        ellipses: per view, a list of approximate outer ellipses (RotatedRect) or None.
+        cameras: per view, a Camera or None.
+        noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
+    Returns:
+        per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them.
+    """
     c = _merge_conf(conf)
-    gray = to_gray(image)
-    noise = noise_sigma(gray)
+    grays = [as_gray(im, f"view {v}", allow_float=True) for v, im in enumerate(images)]  # 8-bit stays 8-bit: no float copy
+    noises = [noise_sigma(g) if noises is None or noises[v] is None else noises[v] for v, g in enumerate(grays)]
     rho = marker.inner_diameter / marker.outer_diameter
-    rings = []
-    for rect in ellipses:
-        if rect is None:
-            rings.append(None)
-            continue
-        (cx, cy), (w, h), ang = rect
-        inner = ((cx, cy), (w * rho, h * rho), ang)
-        rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner)))
-    present = [r for r in rings if r is not None]
-    out = [None if r is None else refine_ring(gray, r, marker, c, noise, others=present, camera=camera) for r in rings]
-    out = refine_blurred(gray, out, marker, c, noise)
-    centers = np.array([[np.nan, np.nan] if r is None else r.center for r in out], np.float64).reshape(-1, 2)
-    ok = np.array([r is not None and r.refined for r in out], bool)
-    return centers, ok, [None if r is None else r.outer for r in out]
+    views = []
+    for rects in ellipses:
+        rings = []
+        for rect in rects:
+            if rect is None:
+                rings.append(None)
+                continue
+            (cx, cy), (w, h), ang = rect
+            inner = ((cx, cy), (w * rho, h * rho), ang)
+            rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner)))
+        views.append(rings)
+    out = []
+    for gray, noise, rings in zip(grays, noises, refine_views(grays, views, marker, c, noises, cameras)):
+        rings = refine_blurred(gray, rings, marker, c, noise)
+        centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
+        ok = np.array([r is not None and r.refined for r in rings], bool)
+        out.append((centers, ok, [None if r is None else r.outer for r in rings]))
+    return out
 
 
 __all__ = [
@@ -1194,6 +945,8 @@ __all__ = [
     "find_triples",
     "detect",
     "refine_ellipses",
+    "refine_ellipses_views",
+    "refine_views",
     "refine_points",
     "refine_blurred",
     "refine_triple",

@@ -198,15 +198,15 @@ class MarkerPose:
     def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
         """The rings refitted from their predicted ellipses in both views, verified, solved."""
         mk, c = self.marker, self.conf["track"]
-        found = []
+        predicted = []
         for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
             ellipses = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
             if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
                 return None
-            det = self._timed("refine", self.refiner.from_ellipses, gray, cam, ellipses, 1.0, False)
-            if det is None:
-                return None
-            found.append(det)
+            predicted.append(ellipses)
+        found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False)
+        if any(det is None for det in found):
+            return None
         reason = self._timed("verify", verify.rejection, self.rig, found, mk, self.conf["verify"], True)
         if reason is not None:
             return None
@@ -331,7 +331,7 @@ class MarkerPose:
                 # the predicted centres can be led to a neighbouring ring by a steep,
                 # blurred view.
                 ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
-                guided = self._timed("refine", self.refiner.from_ellipses, grays[b], cams[b], ellipses, s)
+                guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s)[0]
                 if guided is not None and (est := self._accepted([det_a, guided][:: 1 - 2 * a])) is not None:
                     return est
                 det_b = self._fit(self.refiner, [grays[b]], [cams[b]], [(pred, s)])

@@ -88,11 +88,15 @@ class Refiner:
         seen = [k for k, f in enumerate(points) if f is not None]  # all patches of all views in one batch
         refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
         out = [None] * len(grays)
-        for k, found in zip(seen, refined):
+        fits = [None] * len(seen)
+        if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
+            fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, self.classical,
+                                                   [cameras[k] for k in seen])
+        for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
             ellipses = None
-            if self.edge_refit:  # the image's edges, from the mask's ellipses
-                c2, ok2, ellipses = classical.refine_ellipses(grays[k], found[2], self.marker, self.classical, camera=cameras[k])
+            if fit is not None:
+                c2, ok2, ellipses = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
                     c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=self.classical, camera=cameras[k])
                     c2 = np.where(ok2[:, None], c2, c3)
@@ -104,13 +108,15 @@ class Refiner:
             out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
         return out
 
-    def from_ellipses(self, gray: np.ndarray, camera, ellipses: list, score: float, blur_unrefined: bool = True) -> Detection | None:
-        """The rings' edges fitted from predicted outer ellipses (the transfer, tracking):
-        a Detection when all three refine, else None. ``blur_unrefined=False``: no blur
-        fit when the edge fit found none of the rings (a prediction that missed them)."""
+    def from_ellipses(self, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
+                      noises: list | None = None) -> list:
+        """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
+        all views in one batch: per view a Detection when all three refine, else None.
+        ``blur_unrefined=False``: no blur fit when the edge fit found none of the rings (a
+        prediction that missed them). ``noises``: per view, the noise sigma if known."""
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
-        centers, ok, fitted = classical.refine_ellipses(gray, ellipses, self.marker, conf, camera=camera)
-        return Detection(centers=centers, ellipses=fitted, score=score, refined=ok) if ok.all() else None
+        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises)
+        return [Detection(centers=c, ellipses=e, score=score, refined=ok) if ok.all() else None for c, ok, e in fits]
 
     def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
         """The classical detector's triple ``tri`` of a view (gray, noise, rings, ...)

@@ -1,0 +1,578 @@
+"""Sub-pixel ring edges: ray profiles, edge positions and robust ellipse fits, in batches.
+
+Every function here works on a batch of K ellipses at once — the rings of one view, or
+of both views of a stereo pair — held in arrays padded to the largest ring, with masks
+saying which rays, samples and points are real. Each ellipse of a batch gets exactly what
+it would get alone. Why batches: a ring's refinement is a few hundred small array
+operations (medians, percentiles, 3 x 3 solves); done ring by ring, a tracked frame's six
+rings spend their time in the per-call overhead of those operations, not in arithmetic.
+
+The method (see :func:`markerpose.classical.refine_ring` for its use):
+
+- :func:`edge_points` samples rays from each ellipse's centre across its edge, fits the
+  plateau levels (ink, paper) as planes over the ring, and locates the edge on each ray
+  by the area method (the integral of the normalised profile);
+- :func:`fit_robust` fits an ellipse to the edge points (direct least squares,
+  :func:`fit_ellipses`) after a least-median-of-squares screen and with iterative
+  outlier rejection;
+- :func:`refine_edges` iterates the two until the ellipses stop moving.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# --- masked statistics (numpy's median / linear percentile over the masked-in entries) ----------
+
+
+def _sorted_masked(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row of ``x`` (last axis) sorted with its masked-out entries last; the counts."""
+    return np.sort(np.where(mask, x, np.inf), axis=-1), mask.sum(-1)
+
+
+def _take(xs: np.ndarray, i: np.ndarray) -> np.ndarray:
+    return np.take_along_axis(xs, np.maximum(i, 0)[..., None], axis=-1)[..., 0]
+
+
+def masked_median(x: np.ndarray, mask: np.ndarray, empty: float = 0.0) -> np.ndarray:
+    """Median of each row's masked-in entries (last axis); ``empty`` for none."""
+    xs, n = _sorted_masked(x, mask)
+    med = 0.5 * (_take(xs, (n - 1) // 2) + _take(xs, n // 2))
+    return np.where(n > 0, med, empty)
+
+
+def masked_percentile(x: np.ndarray, mask: np.ndarray, q: float, empty: float = 0.0) -> np.ndarray:
+    """``np.percentile(row[mask], q)`` (linear) of each row (last axis); ``empty`` for none."""
+    xs, n = _sorted_masked(x, mask)
+    pos = (n - 1) * (q / 100.0)
+    lo = np.floor(pos).astype(np.intp)
+    t = pos - lo
+    a, b = _take(xs, lo), _take(xs, np.minimum(lo + 1, n - 1))
+    with np.errstate(invalid="ignore"):  # rows with nothing masked in: inf - inf, replaced below
+        d = b - a
+        val = np.where(t >= 0.5, b - d * (1 - t), a + d * t)  # numpy's lerp
+    return np.where(n > 0, val, empty)
+
+
+# --- small batched linear algebra -----------------------------------------------------------------
+
+
+def spd_power(Q: np.ndarray, power: float) -> np.ndarray:
+    """(K, 2, 2) symmetric positive definite matrices to a real ``power``."""
+    lam, V = np.linalg.eigh(Q)
+    return (V * lam[:, None, :] ** power) @ V.transpose(0, 2, 1)
+
+
+def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched ``solve(A, b)`` and which systems were solvable (singular ones get zeros)."""
+    try:
+        return np.linalg.solve(A, b), np.ones(len(A), bool)
+    except np.linalg.LinAlgError:
+        x = np.zeros(b.shape)
+        ok = np.ones(len(A), bool)
+        for k in range(len(A)):
+            try:
+                x[k] = np.linalg.solve(A[k], b[k])
+            except np.linalg.LinAlgError:
+                ok[k] = False
+        return x, ok
+
+
+# --- ray profiles --------------------------------------------------------------------------------
+
+
+def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``img`` (float or 8-bit) at float coordinates (any shape); also a
+    validity mask.
+
+    Done in float64 numpy, not ``cv2.remap``, whose fixed-point weights quantise positions
+    to 1/32 px.
+    """
+    h, w = img.shape
+    valid = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
+    xc = np.clip(x, 0, w - 1.000001)
+    yc = np.clip(y, 0, h - 1.000001)
+    x0 = np.floor(xc).astype(np.intp)
+    y0 = np.floor(yc).astype(np.intp)
+    fx, fy = xc - x0, yc - y0
+    flat = img.ravel()
+    i00 = y0 * w + x0
+    v00, v01, v10, v11 = (flat[i] for i in (i00, i00 + 1, i00 + w, i00 + w + 1))
+    if not np.issubdtype(img.dtype, np.floating):  # an 8-bit image sampled as it is, without a float copy
+        v00, v01, v10, v11 = (v.astype(np.float64) for v in (v00, v01, v10, v11))
+    top = v00 + fx * (v01 - v00)
+    bot = v10 + fx * (v11 - v10)
+    return top + fy * (bot - top), valid
+
+
+def crossings(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: np.ndarray):
+    """Per ray of (K, N, Smax) normalised profiles ``f`` (ring k has S[k] real samples at
+    ``lam[k]``, step dl[k]): the 50 % crossing nearest the window centre (lambda), its
+    validity, and the 10-90 % width of the transition around it (px)."""
+    K, N, Sm = f.shape
+    dl3 = dl[:, None]
+    above = f >= 0.5
+    jj = np.arange(Sm - 1)
+    cross = above[..., :-1] & ~above[..., 1:] & (jj[None, None, :] < (S - 1)[:, None, None])
+    dist = np.where(cross, np.abs(jj[None, None, :] - ((S - 1) / 2)[:, None, None]), np.inf)
+    j = np.argmin(dist, axis=2)  # (K, N)
+    found = np.isfinite(np.take_along_axis(dist, j[..., None], 2)[..., 0])
+    f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
+    f1 = np.take_along_axis(f, (j + 1)[..., None], 2)[..., 0]
+    lam_j = np.take_along_axis(lam, j, 1)
+    e = lam_j + dl3 * (f0 - 0.5) / np.where(f0 - f1 != 0, f0 - f1, 1.0)
+    # Only the run of in-between samples around the crossing counts: in dark images noise
+    # puts isolated plateau samples in (0.1, 0.9). Padding samples count as plateau, which
+    # ends a run at a ring's last sample.
+    idx = np.arange(Sm)
+    mid = (f > 0.1) & (f < 0.9) & (idx[None, None, :] < S[:, None, None])
+    last_out = np.maximum.accumulate(np.where(~mid, idx, -1), axis=2)
+    next_out = (Sm - 1) - np.maximum.accumulate(np.where(~mid, (Sm - 1) - idx, -1)[..., ::-1], axis=2)[..., ::-1]
+    span = next_out - last_out
+    run = np.maximum(np.take_along_axis(span, j[..., None], 2)[..., 0], np.take_along_axis(span, (j + 1)[..., None], 2)[..., 0]) - 1
+    return e, found, np.maximum(run, 0) * dl3 * r
+
+
+def integral(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Per ray, the integral from lam[k, 0] to x of the piecewise-linear profile f (K, N, Smax)."""
+    K, N, Sm = f.shape
+    dl3 = dl[:, None]
+    seg = 0.5 * (f[..., 1:] + f[..., :-1]) * dl[:, None, None]
+    F = np.concatenate([np.zeros((K, N, 1)), np.cumsum(seg, axis=2)], axis=2)
+    pos = np.clip((x - lam[:, :1]) / dl3, 0, (S - 1)[:, None] - 1e-9)
+    j = np.floor(pos).astype(np.intp)
+    t = pos - j
+    f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
+    f1 = np.take_along_axis(f, np.minimum(j + 1, (S - 1)[:, None])[..., None], 2)[..., 0]
+    Fj = np.take_along_axis(F, j[..., None], 2)[..., 0]
+    return Fj + dl3 * (t * f0 + 0.5 * t * t * (f1 - f0))
+
+
+def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np.ndarray, scale: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """Per row k, fit ``values ≈ a + g . (xy - center)`` on the rays ``use``; evaluate at all.
+
+    Robust: rays farther than max(3 MAD, ``floor``) from the median, then from the fit, are
+    left out (a dark occluder across a few rays must not tilt the plane). The gradient is
+    ridge-regularised (weight ~ (0.15 scale)^2 per ray), so directions the used rays do not
+    span — e.g. only two opposite sectors are clean under motion blur — fall back to a
+    constant level instead of an extrapolated slope.
+
+    Args: xy (K, N, 2), values / use (K, N), center (K, 2), scale / floor (K,).
+    """
+    K, N = values.shape
+    A = np.concatenate([np.ones((K, N, 1)), xy - center[:, None, :]], axis=2)
+    pen = np.zeros((K, 3, 3))
+    pen[:, 1, 1] = pen[:, 2, 2] = (0.15 * scale) ** 2
+    med = masked_median(values, use)
+    res = values - med[:, None]
+    coef = np.zeros((K, 3))
+    coef[:, 0] = med
+    live = np.ones(K, bool)
+    for _ in range(2):
+        mad = 1.4826 * masked_median(np.abs(res), use)
+        sel = use & (np.abs(res) <= np.maximum(3 * mad, floor)[:, None])
+        live &= sel.sum(1) >= 6
+        if not live.any():
+            break
+        s = sel[live].astype(np.float64)
+        Al = A[live]
+        M = np.einsum("kn,kni,knj->kij", s, Al, Al) + s.sum(1)[:, None, None] * pen[live]
+        rhs = np.einsum("kn,kni,kn->ki", s, Al, values[live])
+        x, ok = _solve(M, rhs[..., None])
+        rows = np.nonzero(live)[0][ok]
+        coef[rows] = x[ok, :, 0]
+        res = values - np.einsum("kni,ki->kn", A, coef)
+    return np.einsum("kni,ki->kn", A, coef)
+
+
+def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
+    ker = np.ones(k) / k
+    return np.convolve(np.r_[v[-k:], v, v[:k]], ker, "same")[k:-k]
+
+
+def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict,
+                floor: np.ndarray, others: list):
+    """Sub-pixel edge points along rays of K ellipses (x - cen)^T Q (x - cen) = 1.
+
+    Rays run from the centre through the ellipse (radial lines are images of the circle's
+    radii under an affine map, so each ray crosses the edge once); each is sampled over
+    ``lambda in [1 - half, 1 + half]`` (lambda = 1 on the ellipse).
+
+    Plateau levels (ink, paper) are fitted as planes over the ring from the rays that
+    reach them — those whose transition is narrow compared with the window and which do
+    not look toward a neighbour. Under motion blur the rays along the motion never reach
+    a plateau inside the window; levels taken from their own ends would put the 50 %
+    level wherever the window happens to be, so the estimate would not move toward the edge.
+
+    Args:
+        grays: the images; ellipse k is in ``grays[view[k]]``.
+        cen, Q: (K, 2), (K, 2, 2) the current ellipses.
+        half: half-window in units of the ellipse.
+        dark_inside: polarity (True for the outer edge of a ring).
+        c: the classical detector's settings.
+        floor: (K,) smallest inner/outer level difference, grey levels.
+        others: per ellipse, a list of (centre, Q) outer ellipses of neighbouring rings:
+            rays whose window ends within a blur width of them are dropped (their light
+            bleeds into the profile).
+    Returns:
+        (P (K, M, 2) edge points, valid first: mask (K, M), number of rays not dropped
+        for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
+        widths of the valid points in px (K,)).
+    """
+    K = len(cen)
+    L = spd_power(Q, -0.5)
+    eig = np.linalg.eigvalsh(Q)
+    a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
+    perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
+    n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(int)  # even
+    S = np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200).astype(int) + 1
+    N, Sm = int(n.max()), int(S.max())
+    ray = np.arange(N)[None, :] < n[:, None]  # real rays (K, N)
+    t = np.where(ray, 2 * np.pi * np.arange(N)[None, :] / n[:, None], 0.0)
+    u = np.einsum("kij,kjn->kin", L, np.stack([np.cos(t), np.sin(t)], axis=1))  # (K, 2, N): edge at lambda 1
+    r = np.hypot(u[:, 0], u[:, 1])  # px per unit lambda along each ray
+    # lambda = 1 + linspace(-half, half, S[k]) (computed as numpy does: window tests
+    # compare run lengths times this step against fractions of the window), padding
+    # repeating the last sample.
+    idx = np.arange(Sm)
+    base = np.minimum(idx[None, :], (S - 1)[:, None]) * ((2 * half) / (S - 1))[:, None] + (-half)
+    base[idx[None, :] >= (S - 1)[:, None]] = half
+    lam = 1.0 + base
+    dl = lam[:, 1] - lam[:, 0]
+    X = cen[:, 0, None, None] + u[:, 0, :, None] * lam[:, None, :]
+    Y = cen[:, 1, None, None] + u[:, 1, :, None] * lam[:, None, :]
+    v = np.empty((K, N, Sm))
+    inside = np.empty((K, N, Sm), bool)
+    for g in np.unique(view):
+        sel = view == g
+        v[sel], inside[sel] = bilinear(grays[g], X[sel], Y[sel])
+    ok = inside.all(2) & ray
+    edge = cen[:, :, None] + u  # (K, 2, N) current edge points
+
+    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
+    m = np.maximum(2, np.round(c["level_samples"] * S)).astype(int)
+    cs = np.concatenate([np.zeros((K, N, 1)), np.cumsum(v, axis=2)], axis=2)
+    rows = np.arange(K)
+    v_in = cs[rows, :, m] / m[:, None]
+    v_out = (cs[rows, :, S] - cs[rows, :, S - m]) / m[:, None]
+    diff = v_in - v_out  # > 0 when the inner side is brighter
+    f = (v - v_out[..., None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[..., None]
+    e, found, w1090 = crossings(f, lam, dl, S, r)
+    contrast = -diff if dark_inside else diff
+    sane = ok & found & (contrast > floor[:, None])
+    width = masked_percentile(w1090, sane, 75)
+    far = np.ones((K, N), bool)
+    n_use = n.copy()
+    pairs = [(k, co, Qo) for k, oth in enumerate(others) for co, Qo in oth]
+    if pairs:
+        # A blurred neighbour darkens this profile's outer plateau when its edge is closer
+        # than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
+        reach = half * r + 0.65 * width[:, None] + 1.0
+        kk = np.array([p[0] for p in pairs])
+        co = np.array([p[1] for p in pairs], np.float64)
+        Qo = np.array([p[2] for p in pairs], np.float64)
+        d = edge[kk] - co[:, :, None]
+        lam_o = np.sqrt(np.einsum("pin,pij,pjn->pn", d, Qo, d))
+        b_o = 1 / np.sqrt(np.linalg.eigvalsh(Qo)[:, 1])
+        clear = (lam_o - 1.0) * b_o[:, None] > reach[kk]  # lower bound on the distance to its edge, px
+        np.logical_and.at(far, kk, clear)
+        # Drop the opposite rays too: the blurred edge is centrally symmetric about the
+        # centre (not an ellipse under motion blur), so a symmetric point set keeps the
+        # fitted centre unbiased where a one-sided gap would not.
+        opp = np.where(ray, (np.arange(N)[None, :] - n[:, None] // 2) % n[:, None], 0)
+        far &= np.take_along_axis(far, opp, 1)
+        has = np.zeros(K, bool)
+        has[kk] = True
+        n_far = (far & ray).sum(1)
+        enough = n_far >= c["min_free_frac"] * n
+        n_use = np.where(has & enough, n_far, n)
+        ok &= np.where((has & enough)[:, None], far, True)
+        far[~(has & enough)] = True  # better contaminated rays than none
+
+    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
+    clean = sane & far & (w1090 < 1.2 * half * r)
+    planes = clean.sum(1) >= np.maximum(6, 0.1 * n)
+    if planes.any():
+        p = planes
+        xy = edge[p].transpose(0, 2, 1)
+        lv = masked_median(np.concatenate([v_in[p], v_out[p]]), np.concatenate([clean[p], clean[p]]))
+        kp = int(p.sum())
+        fl = 0.1 * np.abs(lv[:kp] - lv[kp:])
+        fit = plane_levels(np.concatenate([xy, xy]), np.concatenate([v_in[p], v_out[p]]), np.concatenate([clean[p], clean[p]]),
+                           np.concatenate([cen[p], cen[p]]), np.tile(np.sqrt(a * b)[p], 2), np.tile(fl, 2))
+        raw_in, raw_out = v_in[p], v_out[p]
+        fin, fout = fit[:kp], fit[kp:]
+        # Blur moves both ends of a profile toward the middle by about the same amount;
+        # something dark or bright next to the ring (an occluder, clutter, a neighbour)
+        # moves one end only. Such rays are dropped.
+        lopsided = np.abs((raw_in - fin) + (raw_out - fout)) > c["level_tol"] * np.abs(fin - fout)
+        v_in, v_out = v_in.copy(), v_out.copy()
+        v_in[p], v_out[p] = fin, fout
+        ok[p] &= ~lopsided
+    for k in np.nonzero(~planes)[0]:
+        # Too few: smooth the local levels along the ellipse (circularly) instead.
+        w = max(1, int(round(c["level_smooth"] * n[k])))
+        if w > 1:
+            v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
+            v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
+    diff = v_in - v_out
+    contrast = -diff if dark_inside else diff
+    med = masked_median(contrast, ok)
+    ok &= contrast > np.maximum(floor, 0.3 * med)[:, None]
+    f = (v - v_out[..., None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[..., None]  # 1 inside, 0 outside
+    e, found, w1090 = crossings(f, lam, dl, S, r)
+    ok &= found
+    if c["edge_method"] == "area":
+        # Integral of the normalised profile over [e - h, e + h] is the edge position minus
+        # (e - h) for any symmetric blur, and exact for area-sampled pixels. The window
+        # grows with the blur (a high quantile: motion blur widens one direction only).
+        width = masked_percentile(w1090, ok, 75)
+        h = (c["area_window"][0] * width[:, None] + c["area_window"][1]) / r
+        lo_, hi_ = np.maximum(e - h, lam[:, :1]), np.minimum(e + h, (1.0 + half))
+        e = lo_ + integral(f, lam, dl, S, hi_) - integral(f, lam, dl, S, lo_)
+    # The edge must lie well inside the window.
+    lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half
+    ok &= (e > lo) & (e < hi)
+    P = cen[:, None, :] + (u * e[:, None, :]).transpose(0, 2, 1)
+    # Edge position noise ~ noise x transition width / contrast: under motion blur the rays
+    # along the motion are smeared and uncertain, those across it sharp.
+    # (The ellipse fit does not depend on the weights' overall scale.)
+    W = (np.abs(contrast) / np.maximum(w1090, 1.0)) ** 2 if c["edge_weights"] else np.ones((K, N))
+    width = masked_percentile(w1090, ok, 75)
+    order = np.argsort(~ok, axis=1, kind="stable")  # valid points first, in ray order
+    P = np.take_along_axis(P, order[..., None], 1)
+    W = np.take_along_axis(W, order, 1)
+    mask = np.arange(N)[None, :] < ok.sum(1)[:, None]
+    return P, mask, n_use, W, width
+
+
+# --- ellipse fits ---------------------------------------------------------------------------------
+
+
+def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Direct least-squares ellipse fits (Fitzgibbon; Halir-Flusser's stable form), batched.
+
+    Args:
+        P: (K, N, 2) points; mask (K, N) which count (at least 6 per fit).
+        weights: optional (K, N) non-negative weights of the points' algebraic residuals.
+    Returns:
+        (centres (K, 2), Q (K, 2, 2), valid (K,)) with (x - c)^T Q (x - c) = 1 where valid.
+    """
+    K = len(P)
+    mf = mask.astype(np.float64)
+    cnt = mf.sum(1)
+    valid = cnt >= 6
+    cnt1 = np.maximum(cnt, 1)
+    m = np.einsum("kn,kni->ki", mf, P) / cnt1[:, None]
+    d = P - m[:, None, :]
+    s = np.sqrt(np.einsum("kn,kn->k", mf, (d**2).sum(2)) / cnt1)
+    valid &= s > 0
+    s1 = np.where(valid, s, 1.0)
+    x, y = d[..., 0] / s1[:, None], d[..., 1] / s1[:, None]  # normalised: well-conditioned scatter matrices
+    D1 = np.stack([x * x, x * y, y * y], axis=2)
+    D2 = np.stack([x, y, np.ones_like(x)], axis=2)
+    w = mf if weights is None else mf * weights
+    S1 = np.einsum("kn,kni,knj->kij", w, D1, D1)
+    S2 = np.einsum("kn,kni,knj->kij", w, D1, D2)
+    S3 = np.einsum("kn,kni,knj->kij", w, D2, D2)
+    S3[~valid] = np.eye(3)
+    T, ok = _solve(S3, -S2.transpose(0, 2, 1))
+    valid &= ok
+    M = S1 + S2 @ T
+    M = np.stack([M[:, 2] / 2, -M[:, 1], M[:, 0] / 2], axis=1)
+    M[~valid] = np.eye(3)
+    try:
+        _, V = np.linalg.eig(M)
+    except np.linalg.LinAlgError:
+        V = np.zeros((K, 3, 3))
+        for k in range(K):
+            try:
+                V[k] = np.real(np.linalg.eig(M[k])[1])
+            except np.linalg.LinAlgError:
+                valid[k] = False
+    V = np.real(V)
+    cond = 4 * V[:, 0] * V[:, 2] - V[:, 1] ** 2  # (K, 3): per eigenvector
+    pos = cond > 0
+    valid &= pos.any(1)
+    a1 = np.take_along_axis(V, np.argmax(pos, axis=1)[:, None, None], 2)[..., 0]  # the first with cond > 0
+    A, B, C = a1.T
+    Dd, E, F = np.einsum("kij,kj->ki", T, a1).T
+    A2 = np.stack([np.stack([A, B / 2], 1), np.stack([B / 2, C], 1)], 1)
+    b2 = np.stack([Dd / 2, E / 2], 1)
+    A2s = A2.copy()
+    A2s[~valid] = np.eye(2)
+    uc, ok = _solve(A2s, -b2[..., None])
+    uc = uc[..., 0]
+    valid &= ok
+    fc = F + np.einsum("ki,ki->k", b2, uc)
+    valid &= fc != 0
+    Qu = A2 / np.where(fc != 0, -fc, 1.0)[:, None, None]
+    finite = np.isfinite(Qu).all((1, 2))
+    valid &= finite
+    Qs = np.where(finite[:, None, None], Qu, np.eye(2))
+    valid &= np.linalg.eigvalsh(Qs)[:, 0] > 0
+    return m + s1[:, None] * uc, Qu / (s1**2)[:, None, None], valid
+
+
+_SUBSETS: dict = {}  # (n, count) → the fixed random 5-point subsets of n points
+
+
+def _subsets(n: int, count: int) -> np.ndarray:
+    """(count, 5) random 5-point subsets of ``n`` points from a fixed seed, drawn once per
+    (n, count): the same subsets every call, without drawing them again."""
+    key = (n, count)
+    if key not in _SUBSETS:
+        rng = np.random.default_rng(0)
+        _SUBSETS[key] = np.stack([rng.choice(n, 5, replace=False) for _ in range(count)])
+        _SUBSETS[key].flags.writeable = False
+    return _SUBSETS[key]
+
+
+def _radial_offsets(P: np.ndarray, cen: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point, its angle on the ellipse (cen, Q) seen as a unit circle, and its radial
+    offset from the ellipse, px (K, N each)."""
+    d = P - cen[:, None, :]
+    q = np.einsum("kij,knj->kni", spd_power(Q, 0.5), d)  # unit-circle frame
+    lam = np.hypot(q[..., 0], q[..., 1])
+    t = np.arctan2(q[..., 1], q[..., 0])
+    return t, (lam - 1.0) * np.hypot(d[..., 0], d[..., 1]) / np.maximum(lam, 1e-9)
+
+
+def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarray, c: dict, n_subsets: int = 40) -> np.ndarray:
+    """Inliers (K, N) of edge points by least-median-of-squares on a linearised ellipse model.
+
+    Near the current ellipse (cen, Q), a slightly different ellipse moves the edge along
+    each ray by ``a0 + a1 cos t + b1 sin t + a2 cos 2t + b2 sin 2t`` (size, centre, shape).
+    Fitting this 5-parameter model to the radial offsets on random 5-point subsets and
+    keeping the one with the smallest median residual tolerates a contiguous spoilt sector
+    (an occluder across the edge) that a least-squares fit would bend toward and so hide.
+    The subsets come from a fixed seed: the result is deterministic. ``P``'s valid points
+    come first in each row (as :func:`edge_points` returns them).
+    """
+    K, N = mask.shape
+    t, off = _radial_offsets(P, cen, Q)
+    X = np.stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)], axis=2)  # (K, N, 5)
+    cnt = mask.sum(1)
+    idx = np.stack([_subsets(int(n), n_subsets) for n in cnt])  # (K, S, 5)
+    rows = np.arange(K)[:, None, None]
+    A = X[rows, idx]  # (K, S, 5, 5)
+    good = np.abs(np.linalg.det(A)) > 1e-6
+    keep = mask.copy()
+    if not good.any():
+        return keep
+    coef = np.zeros((K, n_subsets, 5))
+    coef[good] = np.linalg.solve(A[good], off[rows, idx][good][..., None])[..., 0]
+    res = np.abs(off[:, None, :] - np.einsum("ksj,knj->ksn", coef, X))  # (K, S, N)
+    med = np.where(good, masked_median(res, np.broadcast_to(mask[:, None, :], res.shape)), np.inf)
+    best = np.argmin(med, axis=1)
+    mb = med[np.arange(K), best]
+    sigma = 1.4826 * (1 + 5.0 / np.maximum(cnt - 5, 1)) * mb
+    inl = res[np.arange(K), best] <= np.maximum(2.5 * sigma, c["outlier_min_px"])[:, None]
+    some = good.any(1)
+    keep[some] = mask[some] & inl[some]
+    return keep
+
+
+def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = None, weights: np.ndarray | None = None):
+    """Ellipse fits with iterative rejection of points far from the fitted curve (after a
+    least-median-of-squares screen around ``frame`` = (cen (K, 2), Q (K, 2, 2)) for fits of
+    at least 12 points); ``weights`` (K, N) weigh the points in the fit.
+
+    Returns (centres (K, 2), Q (K, 2, 2), fitted (K,), keep (K, N)).
+    """
+    K, N = mask.shape
+    keep = mask.copy()
+    if frame is not None:
+        big = mask.sum(1) >= 12
+        if big.any():
+            keep[big] = lmeds_inliers(P[big], mask[big], frame[0][big], frame[1][big], c)
+    cen, Q = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
+    fitted = np.zeros(K, bool)
+    live = np.ones(K, bool)
+    for _ in range(3):
+        few = live & (keep.sum(1) < 6)
+        fitted[few] = False
+        live &= ~few
+        if not live.any():
+            break
+        ci, Qi, ok = fit_ellipses(P[live], keep[live], None if weights is None else weights[live])
+        li = np.nonzero(live)[0]
+        fitted[li] = ok
+        live[li[~ok]] = False
+        li, ci, Qi = li[ok], ci[ok], Qi[ok]
+        cen[li], Q[li] = ci, Qi
+        _, res = _radial_offsets(P[li], ci, Qi)  # radial residual, px
+        kl = keep[li]
+        sig = 1.4826 * masked_median(np.abs(res - masked_median(res, kl)[:, None]), kl)
+        new = mask[li] & (np.abs(res) <= np.maximum(c["outlier_k"] * sig, c["outlier_min_px"])[:, None])
+        keep[li] = new
+        live[li[(new == kl).all(1)]] = False
+    return cen, Q, fitted, keep
+
+
+def _semi_axes(Q: np.ndarray) -> np.ndarray:
+    return np.sqrt(1 / np.linalg.eigvalsh(Q))
+
+
+def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict,
+                 floor: np.ndarray, others: list, cameras: list | None = None) -> list:
+    """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
+    arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
+
+    Iterates each ellipse until it moves less than c["refine_tol"] px: under heavy blur the
+    plateau levels are only reached near the true edge, so each pass halves the error at best.
+
+    Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
+    width px) or None when too few edge points are found.
+    """
+    K = len(cen)
+    cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
+    active = np.ones(K, bool)
+    found: list = [None] * K
+    width = np.zeros(K)
+    for it in range(max(1, c["refine_iters"])):
+        a = np.nonzero(active)[0]
+        if not len(a):
+            break
+        P, M, n_use, W, wd = edge_points(grays, view[a], cen[a], Q[a], half, dark_inside, c, floor[a], [others[k] for k in a])
+        need = np.maximum(6, c["min_valid_frac"] * n_use)
+        go = M.sum(1) >= need
+        active[a[~go]] = False
+        if not go.any():
+            break
+        g = a[go]
+        Pg, Wg, wdg = P[go], W[go], wd[go]
+        cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg)
+        okf = fitted & (keep.sum(1) >= need[go])
+        active[g[~okf]] = False
+        # Largest displacement of the curve: centre shift plus change of the semi-axes.
+        move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(_semi_axes(np.where(okf[:, None, None], Qf, Q[g])) - _semi_axes(Q[g])).max(1)
+        for i in np.nonzero(okf)[0]:
+            k = g[i]
+            cen[k], Q[k] = cf[i], Qf[i]
+            found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
+            width[k] = wdg[i]
+            if it >= 1 and move[i] < c["refine_tol"]:
+                active[k] = False
+    out: list = [None] * K
+    ks = [k for k in range(K) if found[k] is not None]
+    ideal: dict = {}
+    if cameras is not None and ks:
+        # The imaged circle is an ellipse in ideal (undistorted) pixels, not in the raw
+        # image: fit there (the centre is mapped back by the caller).
+        use = [k for k in ks if cameras[view[k]] is not None]
+        if use:
+            pts = [cameras[view[k]].undistort_points(found[k][0]) for k in use]
+            N = max(len(p) for p in pts)
+            Pp, Mp, Wp = np.zeros((len(use), N, 2)), np.zeros((len(use), N), bool), np.zeros((len(use), N))
+            for i, (k, p) in enumerate(zip(use, pts)):
+                Pp[i, : len(p)], Mp[i, : len(p)], Wp[i, : len(p)] = p, True, found[k][1]
+            ci, Qi, ok = fit_ellipses(Pp, Mp, Wp)
+            ideal = {k: (ci[i], Qi[i]) for i, k in enumerate(use) if ok[i]}
+    for k in ks:
+        out[k] = ((cen[k], Q[k]), ideal.get(k), float(width[k]))
+    return out
+
+
+__all__ = ["bilinear", "edge_points", "fit_ellipses", "fit_robust", "lmeds_inliers", "masked_median", "masked_percentile",
+           "plane_levels", "refine_edges"]
