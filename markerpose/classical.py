@@ -107,6 +107,8 @@ default_conf: dict = {
     #                            refinements) has fits left; None: no limit
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
+    "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
+    #                           less than this, px (a seed known to be that close: tracking)
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
     "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse

@@ -92,8 +92,8 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray,
     valid = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
     xc = np.clip(x, 0, w - 1.000001)
     yc = np.clip(y, 0, h - 1.000001)
-    x0 = np.floor(xc).astype(np.intp)
-    y0 = np.floor(yc).astype(np.intp)
+    x0 = xc.astype(np.intp)  # truncation is the floor: clipped to >= 0
+    y0 = yc.astype(np.intp)
     fx, fy = xc - x0, yc - y0
     flat = img.ravel()
     i00 = y0 * w + x0
@@ -123,29 +123,38 @@ def crossings(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: 
     e = lam_j + dl3 * (f0 - 0.5) / np.where(f0 - f1 != 0, f0 - f1, 1.0)
     # Only the run of in-between samples around the crossing counts: in dark images noise
     # puts isolated plateau samples in (0.1, 0.9). Padding samples count as plateau, which
-    # ends a run at a ring's last sample.
-    idx = np.arange(Sm)
-    mid = (f > 0.1) & (f < 0.9) & (idx[None, None, :] < S[:, None, None])
-    last_out = np.maximum.accumulate(np.where(~mid, idx, -1), axis=2)
-    next_out = (Sm - 1) - np.maximum.accumulate(np.where(~mid, (Sm - 1) - idx, -1)[..., ::-1], axis=2)[..., ::-1]
-    span = next_out - last_out
-    run = np.maximum(np.take_along_axis(span, j[..., None], 2)[..., 0], np.take_along_axis(span, (j + 1)[..., None], 2)[..., 0]) - 1
+    # ends a run at a ring's last sample. The run around samples j and j + 1 is bounded by
+    # the last plateau sample at or before j and the first at or after j + 1.
+    idx = np.arange(Sm, dtype=np.int16)
+    out = (f <= 0.1) | (f >= 0.9) | (idx >= S[:, None, None])
+    jc = j[..., None]
+    before = np.where(out & (idx <= jc), idx, np.int16(-1)).max(2)
+    after = np.where(out & (idx > jc), idx, np.int16(Sm)).min(2)
+    out_j = np.take_along_axis(out, jc, 2)[..., 0]
+    out_j1 = np.take_along_axis(out, jc + 1, 2)[..., 0]
+    span_j = np.where(out_j, j, after) - before  # next plateau sample from j, minus the last before it
+    span_j1 = after - np.where(out_j1, j + 1, before)
+    run = np.maximum(span_j, span_j1).astype(np.intp) - 1
     return e, found, np.maximum(run, 0) * dl3 * r
 
 
-def integral(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Per ray, the integral from lam[k, 0] to x of the piecewise-linear profile f (K, N, Smax)."""
-    K, N, Sm = f.shape
+def integral(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, xs: tuple) -> list:
+    """Per ray, the integral from lam[k, 0] to x of the piecewise-linear profile f (K, N, Smax),
+    for each x (K, N) of ``xs``."""
+    K, N, _ = f.shape
     dl3 = dl[:, None]
     seg = 0.5 * (f[..., 1:] + f[..., :-1]) * dl[:, None, None]
     F = np.concatenate([np.zeros((K, N, 1)), np.cumsum(seg, axis=2)], axis=2)
-    pos = np.clip((x - lam[:, :1]) / dl3, 0, (S - 1)[:, None] - 1e-9)
-    j = np.floor(pos).astype(np.intp)
-    t = pos - j
-    f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
-    f1 = np.take_along_axis(f, np.minimum(j + 1, (S - 1)[:, None])[..., None], 2)[..., 0]
-    Fj = np.take_along_axis(F, j[..., None], 2)[..., 0]
-    return Fj + dl3 * (t * f0 + 0.5 * t * t * (f1 - f0))
+    out = []
+    for x in xs:
+        pos = np.clip((x - lam[:, :1]) / dl3, 0, (S - 1)[:, None] - 1e-9)
+        j = np.floor(pos).astype(np.intp)
+        t = pos - j
+        f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
+        f1 = np.take_along_axis(f, np.minimum(j + 1, (S - 1)[:, None])[..., None], 2)[..., 0]
+        Fj = np.take_along_axis(F, j[..., None], 2)[..., 0]
+        out.append(Fj + dl3 * (t * f0 + 0.5 * t * t * (f1 - f0)))
+    return out
 
 
 def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np.ndarray, scale: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -329,7 +338,8 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         width = masked_percentile(w1090, ok, 75)
         h = (c["area_window"][0] * width[:, None] + c["area_window"][1]) / r
         lo_, hi_ = np.maximum(e - h, lam[:, :1]), np.minimum(e + h, (1.0 + half))
-        e = lo_ + integral(f, lam, dl, S, hi_) - integral(f, lam, dl, S, lo_)
+        at_hi, at_lo = integral(f, lam, dl, S, (hi_, lo_))
+        e = lo_ + at_hi - at_lo
     # The edge must lie well inside the window.
     lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half
     ok &= (e > lo) & (e < hi)
@@ -519,8 +529,9 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
     """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
     arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
 
-    Iterates each ellipse until it moves less than c["refine_tol"] px: under heavy blur the
-    plateau levels are only reached near the true edge, so each pass halves the error at best.
+    Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
+    unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
+    levels are only reached near the true edge, so each pass halves the error at best.
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px) or None when too few edge points are found.
@@ -552,7 +563,7 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
             cen[k], Q[k] = cf[i], Qf[i]
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
-            if it >= 1 and move[i] < c["refine_tol"]:
+            if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
                 active[k] = False
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from . import presets
+from . import classical, presets
 from .camera import StereoRig
 from .geometry import ring_ellipses
 from .images import as_gray, check_size
@@ -54,6 +54,7 @@ class MarkerPose:
         self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
         self._history: list = []  # the last poses track() found, oldest first
+        self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
         self._fits_left: int | None = None  # work budget of the cold detection under way
         self.why: str | None = None  # after a call that found nothing: the first reason met
 
@@ -184,6 +185,7 @@ class MarkerPose:
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
             if est is None:
                 self.why = None  # the prior's failure is not why the frame has no pose
+                self._noise = (None, 0)
                 est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*self._history, est.T][-2:] if est is not None else []
@@ -194,6 +196,7 @@ class MarkerPose:
     def reset(self) -> None:
         """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
         self._history = []
+        self._noise = (None, 0)
 
     def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
         """The rings refitted from their predicted ellipses in both views, verified, solved."""
@@ -204,7 +207,12 @@ class MarkerPose:
             if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
                 return None
             predicted.append(ellipses)
-        found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False)
+        noises, age = self._noise
+        if noises is None or age >= c["noise_every"]:
+            noises, age = [classical.noise_sigma(g) for g in grays], 0
+        self._noise = (noises, age + 1)
+        found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False,
+                            c["one_pass_move"], noises)
         if any(det is None for det in found):
             return None
         reason = self._timed("verify", verify.rejection, self.rig, found, mk, self.conf["verify"], True)

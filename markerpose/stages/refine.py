@@ -109,12 +109,16 @@ class Refiner:
         return out
 
     def from_ellipses(self, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
-                      noises: list | None = None) -> list:
+                      first_tol: float = 0.0, noises: list | None = None) -> list:
         """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
         all views in one batch: per view a Detection when all three refine, else None.
         ``blur_unrefined=False``: no blur fit when the edge fit found none of the rings (a
-        prediction that missed them). ``noises``: per view, the noise sigma if known."""
+        prediction that missed them). ``first_tol``: the edge fit may stop after its first
+        pass when that moved the ellipses less than this (px; see ``refine_first_tol``).
+        ``noises``: per view, the image's noise sigma if known."""
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
+        if first_tol:
+            conf = {**conf, "refine_first_tol": float(first_tol)}
         fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises)
         return [Detection(centers=c, ellipses=e, score=score, refined=ok) if ok.all() else None for c, ok, e in fits]
 
