@@ -90,11 +90,15 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray,
     """
     h, w = img.shape
     valid = (x >= 0) & (y >= 0) & (x <= w - 1) & (y <= h - 1)
-    xc = np.clip(x, 0, w - 1.000001)
-    yc = np.clip(y, 0, h - 1.000001)
-    x0 = xc.astype(np.intp)  # truncation is the floor: clipped to >= 0
-    y0 = yc.astype(np.intp)
-    fx, fy = xc - x0, yc - y0
+    return _bilinear_inside(img, np.clip(x, 0, w - 1.000001), np.clip(y, 0, h - 1.000001)), valid
+
+
+def _bilinear_inside(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """:func:`bilinear` of coordinates known to lie in [0, w - 1.000001] x [0, h - 1.000001]."""
+    w = img.shape[1]
+    x0 = x.astype(np.intp)  # truncation is the floor: coordinates >= 0
+    y0 = y.astype(np.intp)
+    fx, fy = x - x0, y - y0
     flat = img.ravel()
     i00 = y0 * w + x0
     v00, v01, v10, v11 = (flat[i] for i in (i00, i00 + 1, i00 + w, i00 + w + 1))
@@ -102,7 +106,7 @@ def bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray,
         v00, v01, v10, v11 = (v.astype(np.float64) for v in (v00, v01, v10, v11))
     top = v00 + fx * (v01 - v00)
     bot = v10 + fx * (v11 - v10)
-    return top + fy * (bot - top), valid
+    return top + fy * (bot - top)
 
 
 def crossings(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: np.ndarray):
@@ -251,11 +255,20 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     X = cen[:, 0, None, None] + u[:, 0, :, None] * lam[:, None, :]
     Y = cen[:, 1, None, None] + u[:, 1, :, None] * lam[:, None, :]
     v = np.empty((K, N, Sm))
-    inside = np.empty((K, N, Sm), bool)
+    ok = ray.copy()
     for g in np.unique(view):
         sel = view == g
-        v[sel], inside[sel] = bilinear(grays[g], X[sel], Y[sel])
-    ok = inside.all(2) & ray
+        h, w = grays[g].shape
+        Xg, Yg = X[sel], Y[sel]
+        # A ray is a segment (its padding repeats its end): its samples lie in the image
+        # when both ends do.
+        x_lo, x_hi = np.minimum(Xg[..., 0], Xg[..., -1]), np.maximum(Xg[..., 0], Xg[..., -1])
+        y_lo, y_hi = np.minimum(Yg[..., 0], Yg[..., -1]), np.maximum(Yg[..., 0], Yg[..., -1])
+        ok[sel] &= (x_lo >= 0) & (y_lo >= 0) & (x_hi <= w - 1) & (y_hi <= h - 1)
+        if x_lo.min() >= 0 and y_lo.min() >= 0 and x_hi.max() <= w - 1.000001 and y_hi.max() <= h - 1.000001:
+            v[sel] = _bilinear_inside(grays[g], Xg, Yg)
+        else:  # near the border: clipped samples
+            v[sel] = bilinear(grays[g], Xg, Yg)[0]
     edge = cen[:, :, None] + u  # (K, 2, N) current edge points
 
     # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
@@ -473,7 +486,11 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     coef = np.zeros((K, n_subsets, 5))
     coef[good] = np.linalg.solve(A[good], off[rows, idx][good][..., None])[..., 0]
     res = np.abs(off[:, None, :] - np.einsum("ksj,knj->ksn", coef, X))  # (K, S, N)
-    med = np.where(good, masked_median(res, np.broadcast_to(mask[:, None, :], res.shape)), np.inf)
+    med = np.full((K, n_subsets), np.inf)
+    for k in range(K):  # each ring's points are its first cnt[k]: a partial sort per ring
+        n = int(cnt[k])
+        part = np.partition(res[k, :, :n], ((n - 1) // 2, n // 2), axis=1)
+        med[k] = np.where(good[k], 0.5 * (part[:, (n - 1) // 2] + part[:, n // 2]), np.inf)
     best = np.argmin(med, axis=1)
     mb = med[np.arange(K), best]
     sigma = 1.4826 * (1 + 5.0 / np.maximum(cnt - 5, 1)) * mb
@@ -573,7 +590,13 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
         # image: fit there (the centre is mapped back by the caller).
         use = [k for k in ks if cameras[view[k]] is not None]
         if use:
-            pts = [cameras[view[k]].undistort_points(found[k][0]) for k in use]
+            pts: dict = {}
+            for g in sorted({view[k] for k in use}):  # one undistortion per view
+                mine = [k for k in use if view[k] == g]
+                flat = cameras[g].undistort_points(np.concatenate([found[k][0] for k in mine]))
+                cuts = np.cumsum([len(found[k][0]) for k in mine])[:-1]
+                pts.update(zip(mine, np.split(flat, cuts)))
+            pts = [pts[k] for k in use]
             N = max(len(p) for p in pts)
             Pp, Mp, Wp = np.zeros((len(use), N, 2)), np.zeros((len(use), N), bool), np.zeros((len(use), N))
             for i, (k, p) in enumerate(zip(use, pts)):
