@@ -40,6 +40,7 @@ PRESETS: dict[str, dict] = {
     "default-no-blur-fit": {"refine": {"blur_fit": False}},
     "default-no-second-look": {"propose": {"second_look": 1.0}},
     "neural-classical-refine": {"refine": {"method": "classical"}},
+    "default-masks-first": {"refine": {"layout_seed": False}},
     # Ablations of the classical detector, from the paper's towards ours.
     "classical-subpixel": {"detector": "classical", "solve": PAPER_POSE},
     "classical-subpixel-bias": {"detector": "classical", "solve": {"pose": "paper"}},
@@ -57,6 +58,7 @@ ABOUT: dict[str, str] = {
     "default-no-blur-fit": "default without the blurred-ring fit",
     "default-no-second-look": "default without stage 1's second look",
     "neural-classical-refine": "default with the classical ring fit instead of EllipSegNet",
+    "default-masks-first": "default with EllipSegNet's masks seeding every edge fit (no layout seeds)",
     "classical-subpixel": "paper-classical + sub-pixel edges",
     "classical-subpixel-bias": "classical-subpixel + bias correction",
     "classical": "classical-subpixel-bias + rigid pose: our best classical (detector='classical')",
@@ -66,7 +68,7 @@ ABOUT: dict[str, str] = {
 ORDER = (
     "default", "paper", "paper-classical", "classical", "neural-layout", "neural-layout-rigid", "neural-stereo",
     "default-no-transfer", "default-no-blur-fit", "default-no-second-look", "neural-classical-refine",
-    "classical-subpixel", "classical-subpixel-bias",
+    "default-masks-first", "classical-subpixel", "classical-subpixel-bias",
 )
 
 

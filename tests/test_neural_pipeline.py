@@ -97,6 +97,35 @@ def test_defaults_are_stereo_matching_and_edge_refit(rig, tracker):
     assert all(len(d.ellipses) == 3 for d in est.detections)
 
 
+def test_layout_seeds_fit_the_edges_without_the_masks(rig, monkeypatch):
+    """The layout of three points predicts the rings' ellipses to about a pixel; the
+    edges fitted from there give the centres the masks' seeds give, and EllipSegNet is
+    not run. Where the layout's seeds fail, the masks take over."""
+    f = render_stereo(rig, look_at_pose([-20, 10, 600], 35, 120, 200), imaging=Imaging(alpha=0.6), seed=37)
+    tr = mp.MarkerPose(rig)
+    truth = f.views[0].outer_centers
+    seeds = tr.refiner.layout_ellipses(f.views[0].centers)
+    for (c, (w, h), _), true_c, conic in zip(seeds, truth, f.views[0].outer_conics):
+        assert np.linalg.norm(np.array(c) - true_c) < 1.0  # the seed's centre is the point given
+        A = conic[:2, :2] / -(conic[2, 2] - conic[:2, 2] @ np.linalg.solve(conic[:2, :2], conic[:2, 2]))
+        axes = 2 / np.sqrt(np.linalg.eigvalsh(A))  # the true ellipse's axes, major first (ideal px)
+        np.testing.assert_allclose(sorted([w, h], reverse=True), axes, rtol=0.05)
+    masks_first = mp.MarkerPose(rig, preset="default-masks-first").estimate(*f.images)
+
+    def no_net(*a, **k):
+        raise AssertionError("EllipSegNet run although the layout's seeds fitted")
+
+    monkeypatch.setattr(tr.refiner, "net", no_net)
+    est = tr.estimate(*f.images)
+    assert est is not None and masks_first is not None
+    for a, b in zip(est.detections, masks_first.detections):
+        assert np.abs(a.centers - b.centers).max() < 0.01  # px: the same edges, converged
+    monkeypatch.undo()
+    monkeypatch.setattr(tr.refiner, "layout_ellipses", lambda pts: [((p[0] + 30, p[1]), (20.0, 20.0), 0.0) for p in pts])
+    est = tr.estimate(*f.images)  # seeds 30 px off: the edge fit fails, the masks' seeds fit
+    assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05
+
+
 @pytest.mark.parametrize("ids", ["stereo", "layout", "head"])
 def test_every_id_mode_on_a_clean_marker(rig, ids):
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
@@ -113,7 +142,7 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     """Where the mask's ellipse cannot seed the edge fit, the classical ring fit near the
     point takes over; where that fails too, no pose (not one from a mask's centre)."""
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
-    tr = mp.MarkerPose(rig, detector="neural")
+    tr = mp.MarkerPose(rig, preset="default-masks-first")  # every edge fit seeded by a mask
     real = tr.refiner.net
 
     def poor(grays, points, marker, with_ellipses=False):  # masks 5 px off, no ellipse

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import classical
+from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
 
@@ -30,6 +31,9 @@ default_conf = {
     "patch": "adaptive",  # ellipsegnet: "adaptive" window (ours) or "fixed" 120 px (paper)
     "fit": "subpixel",  # ellipsegnet: "subpixel" iso-line (ours), "ellipse" (paper), "moments"
     "edge_refit": True,  # ellipsegnet: fit the outer edge in the image from the mask's ellipse (ours)
+    "layout_seed": True,  # with edge_refit: first fit the edges from the ellipses the three
+    #                       points' layout predicts, EllipSegNet only for views where that
+    #                       fails (ours: the network's masks are then rarely needed)
     "subpixel": True,  # classical fits: sub-pixel edges (False: the paper's contour ellipse)
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
@@ -84,10 +88,36 @@ class Refiner:
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
         return out
 
+    def layout_ellipses(self, points: np.ndarray) -> list | None:
+        """The rings' outer ellipses (RotatedRects) that three ring centres (3, 2) imply: the
+        affine map of the marker's layout onto them takes each ring's circle to an ellipse
+        (perspective across the plate is small); None for a degenerate triple."""
+        A = layout_affine(np.asarray(points, np.float64), self.marker.centers2d)
+        M = A @ A.T * self.marker.outer_radius**2  # the ellipse x = p + A r u, |u| = 1
+        if not (np.all(np.isfinite(M)) and np.linalg.det(M) > 1e-9):
+            return None
+        Q = np.linalg.inv(M)
+        return [cq_to_rect(np.asarray(p, np.float64), Q) for p in points]
+
     def _ellipsegnet(self, grays: list, cameras: list, points: list) -> list:
-        seen = [k for k, f in enumerate(points) if f is not None]  # all patches of all views in one batch
-        refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
+        seen = [k for k, f in enumerate(points) if f is not None]
         out = [None] * len(grays)
+        if self.edge_refit and self.conf["layout_seed"]:
+            # The edges fitted from the layout's ellipses (both views in one batch); no blur
+            # fit on seeds that found no ring (the masks' ellipses get their turn).
+            seeds = {k: self.layout_ellipses(points[k][0]) for k in seen}
+            views = [k for k in seen if seeds[k] is not None]
+            if views:
+                fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
+                                                       {**self.classical, "blur_fit_unrefined": False}, [cameras[k] for k in views])
+                for k, (centers, ok, ellipses) in zip(views, fits):
+                    if ok.all():
+                        out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
+            seen = [k for k in seen if out[k] is None]
+            if not seen:
+                return out
+        # EllipSegNet: all patches of all views in one batch.
+        refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
             fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, self.classical,
