@@ -123,6 +123,32 @@ def tuned_key(ids: str, verify: bool = False, stereo: bool = False, align: bool 
     return ids + ("_verify" if verify else "") + ("_align" if align else "") + ("_stereo" if stereo else "")
 
 
+def _windows(points: np.ndarray, shape: tuple, half: int) -> list[tuple[int, int]]:
+    """Top-left corners (x0, y0) of windows of 2 ``half`` x 2 ``half`` px (on the network's
+    cell grid, inside an input of ``shape`` (H, W)) centred on each point; points that an
+    earlier window already holds with a margin of half / 2 get none."""
+    H, W = shape
+    size = 2 * half
+    out: list[tuple[int, int]] = []
+    for x, y in points:
+        if any(x0 + half / 2 <= x < x0 + size - half / 2 and y0 + half / 2 <= y < y0 + size - half / 2 for x0, y0 in out):
+            continue
+        x0 = int(np.clip(round((x - half) / CELL) * CELL, 0, max(W - size, 0)))
+        y0 = int(np.clip(round((y - half) / CELL) * CELL, 0, max(H - size, 0)))
+        out.append((x0, y0))
+    return out
+
+
+def _suppress(cand: np.ndarray, radius: float) -> np.ndarray:
+    """Candidates (N, 3) best first, without those within ``radius`` of a better one (the
+    same peak seen from two overlapping windows)."""
+    keep: list[int] = []
+    for n in np.argsort(-cand[:, 2], kind="stable"):
+        if all(np.hypot(*(cand[n, :2] - cand[m, :2])) > radius for m in keep):
+            keep.append(n)
+    return cand[keep]
+
+
 class KeypointNet:
     """Stage 1 with its weights: full-resolution images → ring centres by ID.
 
@@ -185,15 +211,51 @@ class KeypointNet:
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
-                   nms_radius: int | None = None) -> list[np.ndarray]:
+                   nms_radius: int | None = None, near: list | None = None, window: int = 64) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
         ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
-        image, (N, 3) rows (x, y, score) in full-resolution pixels, best first."""
-        det, ids, scales, _ = self._forward(images, zoom)
+        image, (N, 3) rows (x, y, score) in full-resolution pixels, best first.
+
+        With ``near`` (per image, (M, 2) full-resolution points): the network sees only
+        windows of 2 ``window`` x 2 ``window`` input px around those points (all windows
+        of all images in one batch), not the whole input.
+        """
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
+        if near is not None:
+            return self._candidates_near(images, threshold, k, zoom, r, near, window)
+        det, ids, scales, _ = self._forward(images, zoom)
         out = []
         for k_, s in enumerate(scales):
             cand, _ = candidates(det[k_], ids[k_], threshold, k, r)
+            cand[:, :2] = to_full(cand[:, :2], s)
+            out.append(cand)
+        return out
+
+    def _candidates_near(self, images, threshold, k, zoom, r, near, window):
+        inputs, scales = zip(*(to_input(g, look_size(zoom)) for g in images))
+        size = 2 * window
+        crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
+        for j, (small, s, pts) in enumerate(zip(inputs, scales, near)):
+            if min(small.shape) < size:  # a small image: the whole of it
+                crops.append(small)
+                where.append((j, 0, 0))
+                continue
+            for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, small.shape, window):
+                crops.append(small[y0 : y0 + size, x0 : x0 + size])
+                where.append((j, x0, y0))
+        found = [[] for _ in images]
+        shapes = sorted({c.shape for c in crops})
+        for shape in shapes:  # one batch per window size (one size unless an image is small)
+            idx = [n for n, c in enumerate(crops) if c.shape == shape]
+            det, ids = self.logits(np.stack([crops[n] for n in idx]))
+            for n, d, i in zip(idx, det, ids):
+                j, x0, y0 = where[n]
+                cand, _ = candidates(d, i, threshold, k, r)
+                cand[:, :2] += (x0, y0)
+                found[j].append(cand)
+        out = []
+        for j, s in enumerate(scales):
+            cand = _suppress(np.concatenate(found[j]), r)[:k] if found[j] else np.zeros((0, 3))
             cand[:, :2] = to_full(cand[:, :2], s)
             out.append(cand)
         return out

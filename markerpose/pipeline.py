@@ -110,8 +110,9 @@ class MarkerPose:
                 return det
             tried = 0
             self._budget()
+            cand = None
             for zoom in self.proposer.looks():  # ours: layout triples, best first, until one fits a plate
-                cand = self._timed("propose", self.proposer.candidates, [gray], zoom)[0]
+                cand = self._timed("propose", self.proposer.candidates, [gray], zoom, None if cand is None else [cand])[0]
                 for pts, s in self._view_triples(gray, cand, zoom):
                     found = self._fit(self.refiner, [gray], [cam], [(pts, s)])
                     if found is None:
@@ -233,8 +234,9 @@ class MarkerPose:
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
         m = self.conf["match"]
         self._budget()
+        cand = None
         for zoom in self.proposer.looks():
-            cand = self._timed("propose", self.proposer.candidates, grays, zoom)
+            cand = self._timed("propose", self.proposer.candidates, grays, zoom, cand)
             triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
                                   m["epipolar_tol"], m["shape_tol"], m["max_triples"])
             if not triples:

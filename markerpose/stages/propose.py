@@ -26,6 +26,10 @@ default_conf = {
     "threshold": 0.01,  # ... their least location score
     "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
+    "second_look_near": 6,  # ... only around the first look's best this many candidates per
+    #                         view (windows of +-64 px of its input; ours: a marker too
+    #                         small to be matched at the first look is still among its best
+    #                         candidates); 0: the whole image
 }
 
 
@@ -59,10 +63,15 @@ class NeuralProposer:
         zoom = float(self.conf["second_look"])
         return (1.0, zoom) if zoom > 1 else (1.0,)
 
-    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0) -> list[np.ndarray]:
-        """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first."""
+    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None) -> list[np.ndarray]:
+        """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first.
+        A look with ``zoom`` > 1 given the ``previous`` look's candidates looks only near
+        its best ones (``second_look_near``)."""
         c = self.conf
-        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"])
+        near = None
+        if zoom > 1 and previous is not None and c["second_look_near"]:
+            near = [p[: int(c["second_look_near"]), :2] for p in previous]
+        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near)
 
     def decoded(self, grays: list[np.ndarray]) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""

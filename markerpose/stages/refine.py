@@ -57,6 +57,8 @@ class Refiner:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
+        if conf["blur_fit"]:
+            from .. import blurfit  # noqa: F401  (imported now: scipy's import would stall the first blurred frame)
         self.net = None
         if neural and conf["method"] == "ellipsegnet":
             from ..ellipses import EllipseNet
