@@ -47,6 +47,8 @@ default_conf: dict = {
     "xtol": 1e-4,  # convergence: relative parameter change ...
     "ftol": 1e-4,  # ... or relative cost change
     "loss_scale": 3.0,  # robust loss: residuals beyond this many noise sigmas count less
+    "min_length": 0.0,  # give up when the coarse search's best blur length is under this, px
+    #                     (seeds where no edge fitted: without blur, they missed the rings)
 }
 
 
@@ -351,6 +353,8 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
             if best is None or cost < best[0]:
                 best = (cost, p)
     p0 = best[1]
+    if np.exp(p0[-2]) < c["min_length"]:
+        return None
     motion = (p0[-3], 1.3 * np.exp(p0[-2]))
     if not prob.pixels(c["margin"], stride=c["stride"], motion=motion):
         return None

@@ -105,6 +105,8 @@ default_conf: dict = {
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
     "blur_fit_budget": None,  # ... and while this FitBudget (shared by one detection's
     #                            refinements) has fits left; None: no limit
+    "blur_fit_gate": None,  # ... and when this test (gray, centres (3, 2)) -> bool passes
+    #                          (e.g. ring evidence: a decoy's is low); None: no test
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
@@ -650,13 +652,17 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         return rings
     if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
         return rings
+    if c["blur_fit_gate"] is not None and not c["blur_fit_gate"](gray, np.array([r.center for r in rings], np.float64)):
+        return rings
     if c["blur_fit_budget"] is not None and not c["blur_fit_budget"].take():
         return rings
     from . import blurfit
 
     noise = noise_sigma(gray) if noise is None else noise
     rho = marker.inner_diameter / marker.outer_diameter
-    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise)
+    # Seeds where no edge fitted are worth the fit only if the image there is blurred.
+    unrefined = None if any(r.refined for r in rings) else {"min_length": 10.0}
+    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, unrefined)
     if fit is None:
         return rings
     out = []

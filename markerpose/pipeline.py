@@ -19,12 +19,16 @@ import numpy as np
 
 from . import classical, presets
 from .camera import StereoRig
-from .geometry import ring_ellipses
+from .geometry import ring_diameter, ring_ellipses
 from .images import as_gray, check_size
+from .keypoints import look_size
 from .marker import Marker
 from .results import Detection, Estimate
 from .stages import match, propose, refine, solve, track, verify
 from .stages.match import best_per_set, layout_orders, stereo_triples, transfer, transfer_sources
+
+MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
+
 
 class MarkerPose:
     """Stereo pose of the three-ring marker.
@@ -242,7 +246,7 @@ class MarkerPose:
             if not triples:
                 self._failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
                              "matches across the views with the marker's 3D shape")
-            est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples])
+            est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples], zoom)
             if est is None and m["transfer"]:
                 est = self._transferred(grays, cand, zoom)
             if est is not None:
@@ -271,11 +275,33 @@ class MarkerPose:
             self._fits_left -= 1
         return self._timed("refine", fn, *args)
 
-    def _first_accepted(self, grays: list, hypotheses: list) -> Estimate | None:
+    def _gates(self, zoom: float | None) -> tuple:
+        """The refine stage's evidence gates (blur, mask) for hypotheses of the look
+        ``zoom`` (:meth:`~markerpose.stages.refine.Refiner.__call__`); None without a look.
+        The mask gate passes rings under ``MASK_GATE_MIN_PX`` across in the look's input:
+        stage 1 places those too far off, relative to their size, for the evidence at its
+        points to tell."""
+        m = self.conf["match"]
+        if zoom is None:
+            return None, None
+
+        def evidence(gray, pts):
+            return self._timed("verify", self.proposer.evidence, gray, np.asarray(pts)[None], zoom)[0]
+
+        def small(gray, pts):
+            return ring_diameter(pts, self.marker) * look_size(zoom)[0] / gray.shape[1] < MASK_GATE_MIN_PX
+
+        blur = (lambda gray, pts: bool(evidence(gray, pts) >= m["blur_min_evidence"])) if m["blur_min_evidence"] else None
+        mask = (lambda gray, pts: small(gray, pts) or bool(evidence(gray, pts) >= m["mask_min_evidence"])) if m["mask_min_evidence"] else None
+        return blur, mask
+
+    def _first_accepted(self, grays: list, hypotheses: list, zoom: float | None = None) -> Estimate | None:
         """Each hypothesis (points of both views) refined and verified in turn: the first
-        estimate that passes, or None."""
+        estimate that passes, or None. With the ``zoom`` of the look that found them, the
+        costly refinements need ring evidence first (:meth:`_gates`)."""
+        gates = self._gates(zoom)
         for points in hypotheses:
-            found = self._fit(self.refiner, grays, list(self.rig.cameras), points)
+            found = self._fit(self.refiner, grays, list(self.rig.cameras), points, *gates)
             if found is None:
                 return None
             est = self._accepted(found)
@@ -314,6 +340,7 @@ class MarkerPose:
         if not loose:  # no sign of the marker in both views (the common case without it): stop
             return None
         sources = transfer_sources(loose, cand, mk.centers2d, m["view_triples"])
+        blur_gate = self._gates(zoom)[0]
         if m["transfer_min_evidence"]:  # one evidence look per view for all of its sources
             keep = np.ones(len(sources), bool)
             for view in (0, 1):
@@ -324,7 +351,7 @@ class MarkerPose:
             sources = [u for u, k in zip(sources, keep) if k]
         for a, pts, s in sources[: m["transfer_sources"]]:
             b = 1 - a
-            det_a = self._fit(self.refiner, [grays[a]], [cams[a]], [(pts, s)])
+            det_a = self._fit(self.refiner, [grays[a]], [cams[a]], [(pts, s)], blur_gate)
             if det_a is None:
                 return None
             det_a = det_a[0]
@@ -339,12 +366,15 @@ class MarkerPose:
                 # The pose predicts the rings' ellipses in the other view to within a pixel
                 # or so: their edges are fitted from there first; the usual refinement at
                 # the predicted centres can be led to a neighbouring ring by a steep,
-                # blurred view.
+                # blurred view. No blurred-ring fit on seeds where no edge fitted: on a
+                # sharp view that missed the rings it is costly and futile; a blurred
+                # view gets it from the usual refinement below.
                 ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
-                guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s)[0]
+                guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s, True, 0.0, None,
+                                     blur_gate)[0]
                 if guided is not None and (est := self._accepted([det_a, guided][:: 1 - 2 * a])) is not None:
                     return est
-                det_b = self._fit(self.refiner, [grays[b]], [cams[b]], [(pred, s)])
+                det_b = self._fit(self.refiner, [grays[b]], [cams[b]], [(pred, s)], blur_gate)
                 if det_b is None:
                     return None
                 est = self._accepted([det_a, det_b[0]][:: 1 - 2 * a])  # (left, right)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..camera import StereoRig
-from ..geometry import epipolar_distance, layout_ratios, signed_area, signed_areas, triangulate, triple_orders
+from ..geometry import epipolar_distance, layout_ratios, signed_areas, triangulate, triple_orders
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -47,6 +47,12 @@ default_conf = {
     "transfer_shape_tol": 0.6,
     "transfer_attempts": 2,  # ... and how many loose triples are tried
     "transfer_sources": 4,  # one view's triples refined and carried over, at most
+    "blur_min_evidence": 0.1,  # a view's blurred-ring fit (the costliest step) only for rings
+    #                            with at least this ring evidence (a decoy's triple has less;
+    #                            the marker's, blurred 25 px, more); 0: no test
+    "mask_min_evidence": 0.05,  # a matched triple whose edges do not fit from the layout's
+    #                             seeds in a view goes on to EllipSegNet's masks only with at
+    #                             least this ring evidence there; 0: no test
     "transfer_min_evidence": 0.05,  # sources with less ring evidence are not refined (decoy
     #                                 triples on marker-free pairs cost refits); 0: every one.
     #                                 Lower than min_evidence: a source from the steep view
@@ -102,22 +108,27 @@ def stereo_triples(
     dist = np.linalg.norm(X[:, None] - X[None], axis=2)
     err = [np.abs(dist - L[k]) / L[k] for k in range(3)]  # relative error as side k
     logs = 0.5 * (np.log(np.maximum(cl[I, 2], 1e-12)) + np.log(np.maximum(cr[J, 2], 1e-12)))
-    found = []
-    for a in range(len(X)):  # a = c0, b = c1, c = c2
+    trios = []  # (a, b, c) = (c0, c1, c2) with the marker's three side lengths, a-major
+    for a in range(len(X)):
         bs = np.nonzero(err[0][a] <= shape_tol)[0]
         cs = np.nonzero(err[1][a] <= shape_tol)[0]
-        for b in bs:
-            for c in cs[err[2][b, cs] <= shape_tol]:
-                trio = [a, b, c]
-                if len(set(I[trio])) < 3 or len(set(J[trio])) < 3:
-                    continue
-                pl, pr = cl[I[trio], :2], cr[J[trio], :2]
-                if signed_area(pl) >= 0 or signed_area(pr) >= 0:  # the marker seen from behind
-                    continue
-                e = max(err[0][a, b], err[1][a, c], err[2][b, c])
-                found.append((pl, pr, float(np.exp(np.mean(logs[trio])) * (1 - e / shape_tol))))
-    found.sort(key=lambda f: -f[2])
-    return found[:max_triples]
+        if len(bs) and len(cs):
+            B, C = np.meshgrid(bs, cs, indexing="ij")
+            fit = err[2][B, C] <= shape_tol
+            trios.append(np.column_stack([np.full(fit.sum(), a), B[fit], C[fit]]))
+    if not trios:
+        return []
+    T = np.concatenate(trios)
+    distinct = ((I[T[:, 0]] != I[T[:, 1]]) & (I[T[:, 0]] != I[T[:, 2]]) & (I[T[:, 1]] != I[T[:, 2]])
+                & (J[T[:, 0]] != J[T[:, 1]]) & (J[T[:, 0]] != J[T[:, 2]]) & (J[T[:, 1]] != J[T[:, 2]]))
+    T = T[distinct]
+    pl, pr = cl[I[T], :2], cr[J[T], :2]  # (M, 3, 2)
+    front = (signed_areas(pl) < 0) & (signed_areas(pr) < 0)  # not the marker seen from behind
+    T, pl, pr = T[front], pl[front], pr[front]
+    e = np.maximum(np.maximum(err[0][T[:, 0], T[:, 1]], err[1][T[:, 0], T[:, 2]]), err[2][T[:, 1], T[:, 2]])
+    score = np.exp(logs[T].mean(1)) * (1 - e / shape_tol)
+    order = np.argsort(-score, kind="stable")[:max_triples]
+    return [(pl[n], pr[n], float(score[n])) for n in order]
 
 
 def layout_orders(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, top: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -73,10 +73,17 @@ class Refiner:
         """Allow ``fits`` blurred-ring model fits from now on (None: no limit)."""
         self.classical["blur_fit_budget"] = None if fits is None else classical.FitBudget(fits)
 
-    def __call__(self, grays: list, cameras: list, points: list) -> list:
-        """Per view, the Detection near (points (3, 2), score), or None where None is given."""
+    def __call__(self, grays: list, cameras: list, points: list, blur_gate=None, mask_gate=None) -> list:
+        """Per view, the Detection near (points (3, 2), score), or None where None is given.
+
+        Gates, tests ``(gray, points (3, 2)) -> bool`` (None: none): ``blur_gate``, that a
+        view's rings must pass before their blurred-ring fit (classical ``blur_fit_gate``);
+        ``mask_gate``, that a view's points must pass to go on to EllipSegNet's masks when
+        the layout's seeds did not fit (a decoy's triple is not worth the network's cost).
+        """
+        conf = self.classical if blur_gate is None else {**self.classical, "blur_fit_gate": blur_gate}
         if self.net is not None:
-            return self._ellipsegnet(grays, cameras, points)
+            return self._ellipsegnet(grays, cameras, points, conf, mask_gate)
         out = []
         for gray, cam, found in zip(grays, cameras, points):
             if found is None:
@@ -86,7 +93,7 @@ class Refiner:
             if self.conf["method"] == "none":
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
-            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=self.classical, camera=cam)
+            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf, camera=cam)
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
         return out
 
@@ -101,7 +108,7 @@ class Refiner:
         Q = np.linalg.inv(M)
         return [cq_to_rect(np.asarray(p, np.float64), Q) for p in points]
 
-    def _ellipsegnet(self, grays: list, cameras: list, points: list) -> list:
+    def _ellipsegnet(self, grays: list, cameras: list, points: list, conf: dict, mask_gate=None) -> list:
         seen = [k for k, f in enumerate(points) if f is not None]
         out = [None] * len(grays)
         if self.edge_refit and self.conf["layout_seed"]:
@@ -111,18 +118,18 @@ class Refiner:
             views = [k for k in seen if seeds[k] is not None]
             if views:
                 fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
-                                                       {**self.classical, "blur_fit_unrefined": False}, [cameras[k] for k in views])
+                                                       {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views])
                 for k, (centers, ok, ellipses) in zip(views, fits):
                     if ok.all():
                         out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
-            seen = [k for k in seen if out[k] is None]
+            seen = [k for k in seen if out[k] is None and (mask_gate is None or mask_gate(grays[k], points[k][0]))]
             if not seen:
                 return out
         # EllipSegNet: all patches of all views in one batch.
         refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
-            fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, self.classical,
+            fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, conf,
                                                    [cameras[k] for k in seen])
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
@@ -130,7 +137,7 @@ class Refiner:
             if fit is not None:
                 c2, ok2, ellipses = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                    c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=self.classical, camera=cameras[k])
+                    c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k])
                     c2 = np.where(ok2[:, None], c2, c3)
                     ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                     ok2 = ok2 | ok3
@@ -141,14 +148,17 @@ class Refiner:
         return out
 
     def from_ellipses(self, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
-                      first_tol: float = 0.0, noises: list | None = None) -> list:
+                      first_tol: float = 0.0, noises: list | None = None, blur_gate=None) -> list:
         """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
         all views in one batch: per view a Detection when all three refine, else None.
         ``blur_unrefined=False``: no blur fit when the edge fit found none of the rings (a
         prediction that missed them). ``first_tol``: the edge fit may stop after its first
         pass when that moved the ellipses less than this (px; see ``refine_first_tol``).
-        ``noises``: per view, the image's noise sigma if known."""
+        ``noises``: per view, the image's noise sigma if known. ``blur_gate``: as in
+        :meth:`__call__`."""
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
+        if blur_gate is not None:
+            conf = {**conf, "blur_fit_gate": blur_gate}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
         fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises)
