@@ -113,7 +113,7 @@ def crossings(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: 
     """Per ray of (K, N, Smax) normalised profiles ``f`` (ring k has S[k] real samples at
     ``lam[k]``, step dl[k]): the 50 % crossing nearest the window centre (lambda), its
     validity, and the 10-90 % width of the transition around it (px)."""
-    K, N, Sm = f.shape
+    Sm = f.shape[2]
     dl3 = dl[:, None]
     above = f >= 0.5
     jj = np.arange(Sm - 1)
@@ -333,7 +333,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         ok[p] &= ~lopsided
     for k in np.nonzero(~planes)[0]:
         # Too few: smooth the local levels along the ellipse (circularly) instead.
-        w = max(1, int(round(c["level_smooth"] * n[k])))
+        w = max(1, round(c["level_smooth"] * n[k]))
         if w > 1:
             v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
@@ -472,7 +472,7 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     The subsets come from a fixed seed: the result is deterministic. ``P``'s valid points
     come first in each row (as :func:`edge_points` returns them).
     """
-    K, N = mask.shape
+    K = len(mask)
     t, off = _radial_offsets(P, cen, Q)
     X = np.stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)], axis=2)  # (K, N, 5)
     cnt = mask.sum(1)
@@ -507,7 +507,7 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
 
     Returns (centres (K, 2), Q (K, 2, 2), fitted (K,), keep (K, N)).
     """
-    K, N = mask.shape
+    K = len(mask)
     keep = mask.copy()
     if frame is not None:
         big = mask.sum(1) >= 12

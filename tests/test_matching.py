@@ -210,3 +210,47 @@ def test_view_triples_agrees_with_a_loop_over_triples():
         for (p, s), (q, t) in zip(got, ref):
             np.testing.assert_array_equal(p, q)
             assert s == pytest.approx(t, rel=1e-12)
+
+
+def test_stereo_triples_agrees_with_a_loop_over_triples(rig):
+    """The vectorised matching returns what a plain loop over every (c0, c1, c2) of matched
+    candidates returns, in the same order: a view given twice (many matches) and a pair
+    with the marker among decoys."""
+    from markerpose.geometry import epipolar_distance, signed_area, triangulate
+
+    def loop(cl, cr, model, etol, stol, top):
+        I, J = np.nonzero(epipolar_distance(rig, cl[:, :2], cr[:, :2]) <= etol)
+        X = triangulate(rig, cl[I, :2], cr[J, :2])
+        front = (X[:, 2] > 0) & (rig.to_right(X)[:, 2] > 0)
+        I, J, X = I[front], J[front], X[front]
+        L = side_lengths(model)
+        found = []
+        for a in range(len(X)):
+            for b in range(len(X)):
+                for c in range(len(X)):
+                    e = [abs(np.linalg.norm(X[p] - X[q]) - L[k]) / L[k] for k, (p, q) in enumerate(((a, b), (a, c), (b, c)))]
+                    if max(e) > stol or len({I[a], I[b], I[c]}) < 3 or len({J[a], J[b], J[c]}) < 3:
+                        continue
+                    pl, pr = cl[I[[a, b, c]], :2], cr[J[[a, b, c]], :2]
+                    if signed_area(pl) >= 0 or signed_area(pr) >= 0:
+                        continue
+                    s = np.exp(0.5 * np.mean(np.log(cl[I[[a, b, c]], 2]) + np.log(cr[J[[a, b, c]], 2])))
+                    found.append((pl, pr, s * (1 - max(e) / stol)))
+        found.sort(key=lambda f: -f[2])
+        return found[:top]
+
+    rng = np.random.default_rng(7)
+    m = mp.Marker()
+    T = look_at_pose([5, -10, 600], 35, 60, 20)
+    true = _project(rig, T, m.points3d)
+    dec = rig.project(T[:3, 3] + rng.uniform(-60, 60, (7, 3)))
+    left = _cands(np.vstack([true[0], dec[0]]), rng.uniform(0.1, 0.9, 10))
+    right = _cands(np.vstack([true[1], dec[1]]), rng.uniform(0.1, 0.9, 10))
+    for cl, cr, etol, stol in ((left, right, 20.0, 0.35), (left, left.copy(), 60.0, 0.6)):
+        want = loop(cl, cr, m.points3d, etol, stol, 50)
+        got = stereo_triples(rig, cl, cr, m.points3d, etol, stol, 50)
+        assert len(got) == len(want) > 0
+        for (a, b, s), (c, d, t) in zip(got, want):
+            np.testing.assert_allclose(a, c)
+            np.testing.assert_allclose(b, d)
+            assert s == pytest.approx(t, rel=1e-9)

@@ -384,3 +384,25 @@ def test_inconsistent_pairs_are_rejected_cheaply(rig, monkeypatch):
         calls.clear()
         assert tracker.estimate(left, right) is None
         assert len(calls) <= 2, len(calls)
+
+
+def test_evidence_gates_spare_an_inconsistent_pair_the_costly_fits(rig, monkeypatch):
+    """The right view given as both views: the matched triples are ring-like clutter. With
+    the evidence gates no blurred-ring fit runs on them and the masks are not consulted
+    for them; without the gates both happen. Either way no pose."""
+    from markerpose import blurfit
+    from markerpose.experiments.bench import _pairs
+
+    right = _pairs(2, 0)[2][1].images[1]
+    calls = {"blur": 0}
+    real = blurfit.fit_blurred_rings
+
+    def counted(*a, **k):
+        calls["blur"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(blurfit, "fit_blurred_rings", counted)
+    gated = mp.MarkerPose(rig)
+    assert gated.estimate(right, right) is None and calls["blur"] == 0
+    ungated = mp.MarkerPose(rig, match={"blur_min_evidence": 0, "mask_min_evidence": 0})
+    assert ungated.estimate(right, right) is None and calls["blur"] > 0
