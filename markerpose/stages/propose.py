@@ -27,15 +27,17 @@ default_conf = {
     "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
     "second_look_near": 6,  # ... only around the first look's best this many candidates per
-    #                         view (windows of +-64 px of its input; ours: a marker too
-    #                         small to be matched at the first look is still among its best
-    #                         candidates); 0: the whole image
+    #                         view (ours: a marker too small to be matched at the first look
+    #                         is still among its best candidates); 0: the whole image
+    "second_look_window": 48,  # ... in windows of this many px of its input each side
 }
 
 
 def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
     check_second_look(conf["second_look"])
+    if int(conf["second_look_window"]) < 16:
+        raise ValueError(f"second_look_window must be >= 16 px, got {conf['second_look_window']!r}")
     if int(conf["candidates"]) < 3:
         raise ValueError(f"candidates must be >= 3, got {conf['candidates']!r}")
     return conf
@@ -71,7 +73,7 @@ class NeuralProposer:
         near = None
         if zoom > 1 and previous is not None and c["second_look_near"]:
             near = [p[: int(c["second_look_near"]), :2] for p in previous]
-        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near)
+        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]))
 
     def decoded(self, grays: list[np.ndarray]) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
