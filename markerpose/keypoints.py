@@ -211,7 +211,7 @@ class KeypointNet:
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
-                   nms_radius: int | None = None, near: list | None = None, window: int = 48) -> list[np.ndarray]:
+                   nms_radius: int | None = None, near: list | None = None, window: int = 64) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
         ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
         image, (N, 3) rows (x, y, score) in full-resolution pixels, best first.

@@ -29,7 +29,8 @@ default_conf = {
     "second_look_near": 6,  # ... only around the first look's best this many candidates per
     #                         view (ours: a marker too small to be matched at the first look
     #                         is still among its best candidates); 0: the whole image
-    "second_look_window": 48,  # ... in windows of this many px of its input each side
+    "second_look_window": 64,  # ... in windows of this many px of its input each side (48
+    #                            lost a near marker under a shadow: a large ring needs context)
 }
 
 
