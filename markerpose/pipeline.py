@@ -366,9 +366,9 @@ class MarkerPose:
                 # The pose predicts the rings' ellipses in the other view to within a pixel
                 # or so: their edges are fitted from there first; the usual refinement at
                 # the predicted centres can be led to a neighbouring ring by a steep,
-                # blurred view. No blurred-ring fit on seeds where no edge fitted: on a
-                # sharp view that missed the rings it is costly and futile; a blurred
-                # view gets it from the usual refinement below.
+                # blurred view. On seeds where no edge fitted, the blurred-ring fit runs
+                # only when its coarse search finds blur (a sharp view's seeds that missed
+                # the rings are not worth it), and only with ring evidence (blur_gate).
                 ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
                 guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s, True, 0.0, None,
                                      blur_gate)[0]

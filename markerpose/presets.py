@@ -17,8 +17,9 @@ _NO_EDGE = {"edge_refit": False}
 
 PRESETS: dict[str, dict] = {
     # Ours: stage-1 candidates matched across views by the marker's 3D shape (with the
-    # transfer fallback), EllipSegNet + edge refit + blur fit, plate check, bias
-    # correction, rigid pose, a second look at 640x480 when nothing is found.
+    # transfer fallback), edges fitted from the layout's ellipses (EllipSegNet's masks
+    # where that fails) + blur fit, plate check, bias correction, rigid pose, a second
+    # look at 640x480 around the best candidates when nothing is found.
     "default": {},
     # The paper's MarkerPose: ID-head decoding, EllipSegNet on fixed 120 px patches,
     # cv2.fitEllipse on the mask, DLT triangulation of the ellipse centres, R = [x y x×y].
@@ -48,7 +49,7 @@ PRESETS: dict[str, dict] = {
 }
 
 ABOUT: dict[str, str] = {
-    "default": "ours: stereo-matched candidates, EllipSegNet + edge refit, blur fit, bias correction, rigid pose",
+    "default": "ours: stereo-matched candidates, edges fitted from the layout's ellipses (EllipSegNet's masks where that fails), blur fit, bias correction, rigid pose",
     "paper": "the paper's MarkerPose: ID head, EllipSegNet (fixed 120 px, fitEllipse), paper pose",
     "paper-classical": "the paper's classical detector (§3.4) and pose",
     "neural-layout": "paper + IDs from the marker's layout, adaptive patches, sub-pixel mask fit",
@@ -58,7 +59,7 @@ ABOUT: dict[str, str] = {
     "default-no-blur-fit": "default without the blurred-ring fit",
     "default-no-second-look": "default without stage 1's second look",
     "neural-classical-refine": "default with the classical ring fit instead of EllipSegNet",
-    "default-masks-first": "default with EllipSegNet's masks seeding every edge fit (no layout seeds)",
+    "default-masks-first": "default with EllipSegNet's masks seeding every cold detection's edge fit (as before v0.23)",
     "classical-subpixel": "paper-classical + sub-pixel edges",
     "classical-subpixel-bias": "classical-subpixel + bias correction",
     "classical": "classical-subpixel-bias + rigid pose: our best classical (detector='classical')",

@@ -6,7 +6,8 @@
   configuration instead decodes one triple per view by the ID head
   (:meth:`NeuralProposer.decoded`). When a look finds no marker, stage 1 looks again at
   ``second_look`` times the input size, resized from the full image (ours): rings under
-  ~12 px at 320x240 are found far more often.
+  ~12 px at 320x240 are found far more often. That look sees only windows around the
+  first look's best candidates (``second_look_near``, ``second_look_window``).
 - Classical (paper §3.4, :mod:`markerpose.classical`): binarise, contours, concentric
   ellipses; each view's ring candidates and its marker-like triples named by layout
   (:func:`classical_view`).
@@ -29,8 +30,8 @@ default_conf = {
     "second_look_near": 6,  # ... only around the first look's best this many candidates per
     #                         view (ours: a marker too small to be matched at the first look
     #                         is still among its best candidates); 0: the whole image
-    "second_look_window": 64,  # ... in windows of this many px of its input each side (48
-    #                            lost a near marker under a shadow: a large ring needs context)
+    "second_look_window": 64,  # ... in windows of this many px of its input each side (a
+    #                            large ring needs context beyond its own size)
 }
 
 

@@ -5,7 +5,9 @@
   120x120), the ring's mask, its centre (the paper's ``cv2.fitEllipse``, or ours: the
   mask's sub-pixel iso-line). With ``edge_refit`` (ours) the ring's outer edge is then
   fitted in the image itself from the mask's ellipse (:func:`classical.refine_ellipses`),
-  and only edge-fitted centres count as refined.
+  and only edge-fitted centres count as refined. With ``layout_seed`` as well (ours) the
+  edges are first fitted from the ellipses the three points' layout predicts, and the
+  network runs only for views where that fails.
 - ``"classical"``: the classical sub-pixel ring fit near each point
   (:func:`classical.refine_points`).
 - ``"none"``: the proposed points as they are (~1 px).

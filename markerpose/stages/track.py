@@ -15,10 +15,10 @@ import numpy as np
 default_conf = {
     "max_residual_px": 0.5,  # quality gate: RMS reprojection error of the six centres, px
     "margin_px": 2.0,  # predicted rings must lie this far inside both images
-    "one_pass_move": 0.15,  # px: the edge fit from the predicted ellipses stops after one
-    #                         pass when that pass moved every ellipse less than this (a
-    #                         still or slow marker), else it iterates to convergence as a
-    #                         cold detection's does
+    "one_pass_move": 0.15,  # px: a ring's edge fit from its predicted ellipse stops after
+    #                         one pass when that pass moved it less than this (a still or
+    #                         slow marker: the prediction was close), else it iterates to
+    #                         convergence as a cold detection's does
     "noise_every": 30,  # tracked frames between estimates of the images' noise (the edge
     #                     fit's contrast floor); a cold detection also renews it
 }
