@@ -582,6 +582,11 @@ def refine_ring(
     return _refine_batch([gray], [0], [ring], [list(others)], marker, c, [noise], [camera])[0]
 
 
+def _noises(grays: list, noises: list | None) -> list:
+    """Per view, the noise sigma given, or :func:`noise_sigma` where none is."""
+    return [noise_sigma(g) if noises is None or noises[v] is None else noises[v] for v, g in enumerate(grays)]
+
+
 def refine_views(
     grays: list,
     rings: list,
@@ -602,7 +607,7 @@ def refine_views(
         per view, the list of refined rings (see :func:`refine_ring`).
     """
     c = _merge_conf(conf)
-    noises = [noise_sigma(g) if noises is None or noises[v] is None else noises[v] for v, g in enumerate(grays)]
+    noises = _noises(grays, noises)
     flat = [(v, k, r) for v, rs in enumerate(rings) for k, r in enumerate(rs) if r is not None]
     present = [[r for r in rs if r is not None] for rs in rings]
     done = _refine_batch(grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], marker, c,
@@ -918,7 +923,7 @@ def refine_ellipses_views(
     """
     c = _merge_conf(conf)
     grays = [as_gray(im, f"view {v}", allow_float=True) for v, im in enumerate(images)]  # 8-bit stays 8-bit: no float copy
-    noises = [noise_sigma(g) if noises is None or noises[v] is None else noises[v] for v, g in enumerate(grays)]
+    noises = _noises(grays, noises)
     rho = marker.inner_diameter / marker.outer_diameter
     views = []
     for rects in ellipses:

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import sqrtm_spd
+
 # --- masked statistics (numpy's median / linear percentile over the masked-in entries) ----------
 
 
@@ -55,12 +57,6 @@ def masked_percentile(x: np.ndarray, mask: np.ndarray, q: float, empty: float = 
 
 
 # --- small batched linear algebra -----------------------------------------------------------------
-
-
-def spd_power(Q: np.ndarray, power: float) -> np.ndarray:
-    """(K, 2, 2) symmetric positive definite matrices to a real ``power``."""
-    lam, V = np.linalg.eigh(Q)
-    return (V * lam[:, None, :] ** power) @ V.transpose(0, 2, 1)
 
 
 def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -233,7 +229,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         widths of the valid points in px (K,)).
     """
     K = len(cen)
-    L = spd_power(Q, -0.5)
+    L = sqrtm_spd(Q, -0.5)
     eig = np.linalg.eigvalsh(Q)
     a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
     perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
@@ -455,7 +451,7 @@ def _radial_offsets(P: np.ndarray, cen: np.ndarray, Q: np.ndarray) -> tuple[np.n
     """Per point, its angle on the ellipse (cen, Q) seen as a unit circle, and its radial
     offset from the ellipse, px (K, N each)."""
     d = P - cen[:, None, :]
-    q = np.einsum("kij,knj->kni", spd_power(Q, 0.5), d)  # unit-circle frame
+    q = np.einsum("kij,knj->kni", sqrtm_spd(Q, 0.5), d)  # unit-circle frame
     lam = np.hypot(q[..., 0], q[..., 1])
     t = np.arctan2(q[..., 1], q[..., 0])
     return t, (lam - 1.0) * np.hypot(d[..., 0], d[..., 1]) / np.maximum(lam, 1e-9)

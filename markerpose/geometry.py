@@ -262,9 +262,10 @@ def ellipse_to_conic(center, axes, angle_deg) -> np.ndarray:
 
 
 def sqrtm_spd(Q: np.ndarray, power: float = 0.5) -> np.ndarray:
-    """``Q`` (symmetric positive definite) to a real ``power`` (0.5: its square root)."""
+    """``Q`` (symmetric positive definite, (2, 2) or a stack (..., n, n)) to a real
+    ``power`` (0.5: its square root)."""
     lam, V = np.linalg.eigh(Q)
-    return (V * lam**power) @ V.T
+    return (V * lam[..., None, :] ** power) @ np.swapaxes(V, -1, -2)
 
 
 def imaged_circle_centers(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, radius: float) -> np.ndarray:

@@ -59,7 +59,7 @@ ABOUT: dict[str, str] = {
     "default-no-blur-fit": "default without the blurred-ring fit",
     "default-no-second-look": "default without stage 1's second look",
     "neural-classical-refine": "default with the classical ring fit instead of EllipSegNet",
-    "default-masks-first": "default with EllipSegNet's masks seeding every cold detection's edge fit (as before v0.23)",
+    "default-masks-first": "default with EllipSegNet's masks seeding every cold detection's edge fit (the former default)",
     "classical-subpixel": "paper-classical + sub-pixel edges",
     "classical-subpixel-bias": "classical-subpixel + bias correction",
     "classical": "classical-subpixel-bias + rigid pose: our best classical (detector='classical')",
