@@ -33,6 +33,7 @@ _SQ2PI = np.sqrt(2 * np.pi)
 # Gauss-Hermite rule for a unit normal: nodes and weights.
 _GH_T = np.array([-np.sqrt(3.0), 0.0, np.sqrt(3.0)])
 _GH_W = np.array([1 / 6, 2 / 3, 1 / 6])
+_MIDPOINT = (np.zeros(1), np.ones(1))  # one node: sigma ignored across the motion (the coarse search)
 
 default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
@@ -45,38 +46,35 @@ default_conf: dict = {
     #                        distance, a large ring-like decoy several times more (seconds)
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
     "xtol": 1e-4,  # convergence: relative parameter change ...
-    "ftol": 1e-4,  # ... or relative cost change
+    "ftol": 1e-4,  # ... or relative cost change ...
+    "center_tol": 0.002,  # ... or no centre moved more than this, px
+    "max_move": 0.0,  # give up once a centre is this far from its start, px (0: never)
     "loss_scale": 3.0,  # robust loss: residuals beyond this many noise sigmas count less
     "min_length": 0.0,  # give up when the coarse search's best blur length is under this, px
     #                     (seeds where no edge fitted: without blur, they missed the rings)
 }
 
 
-def _G(t):
-    """Antiderivative of the normal CDF, t Phi(t) + phi(t) (= max(t, 0) beyond |t| > 5)."""
-    out = np.maximum(t, 0.0)
+def _normal(t, jac):
+    """(G, Phi, phi) of t: G(t) = t Phi(t) + phi(t), the antiderivative of the normal CDF
+    Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0). Without
+    ``jac`` only G."""
     m = np.abs(t) < 5.0
     tm = t[m]
-    out[m] = tm * ndtr(tm) + np.exp(-0.5 * tm * tm) / _SQ2PI
-    return out
+    P = ndtr(tm)
+    p = np.exp(-0.5 * tm * tm) / _SQ2PI
+    G = np.maximum(t, 0.0)
+    G[m] = tm * P + p
+    if not jac:
+        return G, None, None
+    Phi = (t > 0).astype(np.float64)
+    Phi[m] = P
+    phi = np.zeros_like(t)
+    phi[m] = p
+    return G, Phi, phi
 
 
-def _Phi(t):
-    out = (t > 0).astype(np.float64)
-    m = np.abs(t) < 5.0
-    out[m] = ndtr(t[m])
-    return out
-
-
-def _phi(t):
-    out = np.zeros_like(t)
-    m = np.abs(t) < 5.0
-    tm = t[m]
-    out[m] = np.exp(-0.5 * tm * tm) / _SQ2PI
-    return out
-
-
-def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
+def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
     ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
     a three-point rule across), at the points (x, y).
@@ -107,7 +105,7 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
         x, y = x[near], y[near]
         val = np.zeros(len(near))
         J = {k: np.zeros((len(near),) + v.shape[1:]) for k, v in J.items()} if jac else None
-    for tau, w in zip(_GH_T, _GH_W):
+    for tau, w in zip(*rule):
         off = tau * sigma
         dx = x + off * n[0] - c[0]
         dy = y + off * n[1] - c[1]
@@ -120,28 +118,36 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
         B, dx, dy = B[idx], dx[idx], dy[idx]
         r = np.sqrt(disc[idx])
         s1, s2 = (-B - r) / A, (-B + r) / A
-        a1, b1, a2, b2 = (Lh - s1) / sigma, (-Lh - s1) / sigma, (Lh - s2) / sigma, (-Lh - s2) / sigma
-        v = (_G(a1) - _G(b1) - _G(a2) + _G(b2)) * (sigma / L)
+        t = np.stack([Lh - s1, -Lh - s1, Lh - s2, -Lh - s2]) / sigma  # a1, b1, a2, b2
+        G, P, ph = _normal(t, jac)
+        v = (G[0] - G[1] - G[2] + G[3]) * (sigma / L)
         val[idx] += w * v
         if not jac:
             continue
-        Pa1, Pb1, Pa2, Pb2 = _Phi(a1), _Phi(b1), _Phi(a2), _Phi(b2)
-        dv_s = (-(Pa1 - Pb1) / L, (Pa2 - Pb2) / L)
-        J["L"][idx] += w * (-v / L + (Pa1 + Pb1 - Pa2 - Pb2) / (2 * L))
-        dsig = (_phi(a1) - _phi(b1) - _phi(a2) + _phi(b2)) / L
+        dv_s = (-(P[0] - P[1]) / L, (P[2] - P[3]) / L)
+        jL = w * (-v / L + (P[0] + P[1] - P[2] - P[3]) / (2 * L))
+        dsig = (ph[0] - ph[1] - ph[2] + ph[3]) / L
         rc = np.maximum(r, 0.25 * A)  # tangent chords: the derivative is clipped
+        jc = np.zeros((2, len(idx)))
+        jq = np.zeros((3, len(idx)))
+        jth = np.zeros(len(idx))
         for s, den, dvs in ((s1, -rc, dv_s[0]), (s2, rc, dv_s[1])):
             px, py = dx + s * u[0], dy + s * u[1]
             gx, gy = Q[0, 0] * px + Q[0, 1] * py, Q[0, 1] * px + Q[1, 1] * py
             k = w * dvs / den
-            J["c"][idx, 0] += k * gx
-            J["c"][idx, 1] += k * gy
-            J["Q"][idx, 0] += -0.5 * k * px * px
-            J["Q"][idx, 1] += -k * px * py
-            J["Q"][idx, 2] += -0.5 * k * py * py
+            jc[0] += k * gx
+            jc[1] += k * gy
+            kp = -0.5 * k * px
+            jq[0] += kp * px
+            jq[1] += 2 * kp * py
+            jq[2] += -0.5 * k * py * py
             ng = n[0] * gx + n[1] * gy
-            J["theta"][idx] += w * dvs * off - k * s * ng
+            jth += w * dvs * off - k * s * ng
             dsig = dsig - (dvs / den) * tau * ng
+        J["c"][idx] += jc.T
+        J["Q"][idx] += jq.T
+        J["theta"][idx] += jth
+        J["L"][idx] += jL
         J["sigma"][idx] += w * dsig
     if full is not None:
         full[0][near] = val
@@ -152,10 +158,10 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
     return (val, J) if jac else val
 
 
-def _ring(x, y, c, Q, d, rho, theta, L, sigma, jac=False):
+def _ring(x, y, c, Q, d, rho, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     """Outer disk minus the white disk (centre offset ``d``, form Q / rho^2), blurred."""
     if not jac:
-        return blurred_disk(x, y, c, Q, theta, L, sigma) - blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma)
+        return blurred_disk(x, y, c, Q, theta, L, sigma, rule=rule) - blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma, rule=rule)
     vo, Jo = blurred_disk(x, y, c, Q, theta, L, sigma, True)
     vi, Ji = blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma, True)
     J = {
@@ -233,6 +239,10 @@ class _Problem:
             p += [*c, q[0, 0], q[0, 1], q[1, 1], 0.0, 0.0]
         return np.array(p + [0.0, 0.0, np.log(0.8)])
 
+    def centers(self, p):
+        """The rings' centres (k, 2) in the parameters ``p`` (or a step's centre moves)."""
+        return p[: 7 * self.k].reshape(-1, 7)[:, :2]
+
     def unpack(self, p):
         rings = []
         for j in range(self.k):
@@ -240,8 +250,9 @@ class _Problem:
             rings.append((q[0:2], np.array([[q[2], q[3]], [q[3], q[4]]]) / self.scale**2, q[5:7]))
         return rings, p[-3], np.exp(p[-2]), np.exp(p[-1])
 
-    def evaluate(self, p, jac=False):
-        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None)."""
+    def evaluate(self, p, jac=False, rule=(_GH_T, _GH_W)):
+        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None);
+        ``rule``: the quadrature across the motion."""
         if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
             raise ValueError("blur length or sigma out of range")
         rings, theta, L, sigma = self.unpack(p)
@@ -251,7 +262,7 @@ class _Problem:
         for c, Q, d in rings:
             if np.linalg.eigvalsh(Q)[0] <= 0:
                 raise ValueError("ellipse form not positive definite")
-            out = _ring(self.x, self.y, c, Q, d, self.rho, theta, L, sigma, jac)
+            out = _ring(self.x, self.y, c, Q, d, self.rho, theta, L, sigma, jac, rule)
             if not jac:
                 R += out
                 continue
@@ -272,8 +283,8 @@ class _Problem:
             Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
         return res, beta, Jr
 
-    def residual(self, p):
-        return self.evaluate(p)[0]
+    def residual(self, p, rule=(_GH_T, _GH_W)):
+        return self.evaluate(p, rule=rule)[0]
 
 
 def _robust_lm(prob, p, conf):
@@ -282,8 +293,10 @@ def _robust_lm(prob, p, conf):
     model cannot explain (the plate's edge, clutter, an occluder) stop counting; the
     weights also enter the levels' linear fit. Each iteration takes one damped
     Gauss-Newton step on the weighted cost by the normal equations (few parameters, many
-    pixels). Returns (parameters, number of model evaluations)."""
+    pixels). Returns (parameters, number of model evaluations); the parameters are None
+    when a centre went farther than conf["max_move"] (a start that missed the rings)."""
     f2 = conf["loss_scale"] ** 2
+    start = prob.centers(p).copy()
     r = prob.residual(p)
     lam, nfev = 1e-3, 1
     for _ in range(conf["max_iter"]):
@@ -310,8 +323,11 @@ def _robust_lm(prob, p, conf):
             lam *= 10
             if lam > 1e8:
                 return p, nfev
-        small = E - Et <= conf["ftol"] * E or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
+        small = (E - Et <= conf["ftol"] * E or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
+                 or np.abs(prob.centers(step)).max() <= conf["center_tol"])
         p, r = trial, rt
+        if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
+            return None, nfev
         lam = max(lam / 10, 1e-7)
         if small:
             break
@@ -348,7 +364,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         for L in c["grid_lengths"]:
             p = base.copy()
             p[-3], p[-2] = th, np.log(L)
-            r = prob.residual(p)
+            r = prob.residual(p, _MIDPOINT)
             cost = float(r @ r)
             if best is None or cost < best[0]:
                 best = (cost, p)
@@ -366,7 +382,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         p, nfev = _robust_lm(prob, p0, c)
     except (np.linalg.LinAlgError, ValueError):
         return None
-    if not np.all(np.isfinite(p)):
+    if p is None or not np.all(np.isfinite(p)):
         return None
     r, beta, _ = prob.evaluate(p)
     rings, theta, L, sigma = prob.unpack(p)

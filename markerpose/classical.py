@@ -166,6 +166,7 @@ class Ring:
     _outer_cq: tuple = field(default=None, repr=False)
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
+    _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
 
 
 # --- input handling ------------------------------------------------------------------------
@@ -665,9 +666,12 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
 
     noise = noise_sigma(gray) if noise is None else noise
     rho = marker.inner_diameter / marker.outer_diameter
-    # Seeds where no edge fitted are worth the fit only if the image there is blurred.
-    unrefined = None if any(r.refined for r in rings) else {"min_length": 10.0}
-    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, unrefined)
+    # Seeds where no edge fitted are worth the fit only if the image there is blurred. A
+    # fit whose centres wander well beyond the move kept below is given up early.
+    fit_conf = {"max_move": 2 * c["blur_fit_max_move"]}
+    if not any(r.refined for r in rings):
+        fit_conf["min_length"] = 10.0
+    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
     if fit is None:
         return rings
     out = []
@@ -675,7 +679,7 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         if not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"]):
             return rings
         shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
-        out.append(replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q)))
+        out.append(replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q), _blur=fit["length"]))
     return out
 
 
@@ -779,7 +783,8 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera)
         chosen = refine_views([gray], [chosen], marker, c, [noise], [camera])[0]
         chosen = refine_blurred(gray, chosen, marker, c, noise)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
-    return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)))
+    return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)),
+                     blur_px=max(r._blur for r in chosen))
 
 
 def detect(
@@ -830,7 +835,8 @@ def refine_points(
     subpixel: bool = True,
     conf: dict | None = None,
     camera: Camera | None = None,
-) -> tuple[np.ndarray, np.ndarray, list]:
+    with_blur: bool = False,
+) -> tuple:
     """Classical sub-pixel centres of the rings near given rough points (e.g. stage 1's).
 
     Each point gets a window of about four ring radii (the radius judged from the spacing
@@ -841,9 +847,11 @@ def refine_points(
         image: uint8 gray (H, W) or BGR.
         points: (3, 2) rough centres c0, c1, c2, px.
         marker, subpixel, conf, camera: as in :func:`detect`.
+        with_blur: also return the motion blur (as :func:`refine_ellipses_views` does).
     Returns:
         (centers (3, 2), found (3,) bool, ellipses): where no ring is found near a point,
-        its centre is the input point, ``found`` is False and its ellipse None.
+        its centre is the input point, ``found`` is False and its ellipse None; with
+        ``with_blur``, the blur length (px) as a fourth item.
     """
     c = _merge_conf(conf)
     gray = to_gray(image)
@@ -875,7 +883,8 @@ def refine_points(
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
         rings = refine_blurred(gray, rings, marker, c, noise)
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
-    return centers, found, [None if r is None else r.outer for r in rings]
+    out = (centers, found, [None if r is None else r.outer for r in rings])
+    return (*out, max((r._blur for r in rings if r is not None), default=0.0)) if with_blur else out
 
 
 def refine_ellipses(
@@ -909,6 +918,7 @@ def refine_ellipses_views(
     conf: dict | None = None,
     cameras: list | None = None,
     noises: list | None = None,
+    with_blur: bool = False,
 ) -> list:
     """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
     fits in one batch.
@@ -918,8 +928,11 @@ def refine_ellipses_views(
         ellipses: per view, a list of approximate outer ellipses (RotatedRect) or None.
         cameras: per view, a Camera or None.
         noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
+        with_blur: also return each view's motion blur.
     Returns:
-        per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them.
+        per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them;
+        with ``with_blur`` (centers, refined, ellipses, blur): ``blur`` is the motion blur
+        length (px) the blurred-ring fit found, 0 where it did not run or was not kept.
     """
     c = _merge_conf(conf)
     grays = [as_gray(im, f"view {v}", allow_float=True) for v, im in enumerate(images)]  # 8-bit stays 8-bit: no float copy
@@ -941,7 +954,8 @@ def refine_ellipses_views(
         rings = refine_blurred(gray, rings, marker, c, noise)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
-        out.append((centers, ok, [None if r is None else r.outer for r in rings]))
+        found = (centers, ok, [None if r is None else r.outer for r in rings])
+        out.append((*found, max((r._blur for r in rings if r is not None), default=0.0)) if with_blur else found)
     return out
 
 

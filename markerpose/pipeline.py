@@ -367,11 +367,12 @@ class MarkerPose:
                 # or so: their edges are fitted from there first; the usual refinement at
                 # the predicted centres can be led to a neighbouring ring by a steep,
                 # blurred view. On seeds where no edge fitted, the blurred-ring fit runs
-                # only when its coarse search finds blur (a sharp view's seeds that missed
-                # the rings are not worth it), and only with ring evidence (blur_gate).
+                # only when the source view's rings needed it too (the cameras expose
+                # together: the marker's motion blurs both views or neither), when its
+                # coarse search finds blur, and with ring evidence (blur_gate).
                 ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
-                guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s, True, 0.0, None,
-                                     blur_gate)[0]
+                guided = self._timed("refine", self.refiner.from_ellipses, [grays[b]], [cams[b]], [ellipses], s, det_a.blur_px > 0,
+                                     0.0, None, blur_gate)[0]
                 if guided is not None and (est := self._accepted([det_a, guided][:: 1 - 2 * a])) is not None:
                     return est
                 det_b = self._fit(self.refiner, [grays[b]], [cams[b]], [(pred, s)], blur_gate)

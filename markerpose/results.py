@@ -20,12 +20,15 @@ class Detection:
             ((cx, cy), (w, h), angle_deg), ordered by ID.
         score: detector-specific confidence (higher is better).
         refined: (3,) bool, which centres are sub-pixel (None: all of them).
+        blur_px: the motion blur's length (px) that the blurred-ring model fit found in
+            this view; 0 where the rings' edges were sharp enough not to need that fit.
     """
 
     centers: np.ndarray
     ellipses: list | None = None
     score: float = 1.0
     refined: np.ndarray | None = None
+    blur_px: float = 0.0
 
     def __post_init__(self):
         if self.refined is None:

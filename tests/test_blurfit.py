@@ -115,6 +115,47 @@ def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):
     assert full is not None
 
 
+def test_a_start_that_missed_the_rings_is_given_up_by_the_move_bound(blurred_view, monkeypatch):
+    """``max_move``: a fit whose centres wander beyond it stops early with None (a start
+    that missed the rings); from a close start the bound changes nothing."""
+    _, img, truth = blurred_view
+    gray = C.to_gray(img)
+    cqs = [geo.rect_to_cq(r) for r in _truth_rects(truth)]
+    close = [(c + np.array([0.8, -0.6]), Q) for c, Q in cqs]
+    free = blurfit.fit_blurred_rings(gray, close, RHO, C.noise_sigma(gray))
+    bounded = blurfit.fit_blurred_rings(gray, close, RHO, C.noise_sigma(gray), conf={"max_move": 6.0})
+    np.testing.assert_array_equal(np.array([c for c, _ in free["cqs"]]), np.array([c for c, _ in bounded["cqs"]]))
+    calls = []
+    lm = blurfit._robust_lm
+
+    def counted(prob, p, conf):
+        out = lm(prob, p, conf)
+        calls.append(out)
+        return out
+
+    # Started 8 px off, the fit must move farther than 2 px: the optimiser itself gives up.
+    off = [(c + np.array([8.0, 0.0]), Q) for c, Q in cqs]
+    monkeypatch.setattr(blurfit, "_robust_lm", counted)
+    assert blurfit.fit_blurred_rings(gray, off, RHO, C.noise_sigma(gray), conf={"max_move": 2.0}) is None
+    assert calls[0][0] is None
+
+
+def test_detections_report_the_motion_blur():
+    """``Detection.blur_px``: the blur length the blurred-ring fit found, in both views of
+    a blurred pair; 0 for a sharp pair (no model fit ran)."""
+    from markerpose import MarkerPose
+
+    rig = StereoRig.default()
+    T = synth.look_at_pose([10, -10, 700], 30, 60, 30)
+    tracker = MarkerPose(rig)
+    for blur in (25.0, 0.0):
+        f = synth.render_stereo(rig, T, imaging=synth.Imaging(alpha=0.6, motion_blur=blur, motion_angle=110), seed=4)
+        est = tracker.estimate(*f.images)
+        assert est is not None
+        for d in est.detections:
+            assert d.blur_px == (pytest.approx(blur, abs=1.5) if blur else 0.0)
+
+
 def test_refinement_under_heavy_blur_beats_the_edge_fit(blurred_view):
     rig, img, truth = blurred_view
     rects = _truth_rects(truth)

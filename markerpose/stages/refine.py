@@ -95,8 +95,9 @@ class Refiner:
             if self.conf["method"] == "none":
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
-            centers, ok, ellipses = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf, camera=cam)
-            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok))
+            centers, ok, ellipses, blur = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf,
+                                                                  camera=cam, with_blur=True)
+            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur))
         return out
 
     def layout_ellipses(self, points: np.ndarray) -> list | None:
@@ -120,10 +121,11 @@ class Refiner:
             views = [k for k in seen if seeds[k] is not None]
             if views:
                 fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
-                                                       {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views])
-                for k, (centers, ok, ellipses) in zip(views, fits):
+                                                       {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views],
+                                                       with_blur=True)
+                for k, (centers, ok, ellipses, blur) in zip(views, fits):
                     if ok.all():
-                        out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
+                        out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
             seen = [k for k in seen if out[k] is None and (mask_gate is None or mask_gate(grays[k], points[k][0]))]
             if not seen:
                 return out
@@ -132,21 +134,21 @@ class Refiner:
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
             fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, conf,
-                                                   [cameras[k] for k in seen])
+                                                   [cameras[k] for k in seen], with_blur=True)
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
-            ellipses = None
+            ellipses, blur = None, 0.0
             if fit is not None:
-                c2, ok2, ellipses = fit
+                c2, ok2, ellipses, blur = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                    c3, ok3, e3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k])
-                    c2 = np.where(ok2[:, None], c2, c3)
+                    c3, ok3, e3, b3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k], with_blur=True)
+                    c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
                     ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                     ok2 = ok2 | ok3
                 # Only edge-fitted centres count as refined: a mask's centre can be
                 # pixels off, and a pose from it is wrong by a millimetre.
                 centers, ok = np.where(ok2[:, None], c2, centers), ok2
-            out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok)
+            out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
         return out
 
     def from_ellipses(self, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
@@ -163,8 +165,8 @@ class Refiner:
             conf = {**conf, "blur_fit_gate": blur_gate}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
-        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises)
-        return [Detection(centers=c, ellipses=e, score=score, refined=ok) if ok.all() else None for c, ok, e in fits]
+        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises, with_blur=True)
+        return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
 
     def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
         """The classical detector's triple ``tri`` of a view (gray, noise, rings, ...)
