@@ -181,6 +181,7 @@ class KeypointNet:
         self.conf["width"] = float(meta["width"])
         self.conf["stem_width"] = meta.get("stem_width")
         self.marker = marker or _MARKER
+        self._looked: list | None = None  # (image, size, input, scale) of the current frames; None: kept for none
 
     def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
         """Decoding settings: the defaults, the thresholds tuned at export for the ID mode
@@ -204,10 +205,28 @@ class KeypointNet:
         det, ids = self.runner(np.asarray(batch, np.float32)[:, None])
         return det, ids
 
+    def forget(self) -> None:
+        """New frames: from now on each image's input at each look is made once (the
+        evidence tests look again where the looks did) and kept until the next call. Call
+        it before every new set of frames: a video source may refill the same arrays.
+        Without it, inputs are never kept."""
+        self._looked = []
+
+    def _input(self, image: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`to_input` of an image at the look ``zoom`` (kept: see :meth:`forget`)."""
+        size = look_size(zoom)
+        for im, sz, small, scale in self._looked or ():
+            if im is image and sz == size:
+                return small, scale
+        small, scale = to_input(image, size)
+        if self._looked is not None:
+            self._looked.append((image, size, small, scale))
+        return small, scale
+
     def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
         """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
         looked at ``zoom`` times the paper's input size."""
-        inputs, scales = zip(*(to_input(g, look_size(zoom)) for g in images))
+        inputs, scales = zip(*(self._input(g, zoom) for g in images))
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
@@ -232,7 +251,7 @@ class KeypointNet:
         return out
 
     def _candidates_near(self, images, threshold, k, zoom, r, near, window):
-        inputs, scales = zip(*(to_input(g, look_size(zoom)) for g in images))
+        inputs, scales = zip(*(self._input(g, zoom) for g in images))
         size = 2 * window
         crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
         for j, (small, s, pts) in enumerate(zip(inputs, scales, near)):
@@ -263,7 +282,7 @@ class KeypointNet:
     def evidence(self, image: np.ndarray, triples: np.ndarray, zoom: float = 1.0) -> np.ndarray:
         """:func:`ring_evidence` of (T, 3, 2) triples in a full-resolution uint8 gray image's
         pixels, looked at in the network's input of the look that found them: (T,)."""
-        small, scale = to_input(image, look_size(zoom))
+        small, scale = self._input(image, zoom)
         return ring_evidence(small, (np.asarray(triples, np.float64) + 0.5) / scale - 0.5, self.marker)
 
     def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:

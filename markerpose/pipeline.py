@@ -74,6 +74,8 @@ class MarkerPose:
         self.timings, self.why = {}, None
         self._fits_left = None  # no work budget until a cold detection sets one (_budget)
         self.refiner.budget(None)
+        if self.proposer is not None:
+            self.proposer.forget()
         return time.perf_counter()
 
     def _budget(self) -> None:

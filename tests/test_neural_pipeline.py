@@ -407,3 +407,24 @@ def test_evidence_gates_spare_an_inconsistent_pair_the_costly_fits(rig, monkeypa
     assert gated.estimate(right, right) is None and calls["blur"] == 0
     ungated = mp.MarkerPose(rig, match={"blur_min_evidence": 0, "mask_min_evidence": 0})
     assert ungated.estimate(right, right) is None and calls["blur"] > 0
+
+
+def test_look_inputs_are_kept_for_the_current_frames_only(rig):
+    """Stage 1's inputs are made once per frame and look and reused by the evidence tests;
+    every pipeline call drops them first, so a refilled frame buffer (a video source's)
+    is looked at afresh."""
+    f = render_stereo(rig, look_at_pose([0, 0, 560], 30, 40, 10), imaging=Imaging(alpha=0.6), seed=21)
+    tr = mp.MarkerPose(rig)
+    net = tr.proposer.net
+    left, right = (im.copy() for im in f.images)
+    pts = f.views[0].centers[None]
+    alone = net.evidence(left, pts)
+    assert net._looked is None  # outside the pipeline nothing is kept
+    net.forget()
+    kept = net.evidence(left, pts)
+    assert len(net._looked) == 1 and net.evidence(left, pts) == kept and len(net._looked) == 1
+    assert kept == alone and kept[0] > 0.5
+    assert tr.estimate(left, right) is not None
+    left[:], right[:] = 90, 90  # the same arrays, refilled with an empty scene
+    assert tr.estimate(left, right) is None
+    assert net.evidence(left, pts)[0] < 0.1

@@ -62,6 +62,10 @@ class NeuralProposer:
             decoding["second_look"] = float(conf["second_look"])
         self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True, threads=threads)
 
+    def forget(self) -> None:
+        """New frames: the inputs kept from the last ones' looks are dropped."""
+        self.net.forget()
+
     def looks(self) -> tuple[float, ...]:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""
         zoom = float(self.conf["second_look"])
