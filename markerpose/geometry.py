@@ -284,7 +284,13 @@ def imaged_circle_centers(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray
         (N, 2) distorted pixel coordinates of the imaged ellipses' centres.
     """
     H = plane_homography(camera.K, T_cam_plane)
-    ideal = np.stack([conic_center(project_conic(circle_conic(c, radius), H)) for c in np.asarray(centers2d)])
+    # An ellipse's centre is the pole of the line at infinity: its dual conic applied to
+    # (0, 0, 1). The image's dual conic is H C* H^T, with the circle's dual conic
+    # C* = m m^T - r^2 diag(1, 1, 0), m = (cx, cy, 1): all circles at once.
+    m = np.column_stack([np.asarray(centers2d, np.float64).reshape(-1, 2), np.ones(len(centers2d))])
+    h = H[2]
+    pole = (m * (m @ h)[:, None] - radius**2 * np.array([h[0], h[1], 0.0])) @ H.T
+    ideal = pole[:, :2] / pole[:, 2:]
     Kinv = np.linalg.inv(camera.K)
     xn = ideal @ Kinv[:2, :2].T + Kinv[:2, 2]
     return camera.distort(xn)
@@ -325,36 +331,39 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
     model = np.asarray(model, np.float64)
     xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
     n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
-    conics = [None if e is None else ellipse_to_conic(*e) for e in (ellipses or [])]
-    poses = []
+    Ts = []
     for rv, tv in zip(rvecs[:n], tvecs[:n]):
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
         if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
             continue  # degenerate, or behind the camera
-        misfit = []
-        edges = ring_edges(camera, T, model, radius) if conics else []
-        for C, edge in zip(conics, edges):
-            if C is None:
-                continue
-            h = np.column_stack([edge, np.ones(len(edge))])
-            lam2 = np.einsum("ni,ij,nj->n", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
-            misfit.append(np.mean(np.abs(np.sqrt(np.maximum(lam2, 0)) - 1)))
-        m = float(np.mean(misfit)) if misfit else 0.0
-        if np.isfinite(m):
-            poses.append((m, T))
+        Ts.append(T)
+    if not Ts:
+        return []
+    have = [k for k, e in enumerate(ellipses or []) if e is not None]
+    misfit = np.zeros(len(Ts))
+    if have:  # every pose's projected circles against the ellipses, in one batch
+        C = np.stack([ellipse_to_conic(*ellipses[k]) for k in have])
+        edges = ring_edges(camera, np.stack(Ts), model[have], radius)  # (P, R, n, 2)
+        h = np.concatenate([edges, np.ones(edges.shape[:-1] + (1,))], axis=-1)
+        lam2 = np.einsum("prni,rij,prnj->prn", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
+        misfit = np.abs(np.sqrt(np.maximum(lam2, 0)) - 1).mean(2).mean(1)
+    poses = [(float(m), T) for m, T in zip(misfit, Ts) if np.isfinite(m)]
     poses.sort(key=lambda p: p[0])
     return poses
 
 
 def ring_edges(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float, n: int = 24) -> np.ndarray:
     """(3, n, 2) distorted pixels of ``n`` points on each ring's outer circle in a view
-    where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm)."""
+    where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm); for a
+    stack of P poses (P, 4, 4), (P, 3, n, 2)."""
     t = np.linspace(0, 2 * np.pi, n, endpoint=False)
     circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
     T = np.asarray(T_cam_marker, np.float64)
-    pts = (np.asarray(model, np.float64)[:, None, :] + circle[None]).reshape(-1, 3)
-    return camera.project(pts @ T[:3, :3].T + T[:3, 3]).reshape(len(model), n, 2)
+    model = np.asarray(model, np.float64)
+    pts = (model[:, None, :] + circle[None]).reshape(-1, 3)
+    cam = np.einsum("...ij,mj->...mi", T[..., :3, :3], pts) + T[..., None, :3, 3]
+    return camera.project(cam.reshape(-1, 3)).reshape(T.shape[:-2] + (len(model), n, 2))
 
 
 def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float) -> list:
