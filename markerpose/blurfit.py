@@ -74,6 +74,9 @@ def _normal(t, jac):
     return G, Phi, phi
 
 
+_JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
+
+
 def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
     ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
@@ -84,27 +87,32 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     A chord end p on the ellipse moves with any parameter as ds = -dq / (2 u^T Q p),
     q(s) = (d + s u)^T Q (d + s u) - 1 being the quadratic whose roots are the ends.
     """
+    near, v, Jn = _disk_near(x, y, c, Q, theta, L, sigma, jac, rule)
+    val = np.zeros(len(x))
+    val[near] = v
+    if not jac:
+        return val
+    J = np.zeros((len(x), 8))
+    J[near] = Jn
+    return val, {k: J[:, col] for k, col in _JCOLS.items()}
+
+
+def _disk_near(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
+    """:func:`blurred_disk` at the points it can reach: (their indices (n,), values (n,),
+    derivatives (n, 8) in the columns of :data:`_JCOLS` or None)."""
     u = np.array([np.cos(theta), np.sin(theta)])
     n = np.array([-u[1], u[0]])
     L = max(float(L), 0.05)
     Lh = 0.5 * L
     Qu = Q @ u
     A = u @ Qu
-    N = len(x)
-    val = np.zeros(N)
-    J = {"c": np.zeros((N, 2)), "Q": np.zeros((N, 3)), "theta": np.zeros(N), "L": np.zeros(N), "sigma": np.zeros(N)} if jac else None
     # Only points within the blurred ellipse's bounding box can be non-zero.
     Qi = np.linalg.inv(Q)
     ext = np.sqrt(np.diag(Qi)) + np.abs(u) * Lh + 6.0 * sigma
     near = np.nonzero((np.abs(x - c[0]) < ext[0]) & (np.abs(y - c[1]) < ext[1]))[0]
-    if len(near) == 0:
-        return (val, J) if jac else val
-    full = None
-    if len(near) < N:
-        full = (val, J)
-        x, y = x[near], y[near]
-        val = np.zeros(len(near))
-        J = {k: np.zeros((len(near),) + v.shape[1:]) for k, v in J.items()} if jac else None
+    x, y = x[near], y[near]
+    val = np.zeros(len(near))
+    J = np.zeros((len(near), 8)) if jac else None
     for tau, w in zip(*rule):
         off = tau * sigma
         dx = x + off * n[0] - c[0]
@@ -125,54 +133,26 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
         if not jac:
             continue
         dv_s = (-(P[0] - P[1]) / L, (P[2] - P[3]) / L)
-        jL = w * (-v / L + (P[0] + P[1] - P[2] - P[3]) / (2 * L))
         dsig = (ph[0] - ph[1] - ph[2] + ph[3]) / L
         rc = np.maximum(r, 0.25 * A)  # tangent chords: the derivative is clipped
-        jc = np.zeros((2, len(idx)))
-        jq = np.zeros((3, len(idx)))
-        jth = np.zeros(len(idx))
+        jn = np.zeros((8, len(idx)))
+        jn[6] = w * (-v / L + (P[0] + P[1] - P[2] - P[3]) / (2 * L))
         for s, den, dvs in ((s1, -rc, dv_s[0]), (s2, rc, dv_s[1])):
             px, py = dx + s * u[0], dy + s * u[1]
             gx, gy = Q[0, 0] * px + Q[0, 1] * py, Q[0, 1] * px + Q[1, 1] * py
             k = w * dvs / den
-            jc[0] += k * gx
-            jc[1] += k * gy
+            jn[0] += k * gx
+            jn[1] += k * gy
             kp = -0.5 * k * px
-            jq[0] += kp * px
-            jq[1] += 2 * kp * py
-            jq[2] += -0.5 * k * py * py
+            jn[2] += kp * px
+            jn[3] += 2 * kp * py
+            jn[4] += -0.5 * k * py * py
             ng = n[0] * gx + n[1] * gy
-            jth += w * dvs * off - k * s * ng
+            jn[5] += w * dvs * off - k * s * ng
             dsig = dsig - (dvs / den) * tau * ng
-        J["c"][idx] += jc.T
-        J["Q"][idx] += jq.T
-        J["theta"][idx] += jth
-        J["L"][idx] += jL
-        J["sigma"][idx] += w * dsig
-    if full is not None:
-        full[0][near] = val
-        if jac:
-            for k in J:
-                full[1][k][near] = J[k]
-        val, J = full
-    return (val, J) if jac else val
-
-
-def _ring(x, y, c, Q, d, rho, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
-    """Outer disk minus the white disk (centre offset ``d``, form Q / rho^2), blurred."""
-    if not jac:
-        return blurred_disk(x, y, c, Q, theta, L, sigma, rule=rule) - blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma, rule=rule)
-    vo, Jo = blurred_disk(x, y, c, Q, theta, L, sigma, True)
-    vi, Ji = blurred_disk(x, y, c + d, Q / rho**2, theta, L, sigma, True)
-    J = {
-        "c": Jo["c"] - Ji["c"],
-        "d": -Ji["c"],
-        "Q": Jo["Q"] - Ji["Q"] / rho**2,
-        "theta": Jo["theta"] - Ji["theta"],
-        "L": Jo["L"] - Ji["L"],
-        "sigma": Jo["sigma"] - Ji["sigma"],
-    }
-    return vo - vi, J
+        jn[7] = w * dsig
+        J[idx] += jn.T
+    return near, val, J
 
 
 class _Problem:
@@ -256,20 +236,28 @@ class _Problem:
         if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
             raise ValueError("blur length or sigma out of range")
         rings, theta, L, sigma = self.unpack(p)
-        R = np.zeros(len(self.v))
-        cols = []
-        shared = np.zeros((len(self.v), 3))
-        for c, Q, d in rings:
+        N, k = len(self.v), self.k
+        R = np.zeros(N)
+        J = np.zeros((N, 7 * k + 3)) if jac else None
+        # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
+        # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
+        chain = np.array([1, 1, 1, 1, 1, 1, L, sigma])
+        for j, (c, Q, d) in enumerate(rings):
             if np.linalg.eigvalsh(Q)[0] <= 0:
                 raise ValueError("ellipse form not positive definite")
-            out = _ring(self.x, self.y, c, Q, d, self.rho, theta, L, sigma, jac, rule)
-            if not jac:
-                R += out
-                continue
-            R += out[0]
-            J = out[1]
-            cols += [J["c"], J["Q"] / self.scale**2, J["d"]]
-            shared += np.column_stack([J["theta"], J["L"] * L, J["sigma"] * sigma])
+            for inner in (False, True):
+                cc, QQ, sign = (c + d, Q / self.rho**2, -1.0) if inner else (c, Q, 1.0)
+                near, v, Jd = _disk_near(self.x, self.y, cc, QQ, theta, L, sigma, jac, rule)
+                R[near] += sign * v
+                if not jac or not len(near):
+                    continue
+                Jd *= sign * chain
+                Jd[:, 2:5] /= (self.rho**2 if inner else 1.0) * self.scale**2
+                col = 7 * j
+                J[near, col : col + 5] += Jd[:, :5]
+                if inner:
+                    J[near, col + 5 : col + 7] += Jd[:, :2]
+                J[near, 7 * k :] += Jd[:, 5:]
         xs, ys = self.xs, self.ys
         M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
         Mw = M * self.w[:, None]  # the levels are a weighted fit (robust weights)
@@ -279,7 +267,7 @@ class _Problem:
         Jr = None
         if jac:
             wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
-            Jm = np.column_stack(cols + [shared]) * wgt[:, None]
+            Jm = J * wgt[:, None]
             Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
         return res, beta, Jr
 
