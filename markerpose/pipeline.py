@@ -190,12 +190,14 @@ class MarkerPose:
         t0 = self._start()
         try:
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
+            history = self._history
             if est is None:
                 self.why = None  # the prior's failure is not why the frame has no pose
                 self._noise = (None, 0)
+                history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
                 est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
-            self._history = [*self._history, est.T][-2:] if est is not None else []
+            self._history = [*history, est.T][-3:] if est is not None else []
             return est
         finally:
             self.timings["total"] = time.perf_counter() - t0

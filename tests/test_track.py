@@ -26,12 +26,25 @@ def sequence(rig):
     return frames, empty
 
 
-def test_predict_is_constant_velocity():
+def test_predict_is_constant_velocity_then_constant_acceleration():
     T0 = np.eye(4)
     T1 = look_at_pose([1.0, 0.0, 500.0], 5, 0, 0)
     assert np.allclose(predict([T1]), T1)
     T2 = predict([T0, T1])
     np.testing.assert_allclose(T2 @ np.linalg.inv(T1), T1 @ np.linalg.inv(T0), atol=1e-9)  # the same step again
+    np.testing.assert_allclose(predict([T0, T1, T2]), predict([T1, T2]), atol=1e-9)  # steady motion: no acceleration
+    # Uniformly accelerated (x = 0.5 a k^2, a = 2 mm per frame squared), or turning at a
+    # steady rate: the next pose exactly.
+    def moved(k):
+        T = look_at_pose([0.0, 0.0, 500.0], 20, 30, 10)
+        T[0, 3] += k * k
+        return T
+
+    def turned(k):
+        return look_at_pose([0.0, 0.0, 500.0], 20, 30, 3.0 * k)
+
+    for pose in (moved, turned):
+        np.testing.assert_allclose(predict([pose(4), pose(5), pose(6)]), pose(7), atol=1e-9)
 
 
 def test_inside_needs_every_ring_with_a_margin():

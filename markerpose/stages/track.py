@@ -1,7 +1,7 @@
 """Track: on a video stream, the previous frames are the prior.
 
-From the last two poses a constant-velocity model predicts the marker's pose in the new
-frame (:func:`predict`); the rings' outer ellipses under that pose
+From the last three poses a constant-acceleration model predicts the marker's pose in the
+new frame (:func:`predict`); the rings' outer ellipses under that pose
 (:func:`~markerpose.geometry.ring_ellipses`) seed the sub-pixel edge fit in both views
 directly — no stage 1, no EllipSegNet. The result passes the usual verification
 (every centre edge-fitted, epipolar distances, plate check, the marker's shape) and a
@@ -25,12 +25,18 @@ default_conf = {
 
 
 def predict(history: list) -> np.ndarray:
-    """The next T_left_marker (4, 4) from the last one or two (constant velocity: the last
-    frame-to-frame motion applied once more)."""
+    """The next T_left_marker (4, 4) from the last one, two or three: the last pose, then
+    constant velocity (the last frame-to-frame motion applied once more), then constant
+    acceleration (that motion changed once more as it last changed). A hand's motion turns
+    within a few frames: under constant velocity the prediction overshoots each turn by
+    the motion's change per frame, and the edge fit then needs more passes."""
     if len(history) < 2:
         return history[-1]
-    prev, last = history[-2], history[-1]
-    return (last @ np.linalg.inv(prev)) @ last
+    last = history[-1]
+    step = last @ np.linalg.inv(history[-2])
+    if len(history) >= 3:
+        step = (step @ np.linalg.inv(history[-2] @ np.linalg.inv(history[-3]))) @ step
+    return step @ last
 
 
 def inside(ellipses: list, size: tuple, margin: float) -> bool:
