@@ -1,5 +1,7 @@
 """The benchmark and the end-to-end evaluation run and report what they measured."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -248,3 +250,30 @@ def test_sequence_segments_and_summary():
     assert s["jitter_mm"] == pytest.approx(0.001) and s["jitter_deg"] == pytest.approx(0.0, abs=1e-6)
     assert s["median_ms"] == 7.5 and s["max_ms"] == 80.0
     assert "frames to re-acquire" in sq.report({"conf": sq.default_conf, "summary": {m: s for m in sq.METHODS}, "frames": rows})
+
+
+def test_sequence_methods_take_turns_in_blocks(monkeypatch):
+    """``block``: each method runs a block of consecutive frames in a row, every frame gets
+    all three methods once, in order; a bad block size is a clear error."""
+    from markerpose import synth
+    from markerpose.experiments import sequence as sq
+
+    rig = mp.StereoRig.default()
+    frame = synth.render_stereo(rig, synth.look_at_pose([0, 0, 560], 30, 45, 0), seed=1)
+    monkeypatch.setattr(sq, "render", lambda c, rig, marker, progress: ((frame, "static", 0.0) for _ in range(c["frames"])))
+    order = []  # which tracker each estimate() call was made on
+    real = mp.MarkerPose.estimate
+
+    def logged(self, left, right):
+        order.append(id(self))
+        return real(self, left, right)
+
+    monkeypatch.setattr(mp.MarkerPose, "estimate", logged)
+    res = sq.main({"frames": 40, "block": 16}, out_dir=None, progress=False)
+    assert [r["frame"] for r in res["frames"]] == list(range(40))
+    assert all(r[m]["found"] for r in res["frames"] for m in sq.METHODS)
+    # After the two warm-up calls, `estimate` and `paper` take turns in runs of 16, 16, 8 frames.
+    runs = [len(list(g)) for _, g in itertools.groupby(order[2:])]
+    assert runs == [16, 16, 16, 16, 8, 8], runs
+    with pytest.raises(ValueError, match="block"):
+        sq.main({"frames": 40, "block": 0}, out_dir=None, progress=False)
