@@ -99,10 +99,6 @@ default_conf: dict = {
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
-    "blur_fit_passes": 3,  # ... which starts from the edge fit: rings with edges that wide
-    #                        stop their edge fit after this many passes (the blurred-ring
-    #                        fit converges from there; where it then does not run or fails,
-    #                        this less converged edge fit stands)
     "blur_fit_max_move": 3.0,  # ... keeping the edge fit if a centre would move farther, px
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the

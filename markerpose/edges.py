@@ -545,8 +545,6 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
     Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
     unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
     levels are only reached near the true edge, so each pass halves the error at best.
-    Edges wide enough for the blurred-ring fit (c["blur_fit_width"] of the minor semi-axis,
-    with c["blur_fit"]) stop after c["blur_fit_passes"]: that fit refines them further.
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px) or None when too few edge points are found.
@@ -580,8 +578,6 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
             width[k] = wdg[i]
             if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
                 active[k] = False
-            elif it >= c["blur_fit_passes"] - 1 and c["blur_fit"] and wdg[i] >= c["blur_fit_width"] * _semi_axes(Q[k])[1]:
-                active[k] = False  # edges this wide get the blurred-ring fit, which starts from here
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}

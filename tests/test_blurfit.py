@@ -140,32 +140,6 @@ def test_a_start_that_missed_the_rings_is_given_up_by_the_move_bound(blurred_vie
     assert calls[0][0] is None
 
 
-def test_wide_edges_stop_their_edge_fit_for_the_blur_fit(blurred_view, monkeypatch):
-    """``blur_fit_passes``: edges wide enough for the blurred-ring fit get at most that many
-    edge-fit passes; the blurred-ring fit, starting there, lands on the truth all the same."""
-    from markerpose import edges
-
-    rig, img, truth = blurred_view
-    rects = _truth_rects(truth)
-    rects = [((cx + 1.0, cy - 0.8), axes, ang) for (cx, cy), axes, ang in rects]  # an edge-fit-like start
-    passes = []
-    points = edges.edge_points
-
-    def counted(*a, **k):
-        passes.append(1)
-        return points(*a, **k)
-
-    monkeypatch.setattr(edges, "edge_points", counted)
-    found = {}
-    for n in (3, 99):
-        passes.clear()
-        centers, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_passes": n})
-        found[n] = (len(passes), np.linalg.norm(centers - truth.outer_centers, axis=1).max())
-        assert ok.all()
-    assert found[3][0] == 3 < found[99][0], found
-    assert found[3][1] < 0.1 and found[99][1] < 0.1, found
-
-
 def test_detections_report_the_motion_blur():
     """``Detection.blur_px``: the blur length the blurred-ring fit found, in both views of
     a blurred pair; 0 for a sharp pair (no model fit ran)."""
