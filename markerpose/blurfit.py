@@ -33,7 +33,6 @@ _SQ2PI = np.sqrt(2 * np.pi)
 # Gauss-Hermite rule for a unit normal: nodes and weights.
 _GH_T = np.array([-np.sqrt(3.0), 0.0, np.sqrt(3.0)])
 _GH_W = np.array([1 / 6, 2 / 3, 1 / 6])
-_MIDPOINT = (np.zeros(1), np.ones(1))  # one node: sigma ignored across the motion (the coarse search)
 
 default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
@@ -77,7 +76,7 @@ def _normal(t, jac):
 _JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
 
 
-def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
+def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
     """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
     ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
     a three-point rule across), at the points (x, y).
@@ -87,7 +86,7 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     A chord end p on the ellipse moves with any parameter as ds = -dq / (2 u^T Q p),
     q(s) = (d + s u)^T Q (d + s u) - 1 being the quadratic whose roots are the ends.
     """
-    near, v, Jn = _disk_near(x, y, c, Q, theta, L, sigma, jac, rule)
+    near, v, Jn = _disk_near(x, y, c, Q, theta, L, sigma, jac)
     val = np.zeros(len(x))
     val[near] = v
     if not jac:
@@ -97,7 +96,7 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     return val, {k: J[:, col] for k, col in _JCOLS.items()}
 
 
-def _disk_near(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
+def _disk_near(x, y, c, Q, theta, L, sigma, jac=False):
     """:func:`blurred_disk` at the points it can reach: (their indices (n,), values (n,),
     derivatives (n, 8) in the columns of :data:`_JCOLS` or None)."""
     u = np.array([np.cos(theta), np.sin(theta)])
@@ -113,7 +112,7 @@ def _disk_near(x, y, c, Q, theta, L, sigma, jac=False, rule=(_GH_T, _GH_W)):
     x, y = x[near], y[near]
     val = np.zeros(len(near))
     J = np.zeros((len(near), 8)) if jac else None
-    for tau, w in zip(*rule):
+    for tau, w in zip(_GH_T, _GH_W):
         off = tau * sigma
         dx = x + off * n[0] - c[0]
         dy = y + off * n[1] - c[1]
@@ -230,9 +229,8 @@ class _Problem:
             rings.append((q[0:2], np.array([[q[2], q[3]], [q[3], q[4]]]) / self.scale**2, q[5:7]))
         return rings, p[-3], np.exp(p[-2]), np.exp(p[-1])
 
-    def evaluate(self, p, jac=False, rule=(_GH_T, _GH_W)):
-        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None);
-        ``rule``: the quadrature across the motion."""
+    def evaluate(self, p, jac=False):
+        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None)."""
         if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
             raise ValueError("blur length or sigma out of range")
         rings, theta, L, sigma = self.unpack(p)
@@ -247,7 +245,7 @@ class _Problem:
                 raise ValueError("ellipse form not positive definite")
             for inner in (False, True):
                 cc, QQ, sign = (c + d, Q / self.rho**2, -1.0) if inner else (c, Q, 1.0)
-                near, v, Jd = _disk_near(self.x, self.y, cc, QQ, theta, L, sigma, jac, rule)
+                near, v, Jd = _disk_near(self.x, self.y, cc, QQ, theta, L, sigma, jac)
                 R[near] += sign * v
                 if not jac or not len(near):
                     continue
@@ -271,8 +269,8 @@ class _Problem:
             Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
         return res, beta, Jr
 
-    def residual(self, p, rule=(_GH_T, _GH_W)):
-        return self.evaluate(p, rule=rule)[0]
+    def residual(self, p):
+        return self.evaluate(p)[0]
 
 
 def _robust_lm(prob, p, conf):
@@ -352,7 +350,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         for L in c["grid_lengths"]:
             p = base.copy()
             p[-3], p[-2] = th, np.log(L)
-            r = prob.residual(p, _MIDPOINT)
+            r = prob.residual(p)
             cost = float(r @ r)
             if best is None or cost < best[0]:
                 best = (cost, p)
