@@ -21,7 +21,8 @@ class Detection:
         score: detector-specific confidence (higher is better).
         refined: (3,) bool, which centres are sub-pixel (None: all of them).
         blur_px: the motion blur's length (px) that the blurred-ring model fit found in
-            this view; 0 where the rings' edges were sharp enough not to need that fit.
+            this view; 0 where that fit did not run (sharp edges) or its result was not
+            kept (see :func:`markerpose.classical.refine_blurred`).
     """
 
     centers: np.ndarray
