@@ -619,6 +619,12 @@ def refine_views(
     return out
 
 
+def _blur_length(rings: list) -> float:
+    """The blur length the blurred-ring fit kept for a view's rings (None for a missing
+    one), px; 0 where it did not run or was not kept."""
+    return max((r._blur for r in rings if r is not None), default=0.0)
+
+
 def _sizes_fit_spacing(cqs: list, marker: Marker, tol: float) -> bool:
     """Whether three outer ellipses (centre, Q) c0, c1, c2 have the size their spacing
     implies: the affine map from the marker's layout to the three centres scales a circle's
@@ -784,7 +790,7 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera)
         chosen = refine_blurred(gray, chosen, marker, c, noise)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)),
-                     blur_px=max(r._blur for r in chosen))
+                     blur_px=_blur_length(chosen))
 
 
 def detect(
@@ -884,7 +890,7 @@ def refine_points(
         rings = refine_blurred(gray, rings, marker, c, noise)
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     out = (centers, found, [None if r is None else r.outer for r in rings])
-    return (*out, max((r._blur for r in rings if r is not None), default=0.0)) if with_blur else out
+    return (*out, _blur_length(rings)) if with_blur else out
 
 
 def refine_ellipses(
@@ -955,7 +961,7 @@ def refine_ellipses_views(
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])
-        out.append((*found, max((r._blur for r in rings if r is not None), default=0.0)) if with_blur else found)
+        out.append((*found, _blur_length(rings)) if with_blur else found)
     return out
 
 
