@@ -20,6 +20,7 @@ The method (see :func:`markerpose.classical.refine_ring` for its use):
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from .geometry import sqrtm_spd
@@ -74,6 +75,119 @@ def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return x, ok
 
 
+# --- per-ray kernels (compiled) ------------------------------------------------------------------
+# A tracked frame samples some 45 000 profile points; in numpy each step of the profile
+# analysis is a pass over all of them with its own temporaries, and the passes, not the
+# arithmetic, are the cost. Numba runs each ray's analysis in one loop. The arithmetic is
+# numpy's, operation for operation, so the edge points are the same.
+
+
+@numba.njit(cache=True, nogil=True)
+def _sample_rays(img, rows, cx, cy, ux, uy, lam, S, m, v, v_in, v_out):  # pragma: no cover - compiled
+    """For the rows k of ``rows``: bilinear samples v[k, i, s] of ``img`` at cen[k] + u[k, i] lam[k, s] (coordinates
+    clipped to the image, as :func:`bilinear`); each ray's mean of its first and of its
+    last m[k] real samples (v_in, v_out) as numpy's cumulative sums give them."""
+    h, w = img.shape
+    xmax, ymax = w - 1.000001, h - 1.000001
+    for k in rows:
+        Sk, mk = S[k], m[k]
+        for i in range(v.shape[1]):
+            acc = 0.0
+            at_m = at_sm = 0.0
+            for s in range(v.shape[2]):
+                x = min(max(cx[k] + ux[k, i] * lam[k, s], 0.0), xmax)
+                y = min(max(cy[k] + uy[k, i] * lam[k, s], 0.0), ymax)
+                x0, y0 = int(x), int(y)
+                fx, fy = x - x0, y - y0
+                v00, v01 = float(img[y0, x0]), float(img[y0, x0 + 1])
+                v10, v11 = float(img[y0 + 1, x0]), float(img[y0 + 1, x0 + 1])
+                top = v00 + fx * (v01 - v00)
+                bot = v10 + fx * (v11 - v10)
+                val = top + fy * (bot - top)
+                v[k, i, s] = val
+                if s == mk:
+                    at_m = acc
+                if s == Sk - mk:
+                    at_sm = acc
+                if s < Sk:
+                    acc += val
+            v_in[k, i] = at_m / mk
+            v_out[k, i] = (acc - at_sm) / mk
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no cover - compiled
+    """Per ray of the profiles ``v`` normalised as f = (v - v_out) / dd (1 inside, 0
+    outside): the 50 % crossing nearest the window centre (lambda, into ``e``), whether
+    there is one, and the 10-90 % width of the transition around it (px)."""
+    K, N, Sm = v.shape
+    for k in range(K):
+        Sk = S[k]
+        mid = (Sk - 1) / 2
+        for i in range(N):
+            vo, d = v_out[k, i], dd[k, i]
+            # The crossing nearest the middle: a sample >= 0.5 followed by one below.
+            j, best = 0, np.inf
+            prev = (v[k, i, 0] - vo) / d
+            for s in range(Sk - 1):
+                nxt = (v[k, i, s + 1] - vo) / d
+                if prev >= 0.5 and not nxt >= 0.5 and abs(s - mid) < best:
+                    j, best = s, abs(s - mid)
+                prev = nxt
+            found[k, i] = best < np.inf
+            f0 = (v[k, i, j] - vo) / d
+            f1 = (v[k, i, j + 1] - vo) / d
+            den = f0 - f1
+            e[k, i] = lam[k, j] + dl[k] * (f0 - 0.5) / (den if den != 0 else 1.0)
+            # Only the run of in-between samples around the crossing counts: in dark
+            # images noise puts isolated plateau samples in (0.1, 0.9). Padding samples
+            # count as plateau, which ends a run at a ring's last sample.
+            before = -1
+            for s in range(j, -1, -1):
+                fs = (v[k, i, s] - vo) / d
+                if fs <= 0.1 or fs >= 0.9:
+                    before = s
+                    break
+            after = Sm
+            for s in range(j + 1, Sm):
+                if s >= Sk:
+                    after = s
+                    break
+                fs = (v[k, i, s] - vo) / d
+                if fs <= 0.1 or fs >= 0.9:
+                    after = s
+                    break
+            span_j = (j if before == j else after) - before
+            span_j1 = after - (j + 1 if after == j + 1 else before)
+            run = max(span_j, span_j1) - 1
+            width[k, i] = max(run, 0) * dl[k] * r[k, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_integrals(v, v_out, dd, lam, dl, S, xs, out):  # pragma: no cover - compiled
+    """Per ray, the integral from lam[k, 0] to each x of xs[q] (lambda) of the
+    piecewise-linear normalised profile f = (v - v_out) / dd, into out[q]."""
+    K, N, _ = v.shape
+    for k in range(K):
+        Sk, l0, step = S[k], lam[k, 0], dl[k]
+        for i in range(N):
+            vo, d = v_out[k, i], dd[k, i]
+            for q in range(xs.shape[0]):
+                x = xs[q, k, i]
+                pos = min(max((x - l0) / step, 0.0), Sk - 1 - 1e-9)
+                j = int(pos)
+                t = pos - j
+                acc = 0.0  # the integral from lam[k, 0] to lam[k, j]
+                fprev = (v[k, i, 0] - vo) / d
+                for s in range(j):
+                    fn = (v[k, i, s + 1] - vo) / d
+                    acc += 0.5 * (fn + fprev) * step
+                    fprev = fn
+                f0 = fprev
+                f1 = (v[k, i, min(j + 1, Sk - 1)] - vo) / d
+                out[q, k, i] = acc + step * (t * f0 + 0.5 * t * t * (f1 - f0))
+
+
 # --- ray profiles --------------------------------------------------------------------------------
 
 
@@ -105,56 +219,23 @@ def _bilinear_inside(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarra
     return top + fy * (bot - top)
 
 
-def crossings(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: np.ndarray):
-    """Per ray of (K, N, Smax) normalised profiles ``f`` (ring k has S[k] real samples at
-    ``lam[k]``, step dl[k]): the 50 % crossing nearest the window centre (lambda), its
-    validity, and the 10-90 % width of the transition around it (px)."""
-    Sm = f.shape[2]
-    dl3 = dl[:, None]
-    above = f >= 0.5
-    jj = np.arange(Sm - 1)
-    cross = above[..., :-1] & ~above[..., 1:] & (jj[None, None, :] < (S - 1)[:, None, None])
-    dist = np.where(cross, np.abs(jj[None, None, :] - ((S - 1) / 2)[:, None, None]), np.inf)
-    j = np.argmin(dist, axis=2)  # (K, N)
-    found = np.isfinite(np.take_along_axis(dist, j[..., None], 2)[..., 0])
-    f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
-    f1 = np.take_along_axis(f, (j + 1)[..., None], 2)[..., 0]
-    lam_j = np.take_along_axis(lam, j, 1)
-    e = lam_j + dl3 * (f0 - 0.5) / np.where(f0 - f1 != 0, f0 - f1, 1.0)
-    # Only the run of in-between samples around the crossing counts: in dark images noise
-    # puts isolated plateau samples in (0.1, 0.9). Padding samples count as plateau, which
-    # ends a run at a ring's last sample. The run around samples j and j + 1 is bounded by
-    # the last plateau sample at or before j and the first at or after j + 1.
-    idx = np.arange(Sm, dtype=np.int16)
-    out = (f <= 0.1) | (f >= 0.9) | (idx >= S[:, None, None])
-    jc = j[..., None]
-    before = np.where(out & (idx <= jc), idx, np.int16(-1)).max(2)
-    after = np.where(out & (idx > jc), idx, np.int16(Sm)).min(2)
-    out_j = np.take_along_axis(out, jc, 2)[..., 0]
-    out_j1 = np.take_along_axis(out, jc + 1, 2)[..., 0]
-    span_j = np.where(out_j, j, after) - before  # next plateau sample from j, minus the last before it
-    span_j1 = after - np.where(out_j1, j + 1, before)
-    run = np.maximum(span_j, span_j1).astype(np.intp) - 1
-    return e, found, np.maximum(run, 0) * dl3 * r
+def crossings(v: np.ndarray, v_out: np.ndarray, dd: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, r: np.ndarray):
+    """Per ray of (K, N, Smax) profiles ``v`` normalised as f = (v - v_out) / dd (ring k has
+    S[k] real samples at ``lam[k]``, step dl[k]; r (K, N) px per unit lambda): the 50 %
+    crossing nearest the window centre (lambda), its validity, and the 10-90 % width of
+    the transition around it (px)."""
+    K, N, _ = v.shape
+    e, found, width = np.empty((K, N)), np.empty((K, N), bool), np.empty((K, N))
+    _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width)
+    return e, found, width
 
 
-def integral(f: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, xs: tuple) -> list:
-    """Per ray, the integral from lam[k, 0] to x of the piecewise-linear profile f (K, N, Smax),
-    for each x (K, N) of ``xs``."""
-    K, N, _ = f.shape
-    dl3 = dl[:, None]
-    seg = 0.5 * (f[..., 1:] + f[..., :-1]) * dl[:, None, None]
-    F = np.concatenate([np.zeros((K, N, 1)), np.cumsum(seg, axis=2)], axis=2)
-    out = []
-    for x in xs:
-        pos = np.clip((x - lam[:, :1]) / dl3, 0, (S - 1)[:, None] - 1e-9)
-        j = np.floor(pos).astype(np.intp)
-        t = pos - j
-        f0 = np.take_along_axis(f, j[..., None], 2)[..., 0]
-        f1 = np.take_along_axis(f, np.minimum(j + 1, (S - 1)[:, None])[..., None], 2)[..., 0]
-        Fj = np.take_along_axis(F, j[..., None], 2)[..., 0]
-        out.append(Fj + dl3 * (t * f0 + 0.5 * t * t * (f1 - f0)))
-    return out
+def integral(v: np.ndarray, v_out: np.ndarray, dd: np.ndarray, lam: np.ndarray, dl: np.ndarray, S: np.ndarray, xs: tuple) -> list:
+    """Per ray, the integral from lam[k, 0] to x of the piecewise-linear normalised profile
+    (as :func:`crossings`), for each x (K, N) of ``xs``."""
+    out = np.empty((len(xs), *v.shape[:2]))
+    _ray_integrals(v, v_out, dd, lam, dl, S, np.stack(xs), out)
+    return list(out)
 
 
 def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np.ndarray, scale: np.ndarray, floor: np.ndarray) -> np.ndarray:
@@ -248,34 +329,26 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     base[idx[None, :] >= (S - 1)[:, None]] = half
     lam = 1.0 + base
     dl = lam[:, 1] - lam[:, 0]
-    X = cen[:, 0, None, None] + u[:, 0, :, None] * lam[:, None, :]
-    Y = cen[:, 1, None, None] + u[:, 1, :, None] * lam[:, None, :]
-    v = np.empty((K, N, Sm))
+    # A ray is a segment (its padding repeats its end): its samples lie in the image when
+    # both ends do.
+    ends = cen[:, :, None, None] + u[:, :, :, None] * lam[:, None, None, [0, -1]]  # (K, 2, N, 2)
+    lo_xy, hi_xy = ends.min(3), ends.max(3)
+    m = np.maximum(2, np.round(c["level_samples"] * S)).astype(np.intp)  # samples per plateau level
+    v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
     ok = ray.copy()
+    ux, uy = np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1])
     for g in np.unique(view):
         sel = view == g
         h, w = grays[g].shape
-        Xg, Yg = X[sel], Y[sel]
-        # A ray is a segment (its padding repeats its end): its samples lie in the image
-        # when both ends do.
-        x_lo, x_hi = np.minimum(Xg[..., 0], Xg[..., -1]), np.maximum(Xg[..., 0], Xg[..., -1])
-        y_lo, y_hi = np.minimum(Yg[..., 0], Yg[..., -1]), np.maximum(Yg[..., 0], Yg[..., -1])
-        ok[sel] &= (x_lo >= 0) & (y_lo >= 0) & (x_hi <= w - 1) & (y_hi <= h - 1)
-        if x_lo.min() >= 0 and y_lo.min() >= 0 and x_hi.max() <= w - 1.000001 and y_hi.max() <= h - 1.000001:
-            v[sel] = _bilinear_inside(grays[g], Xg, Yg)
-        else:  # near the border: clipped samples
-            v[sel] = bilinear(grays[g], Xg, Yg)[0]
+        ok[sel] &= (lo_xy[sel] >= 0).all(1) & (hi_xy[sel, 0] <= w - 1) & (hi_xy[sel, 1] <= h - 1)
+        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(sel)[0], cen[:, 0].copy(), cen[:, 1].copy(), ux, uy, lam, S, m,
+                     v, v_in, v_out)
     edge = cen[:, :, None] + u  # (K, 2, N) current edge points
 
     # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
-    m = np.maximum(2, np.round(c["level_samples"] * S)).astype(int)
-    cs = np.concatenate([np.zeros((K, N, 1)), np.cumsum(v, axis=2)], axis=2)
-    rows = np.arange(K)
-    v_in = cs[rows, :, m] / m[:, None]
-    v_out = (cs[rows, :, S] - cs[rows, :, S - m]) / m[:, None]
     diff = v_in - v_out  # > 0 when the inner side is brighter
-    f = (v - v_out[..., None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[..., None]
-    e, found, w1090 = crossings(f, lam, dl, S, r)
+    dd = np.where(np.abs(diff) > 1e-9, diff, 1e-9)
+    e, found, w1090 = crossings(v, v_out, dd, lam, dl, S, r)
     contrast = -diff if dark_inside else diff
     sane = ok & found & (contrast > floor[:, None])
     width = masked_percentile(w1090, sane, 75)
@@ -337,8 +410,8 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     contrast = -diff if dark_inside else diff
     med = masked_median(contrast, ok)
     ok &= contrast > np.maximum(floor, 0.3 * med)[:, None]
-    f = (v - v_out[..., None]) / np.where(np.abs(diff) > 1e-9, diff, 1e-9)[..., None]  # 1 inside, 0 outside
-    e, found, w1090 = crossings(f, lam, dl, S, r)
+    dd = np.where(np.abs(diff) > 1e-9, diff, 1e-9)  # the profiles normalised: 1 inside, 0 outside
+    e, found, w1090 = crossings(v, v_out, dd, lam, dl, S, r)
     ok &= found
     if c["edge_method"] == "area":
         # Integral of the normalised profile over [e - h, e + h] is the edge position minus
@@ -347,7 +420,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         width = masked_percentile(w1090, ok, 75)
         h = (c["area_window"][0] * width[:, None] + c["area_window"][1]) / r
         lo_, hi_ = np.maximum(e - h, lam[:, :1]), np.minimum(e + h, (1.0 + half))
-        at_hi, at_lo = integral(f, lam, dl, S, (hi_, lo_))
+        at_hi, at_lo = integral(v, v_out, dd, lam, dl, S, (hi_, lo_))
         e = lo_ + at_hi - at_lo
     # The edge must lie well inside the window.
     lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half

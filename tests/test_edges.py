@@ -67,3 +67,79 @@ def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
             np.testing.assert_allclose(batch[v][k].center, alone.center, atol=1e-9)
         if blur == 0:
             assert np.abs(np.array([r.center for r in batch[v]]) - f.views[v].outer_centers).max() < 0.05
+
+
+def _profiles(seed: int):
+    """Random ray profiles of three rings (S = 9, 14, 20 real samples, padded to 20 by
+    repeating the last): noisy dark-to-bright steps at random places, some flat."""
+    rng = np.random.default_rng(seed)
+    S = np.array([9, 14, 20])
+    K, N, Sm = 3, 12, 20
+    lam = np.empty((K, Sm))
+    for k in range(K):
+        lam[k] = 1.0 + np.minimum(np.linspace(-0.3, 0.3, S[k]).tolist() + [0.3] * (Sm - S[k]), 0.3)
+    dl = lam[:, 1] - lam[:, 0]
+    v = np.empty((K, N, Sm))
+    for k in range(K):
+        edge = rng.uniform(lam[k, 0], lam[k, S[k] - 1], N)
+        width = rng.uniform(0.005, 0.2, N)
+        prof = 40 + 160 / (1 + np.exp((lam[k, None, : S[k]] - edge[:, None]) / width[:, None]))
+        prof += rng.normal(0, 8, prof.shape)
+        prof[:2] = 180 + rng.normal(0, 2, (2, S[k]))  # flat: no crossing
+        v[k, :, : S[k]] = prof
+        v[k, :, S[k]:] = prof[:, -1:]
+    v_out = rng.normal(40, 3, (K, N))
+    dd = rng.normal(160, 10, (K, N))
+    r = rng.uniform(20, 60, (K, N))
+    return v, v_out, dd, lam, dl, S, r, rng
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ray_kernels_match_a_direct_reading(seed):
+    """The compiled per-ray loops give what the definitions say, ray by ray: the 50 %
+    crossing nearest the window centre, the run of 10-90 % samples around it, the
+    integral of the piecewise-linear profile."""
+    v, v_out, dd, lam, dl, S, r, rng = _profiles(seed)
+    e, found, width = edges.crossings(v, v_out, dd, lam, dl, S, r)
+    xs = (rng.uniform(0.6, 1.4, v.shape[:2]), rng.uniform(0.8, 1.2, v.shape[:2]))
+    ints = edges.integral(v, v_out, dd, lam, dl, S, xs)
+    assert not found[:, :2].any() and found.sum() > 20
+    for k in range(3):
+        grid = lam[k, : S[k]]
+        for i in range(v.shape[1]):
+            f = (v[k, i, : S[k]] - v_out[k, i]) / dd[k, i]
+            down = [j for j in range(S[k] - 1) if f[j] >= 0.5 and f[j + 1] < 0.5]
+            assert found[k, i] == bool(down)
+            if down:
+                j = min(down, key=lambda j: abs(j - (S[k] - 1) / 2))
+                assert e[k, i] == pytest.approx(grid[j] + dl[k] * (f[j] - 0.5) / (f[j] - f[j + 1]), abs=1e-12)
+                plateau = (f <= 0.1) | (f >= 0.9)
+                before = max([s for s in range(j + 1) if plateau[s]], default=-1)
+                after = min([s for s in range(j + 1, S[k]) if plateau[s]], default=S[k])
+                assert width[k, i] == pytest.approx(max(after - before - 1, 0) * dl[k] * r[k, i], abs=1e-12)
+            for x, got in zip(xs, ints):
+                x = float(np.clip(x[k, i], grid[0], grid[-1]))
+                pts = np.r_[grid[grid < x], x]
+                assert got[k, i] == pytest.approx(np.trapezoid(np.interp(pts, grid, f), pts), abs=1e-9)
+
+
+def test_sampled_rays_are_bilinear_samples_and_their_plateaus():
+    """Ray samples are :func:`edges.bilinear`'s, clipped at the border, with the mean of
+    each ray's first and last m samples."""
+    rng = np.random.default_rng(5)
+    img = rng.integers(0, 256, (40, 50), dtype=np.uint8)
+    lam = np.tile(np.r_[np.linspace(0.5, 1.5, 11), 1.5, 1.5], (2, 1))
+    lam[1, 9:] = lam[1, 8]  # the second ring has 9 real samples
+    S, m = np.array([11, 9]), np.array([3, 2])
+    cen = np.array([[25.0, 20.0], [45.0, 5.0]])  # the second ring's rays leave the image
+    t = rng.uniform(0, 2 * np.pi, (2, 16))
+    ux, uy = 10 * np.cos(t), 8 * np.sin(t)
+    v, v_in, v_out = np.empty((2, 16, 13)), np.empty((2, 16)), np.empty((2, 16))
+    edges._sample_rays(img, np.arange(2), cen[:, 0].copy(), cen[:, 1].copy(), ux, uy, lam, S, m, v, v_in, v_out)
+    X = cen[:, 0, None, None] + ux[..., None] * lam[:, None, :]
+    Y = cen[:, 1, None, None] + uy[..., None] * lam[:, None, :]
+    want = edges.bilinear(img, X, Y)[0]
+    np.testing.assert_array_equal(v, want)
+    for k in range(2):
+        np.testing.assert_allclose(v_in[k], want[k, :, : m[k]].mean(1), rtol=1e-12)
+        np.testing.assert_allclose(v_out[k], want[k, :, S[k] - m[k] : S[k]].mean(1), rtol=1e-12)
