@@ -188,6 +188,108 @@ def _ray_integrals(v, v_out, dd, lam, dl, S, xs, out):  # pragma: no cover - com
                 out[q, k, i] = acc + step * (t * f0 + 0.5 * t * t * (f1 - f0))
 
 
+@numba.njit(cache=True, nogil=True)
+def _scatter(P, w, mask, m, s, mu):  # pragma: no cover - compiled
+    """Per row k: the mean m[k] and RMS radius s[k] of the masked-in points, and the
+    weighted moments mu[k, (a, b)] = sum w x^a y^b (a + b <= 4, in the order of
+    ``_MOMENTS``) of the points centred and scaled by them."""
+    for k in range(P.shape[0]):
+        n, mx, my = 0, 0.0, 0.0
+        for i in range(P.shape[1]):
+            if mask[k, i]:
+                n += 1
+                mx += P[k, i, 0]
+                my += P[k, i, 1]
+        n1 = max(n, 1)
+        mx, my = mx / n1, my / n1
+        ss = 0.0
+        for i in range(P.shape[1]):
+            if mask[k, i]:
+                ss += (P[k, i, 0] - mx) ** 2 + (P[k, i, 1] - my) ** 2
+        sk = np.sqrt(ss / n1)
+        m[k, 0], m[k, 1], s[k] = mx, my, sk
+        sc = sk if sk > 0 else 1.0
+        mu[k] = 0.0
+        for i in range(P.shape[1]):
+            if mask[k, i]:
+                x, y, wi = (P[k, i, 0] - mx) / sc, (P[k, i, 1] - my) / sc, w[k, i]
+                x2, y2 = x * x, y * y
+                mu[k, 0] += wi
+                mu[k, 1] += wi * x
+                mu[k, 2] += wi * y
+                mu[k, 3] += wi * x2
+                mu[k, 4] += wi * x * y
+                mu[k, 5] += wi * y2
+                mu[k, 6] += wi * x2 * x
+                mu[k, 7] += wi * x2 * y
+                mu[k, 8] += wi * x * y2
+                mu[k, 9] += wi * y2 * y
+                mu[k, 10] += wi * x2 * x2
+                mu[k, 11] += wi * x2 * x * y
+                mu[k, 12] += wi * x2 * y2
+                mu[k, 13] += wi * x * y2 * y
+                mu[k, 14] += wi * y2 * y2
+
+
+# (a, b) of the moments _scatter returns; the scatter matrices of the conic's monomials
+# [x^2, xy, y^2] (D1) and [x, y, 1] (D2) are sums of these.
+_MOMENTS = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
+_D1 = [(2, 0), (1, 1), (0, 2)]
+_D2 = [(1, 0), (0, 1), (0, 0)]
+
+
+def _scatter_index(rows: list, cols: list) -> np.ndarray:
+    return np.array([[_MOMENTS.index((a + c, b + d)) for c, d in cols] for a, b in rows])
+
+
+_S1, _S2, _S3 = _scatter_index(_D1, _D1), _scatter_index(_D1, _D2), _scatter_index(_D2, _D2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _select(a, n, kth):  # pragma: no cover - compiled
+    """The kth smallest of a[:n], in place (Wirth's selection: afterwards a[:kth] holds
+    the smaller ones, a[kth + 1:n] the larger)."""
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = a[kth]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if j < kth:
+            lo = i
+        if kth < i:
+            hi = j
+    return a[kth]
+
+
+@numba.njit(cache=True, nogil=True)
+def _subset_medians(off, X, coef, cnt, good, med):  # pragma: no cover - compiled
+    """med[k, s]: the median over ring k's first cnt[k] points of |off - X coef[k, s]|
+    (inf where subset s is degenerate)."""
+    K, S, J = coef.shape
+    buf = np.empty(off.shape[1])
+    for k in range(K):
+        n = cnt[k]
+        for s in range(S):
+            if not good[k, s]:
+                med[k, s] = np.inf
+                continue
+            for i in range(n):
+                pred = 0.0
+                for j in range(J):
+                    pred += coef[k, s, j] * X[k, i, j]
+                buf[i] = abs(off[k, i] - pred)
+            hi = _select(buf, n, n // 2)
+            med[k, s] = 0.5 * (buf[: n // 2].max() + hi) if n % 2 == 0 else hi
+
+
 # --- ray profiles --------------------------------------------------------------------------------
 
 
@@ -450,23 +552,14 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
     Returns:
         (centres (K, 2), Q (K, 2, 2), valid (K,)) with (x - c)^T Q (x - c) = 1 where valid.
     """
-    K = len(P)
-    mf = mask.astype(np.float64)
-    cnt = mf.sum(1)
-    valid = cnt >= 6
-    cnt1 = np.maximum(cnt, 1)
-    m = np.einsum("kn,kni->ki", mf, P) / cnt1[:, None]
-    d = P - m[:, None, :]
-    s = np.sqrt(np.einsum("kn,kn->k", mf, (d**2).sum(2)) / cnt1)
-    valid &= s > 0
-    s1 = np.where(valid, s, 1.0)
-    x, y = d[..., 0] / s1[:, None], d[..., 1] / s1[:, None]  # normalised: well-conditioned scatter matrices
-    D1 = np.stack([x * x, x * y, y * y], axis=2)
-    D2 = np.stack([x, y, np.ones_like(x)], axis=2)
-    w = mf if weights is None else mf * weights
-    S1 = np.einsum("kn,kni,knj->kij", w, D1, D1)
-    S2 = np.einsum("kn,kni,knj->kij", w, D1, D2)
-    S3 = np.einsum("kn,kni,knj->kij", w, D2, D2)
+    K, N = mask.shape
+    m, s, mu = np.empty((K, 2)), np.empty(K), np.empty((K, len(_MOMENTS)))
+    w = np.ones((K, N)) if weights is None else np.ascontiguousarray(weights, np.float64)
+    _scatter(np.ascontiguousarray(P, np.float64), w, np.ascontiguousarray(mask), m, s, mu)
+    valid = (mask.sum(1) >= 6) & (s > 0)
+    s1 = np.where(valid, s, 1.0)  # the points normalised by it: well-conditioned scatter matrices
+    rows = np.arange(K)[:, None, None]
+    S1, S2, S3 = mu[rows, _S1], mu[rows, _S2], mu[rows, _S3]
     S3[~valid] = np.eye(3)
     T, ok = _solve(S3, -S2.transpose(0, 2, 1))
     valid &= ok
@@ -554,16 +647,13 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
         return keep
     coef = np.zeros((K, n_subsets, 5))
     coef[good] = np.linalg.solve(A[good], off[rows, idx][good][..., None])[..., 0]
-    res = np.abs(off[:, None, :] - np.einsum("ksj,knj->ksn", coef, X))  # (K, S, N)
-    med = np.full((K, n_subsets), np.inf)
-    for k in range(K):  # each ring's points are its first cnt[k]: a partial sort per ring
-        n = int(cnt[k])
-        part = np.partition(res[k, :, :n], ((n - 1) // 2, n // 2), axis=1)
-        med[k] = np.where(good[k], 0.5 * (part[:, (n - 1) // 2] + part[:, n // 2]), np.inf)
+    med = np.empty((K, n_subsets))
+    _subset_medians(off, X, coef, cnt, good, med)
     best = np.argmin(med, axis=1)
     mb = med[np.arange(K), best]
+    res = np.abs(off - np.einsum("kj,knj->kn", coef[np.arange(K), best], X))
     sigma = 1.4826 * (1 + 5.0 / np.maximum(cnt - 5, 1)) * mb
-    inl = res[np.arange(K), best] <= np.maximum(2.5 * sigma, c["outlier_min_px"])[:, None]
+    inl = res <= np.maximum(2.5 * sigma, c["outlier_min_px"])[:, None]
     some = good.any(1)
     keep[some] = mask[some] & inl[some]
     return keep
