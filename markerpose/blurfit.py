@@ -26,10 +26,13 @@ Gauss-Hermite rule.
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
-from scipy.special import ndtr
 
 _SQ2PI = np.sqrt(2 * np.pi)
+_SQ2 = np.sqrt(2.0)
 # Gauss-Hermite rule for a unit normal: nodes and weights.
 _GH_T = np.array([-np.sqrt(3.0), 0.0, np.sqrt(3.0)])
 _GH_W = np.array([1 / 6, 2 / 3, 1 / 6])
@@ -54,25 +57,6 @@ default_conf: dict = {
 }
 
 
-def _normal(t, jac):
-    """(G, Phi, phi) of t: G(t) = t Phi(t) + phi(t), the antiderivative of the normal CDF
-    Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0). Without
-    ``jac`` only G."""
-    m = np.abs(t) < 5.0
-    tm = t[m]
-    P = ndtr(tm)
-    p = np.exp(-0.5 * tm * tm) / _SQ2PI
-    G = np.maximum(t, 0.0)
-    G[m] = tm * P + p
-    if not jac:
-        return G, None, None
-    Phi = (t > 0).astype(np.float64)
-    Phi[m] = P
-    phi = np.zeros_like(t)
-    phi[m] = p
-    return G, Phi, phi
-
-
 _JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
 
 
@@ -86,72 +70,108 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
     A chord end p on the ellipse moves with any parameter as ds = -dq / (2 u^T Q p),
     q(s) = (d + s u)^T Q (d + s u) - 1 being the quadratic whose roots are the ends.
     """
-    near, v, Jn = _disk_near(x, y, c, Q, theta, L, sigma, jac)
+    x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
     val = np.zeros(len(x))
-    val[near] = v
+    J = np.zeros((len(x), 8) if jac else (1, 8))
+    _add_disk(x, y, c, Q, theta, L, sigma, 1.0, jac, val, J, (0, -1, 5), (1.0, 1.0, 1.0))
     if not jac:
         return val
-    J = np.zeros((len(x), 8))
-    J[near] = Jn
     return val, {k: J[:, col] for k, col in _JCOLS.items()}
 
 
-def _disk_near(x, y, c, Q, theta, L, sigma, jac=False):
-    """:func:`blurred_disk` at the points it can reach: (their indices (n,), values (n,),
-    derivatives (n, 8) in the columns of :data:`_JCOLS` or None)."""
+def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
+    """Add ``sign`` times :func:`blurred_disk` at (x, y) to ``val`` and, with ``jac``, its
+    derivatives to ``J``'s columns ``cols`` = (centre and form (5 from there), a second
+    copy of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` =
+    (the form's, L's, sigma's) divide the form's derivatives and multiply L's and
+    sigma's (a reparametrisation)."""
     u = np.array([np.cos(theta), np.sin(theta)])
-    n = np.array([-u[1], u[0]])
     L = max(float(L), 0.05)
-    Lh = 0.5 * L
-    Qu = Q @ u
-    A = u @ Qu
     # Only points within the blurred ellipse's bounding box can be non-zero.
-    Qi = np.linalg.inv(Q)
-    ext = np.sqrt(np.diag(Qi)) + np.abs(u) * Lh + 6.0 * sigma
-    near = np.nonzero((np.abs(x - c[0]) < ext[0]) & (np.abs(y - c[1]) < ext[1]))[0]
-    x, y = x[near], y[near]
-    val = np.zeros(len(near))
-    J = np.zeros((len(near), 8)) if jac else None
-    for tau, w in zip(_GH_T, _GH_W):
-        off = tau * sigma
-        dx = x + off * n[0] - c[0]
-        dy = y + off * n[1] - c[1]
-        B = dx * Qu[0] + dy * Qu[1]
-        C = Q[0, 0] * dx * dx + 2 * Q[0, 1] * dx * dy + Q[1, 1] * dy * dy - 1.0
-        disc = B * B - A * C
-        idx = np.nonzero(disc > 0)[0]
-        if len(idx) == 0:
+    ext = np.sqrt(np.diag(np.linalg.inv(Q))) + np.abs(u) * 0.5 * L + 6.0 * sigma
+    _disk_kernel(x, y, float(c[0]), float(c[1]), float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1]), float(u[0]), float(u[1]), L,
+                 float(sigma), float(ext[0]), float(ext[1]), float(sign), bool(jac), val, J, int(cols[0]), int(cols[1]), int(cols[2]),
+                 float(scales[0]), float(scales[1]), float(scales[2]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _disk_kernel(x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m,
+                 sq, sl, ss):  # pragma: no cover - compiled
+    """:func:`_add_disk` per point: the chord [s1, s2] of the ellipse along the motion
+    through the point (shifted across it by each Gauss-Hermite node), its overlap with
+    the box [-L/2, L/2] smoothed by sigma (G, the antiderivative of the normal CDF,
+    in closed form), and the derivatives through the chord ends."""
+    n0, n1 = -u1, u0
+    Lh = 0.5 * L
+    qu0, qu1 = q00 * u0 + q01 * u1, q01 * u0 + q11 * u1
+    A = u0 * qu0 + u1 * qu1
+    for i in range(len(x)):
+        if not (abs(x[i] - c0) < ext0 and abs(y[i] - c1) < ext1):
             continue
-        B, dx, dy = B[idx], dx[idx], dy[idx]
-        r = np.sqrt(disc[idx])
-        s1, s2 = (-B - r) / A, (-B + r) / A
-        t = np.stack([Lh - s1, -Lh - s1, Lh - s2, -Lh - s2]) / sigma  # a1, b1, a2, b2
-        G, P, ph = _normal(t, jac)
-        v = (G[0] - G[1] - G[2] + G[3]) * (sigma / L)
-        val[idx] += w * v
-        if not jac:
-            continue
-        dv_s = (-(P[0] - P[1]) / L, (P[2] - P[3]) / L)
-        dsig = (ph[0] - ph[1] - ph[2] + ph[3]) / L
-        rc = np.maximum(r, 0.25 * A)  # tangent chords: the derivative is clipped
-        jn = np.zeros((8, len(idx)))
-        jn[6] = w * (-v / L + (P[0] + P[1] - P[2] - P[3]) / (2 * L))
-        for s, den, dvs in ((s1, -rc, dv_s[0]), (s2, rc, dv_s[1])):
-            px, py = dx + s * u[0], dy + s * u[1]
-            gx, gy = Q[0, 0] * px + Q[0, 1] * py, Q[0, 1] * px + Q[1, 1] * py
-            k = w * dvs / den
-            jn[0] += k * gx
-            jn[1] += k * gy
-            kp = -0.5 * k * px
-            jn[2] += kp * px
-            jn[3] += 2 * kp * py
-            jn[4] += -0.5 * k * py * py
-            ng = n[0] * gx + n[1] * gy
-            jn[5] += w * dvs * off - k * s * ng
-            dsig = dsig - (dvs / den) * tau * ng
-        jn[7] = w * dsig
-        J[idx] += jn.T
-    return near, val, J
+        vi = 0.0
+        j0 = j1 = j2 = j3 = j4 = j5 = j6 = j7 = 0.0
+        for node in range(3):
+            tau, w = _GH_T[node], _GH_W[node]
+            off = tau * sigma
+            dx = x[i] + off * n0 - c0
+            dy = y[i] + off * n1 - c1
+            B = dx * qu0 + dy * qu1
+            C = q00 * dx * dx + 2 * q01 * dx * dy + q11 * dy * dy - 1.0
+            disc = B * B - A * C
+            if not disc > 0:
+                continue
+            r = np.sqrt(disc)
+            s1, s2 = (-B - r) / A, (-B + r) / A
+            G0, P0, p0 = _normal((Lh - s1) / sigma)
+            G1, P1, p1 = _normal((-Lh - s1) / sigma)
+            G2, P2, p2 = _normal((Lh - s2) / sigma)
+            G3, P3, p3 = _normal((-Lh - s2) / sigma)
+            v = (G0 - G1 - G2 + G3) * (sigma / L)
+            vi += w * v
+            if not jac:
+                continue
+            dsig = (p0 - p1 - p2 + p3) / L
+            rc = max(r, 0.25 * A)  # tangent chords: the derivative is clipped
+            j6 += w * (-v / L + (P0 + P1 - P2 - P3) / (2 * L))
+            for end in range(2):
+                s, den, dvs = (s1, -rc, -(P0 - P1) / L) if end == 0 else (s2, rc, (P2 - P3) / L)
+                px, py = dx + s * u0, dy + s * u1
+                gx, gy = q00 * px + q01 * py, q01 * px + q11 * py
+                k = w * dvs / den
+                j0 += k * gx
+                j1 += k * gy
+                kp = -0.5 * k * px
+                j2 += kp * px
+                j3 += 2 * kp * py
+                j4 += -0.5 * k * py * py
+                ng = n0 * gx + n1 * gy
+                j5 += w * dvs * off - k * s * ng
+                dsig -= (dvs / den) * tau * ng
+            j7 += w * dsig
+        val[i] += sign * vi
+        if jac:
+            J[i, col_cq] += sign * j0
+            J[i, col_cq + 1] += sign * j1
+            J[i, col_cq + 2] += sign * j2 / sq
+            J[i, col_cq + 3] += sign * j3 / sq
+            J[i, col_cq + 4] += sign * j4 / sq
+            if col_d >= 0:
+                J[i, col_d] += sign * j0
+                J[i, col_d + 1] += sign * j1
+            J[i, col_m] += sign * j5
+            J[i, col_m + 1] += sign * j6 * sl
+            J[i, col_m + 2] += sign * j7 * ss
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal(t):  # pragma: no cover - compiled
+    """(G, Phi, phi) of t: G(t) = t Phi(t) + phi(t), the antiderivative of the normal CDF
+    Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0)."""
+    if abs(t) >= 5.0:
+        return max(t, 0.0), 1.0 if t > 0 else 0.0, 0.0
+    P = 0.5 * math.erfc(-t / _SQ2)
+    p = np.exp(-0.5 * t * t) / _SQ2PI
+    return t * P + p, P, p
 
 
 class _Problem:
@@ -239,23 +259,13 @@ class _Problem:
         J = np.zeros((N, 7 * k + 3)) if jac else None
         # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
         # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
-        chain = np.array([1, 1, 1, 1, 1, 1, L, sigma])
+        Jw = J if jac else np.zeros((1, 7 * k + 3))
         for j, (c, Q, d) in enumerate(rings):
             if np.linalg.eigvalsh(Q)[0] <= 0:
                 raise ValueError("ellipse form not positive definite")
-            for inner in (False, True):
-                cc, QQ, sign = (c + d, Q / self.rho**2, -1.0) if inner else (c, Q, 1.0)
-                near, v, Jd = _disk_near(self.x, self.y, cc, QQ, theta, L, sigma, jac)
-                R[near] += sign * v
-                if not jac or not len(near):
-                    continue
-                Jd *= sign * chain
-                Jd[:, 2:5] /= (self.rho**2 if inner else 1.0) * self.scale**2
-                col = 7 * j
-                J[near, col : col + 5] += Jd[:, :5]
-                if inner:
-                    J[near, col + 5 : col + 7] += Jd[:, :2]
-                J[near, 7 * k :] += Jd[:, 5:]
+            _add_disk(self.x, self.y, c, Q, theta, L, sigma, 1.0, jac, R, Jw, (7 * j, -1, 7 * k), (self.scale**2, L, sigma))
+            _add_disk(self.x, self.y, c + d, Q / self.rho**2, theta, L, sigma, -1.0, jac, R, Jw, (7 * j, 7 * j + 5, 7 * k),
+                      (self.rho**2 * self.scale**2, L, sigma))
         xs, ys = self.xs, self.ys
         M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
         Mw = M * self.w[:, None]  # the levels are a weighted fit (robust weights)
@@ -381,3 +391,15 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         "contrast": float(beta[3]),
         "nfev": nfev,
     }
+
+
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile the model's kernel (or load it from numba's cache) once per process."""
+    global _WARM
+    if not _WARM:
+        blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8, jac=True)
+        blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8)
+        _WARM = True

@@ -767,5 +767,26 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
     return out
 
 
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile the kernels (or load them from numba's cache) for the argument types the
+    pipeline passes, once per process: a stream's first frames must not pay for it."""
+    global _WARM
+    if _WARM:
+        return
+    K, N, Sm = 1, 6, 4
+    ii, f2, b2 = np.zeros(K, np.intp), np.ones((K, N)), np.ones((K, N), bool)
+    lam, S, v = np.linspace(0.5, 1.5, Sm)[None], np.full(K, Sm, np.intp), np.zeros((K, N, Sm))
+    for img in (np.zeros((8, 8), np.uint8), np.zeros((8, 8), np.float32)):
+        _sample_rays(img, ii, np.full(K, 4.0), np.full(K, 4.0), f2, f2, lam, S, np.full(K, 2, np.intp), v, f2.copy(), f2.copy())
+    crossings(v, f2, f2, lam, np.full(K, 1 / 3), S, f2)
+    integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
+    _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
+    _subset_medians(f2, np.ones((K, N, 5)), np.ones((K, 2, 5)), np.full(K, N, np.intp), np.ones((K, 2), bool), np.zeros((K, 2)))
+    _WARM = True
+
+
 __all__ = ["bilinear", "edge_points", "fit_ellipses", "fit_robust", "lmeds_inliers", "masked_median", "masked_percentile",
            "plane_levels", "refine_edges"]

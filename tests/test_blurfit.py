@@ -214,3 +214,14 @@ def test_damaged_blurred_rings_give_flags_or_right_centres(blurred_view, damage)
     err = np.linalg.norm(centers - truth.outer_centers, axis=1)
     assert ok.any()
     assert np.all(err[ok] < 0.15), (ok, err)
+
+
+def test_a_tracker_is_compiled_before_its_first_frame():
+    """Constructing the pipeline compiles (or loads) the compiled kernels, so that a live
+    stream's first frames, sharp or blurred, do not stall on it."""
+    from markerpose import edges
+
+    mp.MarkerPose(mp.StereoRig.default())
+    for kernel in (edges._sample_rays, edges._ray_crossings, edges._ray_integrals, edges._scatter, edges._subset_medians,
+                   blurfit._disk_kernel):
+        assert kernel.signatures

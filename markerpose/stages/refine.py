@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import classical
+from .. import classical, edges
 from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
@@ -59,8 +59,12 @@ class Refiner:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
+        # Compiled now, not in a stream's first frames (a live tracker would stall on them).
+        edges.warm_up()
         if conf["blur_fit"]:
-            from .. import blurfit  # noqa: F401  (imported now: scipy's import would stall the first blurred frame)
+            from .. import blurfit
+
+            blurfit.warm_up()
         self.net = None
         if neural and conf["method"] == "ellipsegnet":
             from ..ellipses import EllipseNet
