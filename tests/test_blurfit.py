@@ -219,9 +219,9 @@ def test_damaged_blurred_rings_give_flags_or_right_centres(blurred_view, damage)
 def test_a_tracker_is_compiled_before_its_first_frame():
     """Constructing the pipeline compiles (or loads) the compiled kernels, so that a live
     stream's first frames, sharp or blurred, do not stall on it."""
-    from markerpose import edges
+    from markerpose import MarkerPose, edges
 
-    mp.MarkerPose(mp.StereoRig.default())
+    MarkerPose(StereoRig.default())
     for kernel in (edges._sample_rays, edges._ray_crossings, edges._ray_integrals, edges._scatter, edges._subset_medians,
                    blurfit._disk_kernel):
         assert kernel.signatures
