@@ -27,7 +27,7 @@ default_conf = {
     "threshold": 0.01,  # ... their least location score
     "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
-    "second_look_near": 6,  # ... only around the first look's best this many candidates per
+    "second_look_near": 5,  # ... only around the first look's best this many candidates per
     #                         view (ours: a marker too small to be matched at the first look
     #                         is still among its best candidates); 0: the whole image
     "second_look_window": 64,  # ... in windows of this many px of its input each side (a
