@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from markerpose import Camera, StereoRig
+from markerpose import camera as camera_module
 from markerpose.camera import build_default_rig
 
 try:  # only the property-based test needs it
@@ -275,6 +276,24 @@ class TestCameraProjection:
             ideal = cam.undistort_points(corners)
             xn_c = cam.undistort_points(corners, ideal_pixels=False)
             np.testing.assert_allclose(ideal, xn_c @ cam.K[:2, :2].T + cam.K[:2, 2], atol=1e-9)
+
+    def test_undistort_under_strong_distortion_and_beyond_its_fold(self, rig):
+        """Newton's undistortion recovers the ideal points under a strong lens (where
+        OpenCV's fixed-point iteration need not converge) and gives OpenCV's converged
+        result on the rig's lens; beyond the model's fold (no inverse on the lens's branch)
+        Newton gives up and OpenCV's iteration returns finite points, as before."""
+        cam = Camera(np.array([[1200.0, 0.5, 640], [0, 1190.0, 512], [0, 0, 1]]), [-0.5, 0.0, 1e-3, -2e-3, 0.0])
+        xn = np.random.default_rng(3).uniform(-0.45, 0.45, (400, 2))
+        xn = xn[np.hypot(*xn.T) < 0.6]  # inside the fold at r ~ 0.82
+        np.testing.assert_allclose(cam.undistort_points(cam.distort(xn), ideal_pixels=False), xn, atol=1e-10)
+        beyond = cam.distort(np.array([[0.8, 0.0]])) + [[60.0, 0.0]]  # no point distorts there
+        xn_b, ok = np.empty((1, 2)), np.ones(1, bool)
+        camera_module._undistort(beyond, cam.K, cam.dist, xn_b, ok)
+        assert not ok[0]
+        assert np.isfinite(cam.undistort_points(beyond)).all()
+        px = rig.left.distort(xn)
+        ref = rig.left._undistort_normalized(px.reshape(-1, 1, 2), 200)
+        np.testing.assert_allclose(rig.left.undistort_points(px, ideal_pixels=False), ref, atol=1e-12)
 
     def test_undistort_recovers_ideal_pixels_of_3d_points(self, rig):
         P = _random_points(np.random.default_rng(6), 300, spread=0.12)
