@@ -286,6 +286,18 @@ def _undistort(px, K, dist, xn, ok):  # pragma: no cover - compiled
         xn[i, 0], xn[i, 1] = x, y
 
 
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile the projection kernels (or load them from numba's cache) once per process."""
+    global _WARM
+    if not _WARM:
+        cam = Camera(np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]]), [0.1, 0, 0, 0, 0])
+        cam.undistort_points(cam.distort(np.zeros((1, 2))))
+        _WARM = True
+
+
 def _look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     """Rotation camera→world for a camera at ``center`` looking at ``target`` (y down in the image)."""
     z = target - center

@@ -28,33 +28,47 @@ from .geometry import sqrtm_spd
 # --- masked statistics (numpy's median / linear percentile over the masked-in entries) ----------
 
 
-def _sorted_masked(x: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each row of ``x`` (last axis) sorted with its masked-out entries last; the counts."""
-    return np.sort(np.where(mask, x, np.inf), axis=-1), mask.sum(-1)
-
-
-def _take(xs: np.ndarray, i: np.ndarray) -> np.ndarray:
-    return np.take_along_axis(xs, np.maximum(i, 0)[..., None], axis=-1)[..., 0]
-
-
 def masked_median(x: np.ndarray, mask: np.ndarray, empty: float = 0.0) -> np.ndarray:
     """Median of each row's masked-in entries (last axis); ``empty`` for none."""
-    xs, n = _sorted_masked(x, mask)
-    med = 0.5 * (_take(xs, (n - 1) // 2) + _take(xs, n // 2))
-    return np.where(n > 0, med, empty)
+    return _masked_stat(x, mask, -1.0, empty)
 
 
 def masked_percentile(x: np.ndarray, mask: np.ndarray, q: float, empty: float = 0.0) -> np.ndarray:
     """``np.percentile(row[mask], q)`` (linear) of each row (last axis); ``empty`` for none."""
-    xs, n = _sorted_masked(x, mask)
-    pos = (n - 1) * (q / 100.0)
-    lo = np.floor(pos).astype(np.intp)
-    t = pos - lo
-    a, b = _take(xs, lo), _take(xs, np.minimum(lo + 1, n - 1))
-    with np.errstate(invalid="ignore"):  # rows with nothing masked in: inf - inf, replaced below
+    return _masked_stat(x, mask, float(q), empty)
+
+
+def _masked_stat(x: np.ndarray, mask: np.ndarray, q: float, empty: float) -> np.ndarray:
+    x2 = np.ascontiguousarray(x, np.float64).reshape(-1, x.shape[-1])
+    out = np.empty(len(x2))
+    _row_stats(x2, np.ascontiguousarray(mask, bool).reshape(x2.shape), q, float(empty), out)
+    return out.reshape(x.shape[:-1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
+    """Per row of ``x``, the median (q < 0) or the linear q-th percentile of the masked-in
+    entries, as numpy computes them from the sorted values; ``empty`` for none."""
+    buf = np.empty(x.shape[1])
+    for k in range(x.shape[0]):
+        n = 0
+        for i in range(x.shape[1]):
+            if mask[k, i]:
+                buf[n] = x[k, i]
+                n += 1
+        if n == 0:
+            out[k] = empty
+            continue
+        xs = np.sort(buf[:n])
+        if q < 0:
+            out[k] = 0.5 * (xs[(n - 1) // 2] + xs[n // 2])
+            continue
+        pos = (n - 1) * (q / 100.0)
+        lo = int(np.floor(pos))
+        t = pos - lo
+        a, b = xs[lo], xs[min(lo + 1, n - 1)]
         d = b - a
-        val = np.where(t >= 0.5, b - d * (1 - t), a + d * t)  # numpy's lerp
-    return np.where(n > 0, val, empty)
+        out[k] = b - d * (1 - t) if t >= 0.5 else a + d * t  # numpy's lerp
 
 
 # --- small batched linear algebra -----------------------------------------------------------------
@@ -785,6 +799,7 @@ def warm_up() -> None:
     integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
     _subset_medians(f2, np.ones((K, N, 5)), np.ones((K, 2, 5)), np.full(K, N, np.intp), np.ones((K, 2), bool), np.zeros((K, 2)))
+    masked_median(f2, b2)
     _WARM = True
 
 

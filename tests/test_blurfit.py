@@ -224,13 +224,16 @@ def test_a_tracker_is_compiled_before_its_first_frame():
     import sys
 
     code = """
+import numba
 import markerpose as mp
-from markerpose import blurfit, edges
-kernels = (edges._sample_rays, edges._ray_crossings, edges._ray_integrals, edges._scatter, edges._subset_medians,
-           blurfit._disk_kernel)
-before = [bool(k.signatures) for k in kernels]
+from markerpose import blurfit, camera, edges
+inner = ("_select", "_normal")  # called only from other kernels, compiled into them
+kernels = [v for m in (edges, camera, blurfit) for name, v in vars(m).items()
+           if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
+before = any(k.signatures for k in kernels)
 mp.MarkerPose(mp.StereoRig.default())
-print(before, [bool(k.signatures) for k in kernels])
+print(len(kernels), before, all(k.signatures for k in kernels))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
-    assert out.split() == ["[False,"] + ["False,"] * 4 + ["False]", "[True,"] + ["True,"] * 4 + ["True]"]
+    n, before, after = out.split()
+    assert int(n) >= 9 and before == "False" and after == "True"

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import classical, edges
+from .. import camera, classical, edges
 from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
@@ -61,6 +61,7 @@ class Refiner:
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         edges.warm_up()
+        camera.warm_up()
         if conf["blur_fit"]:
             from .. import blurfit
 
