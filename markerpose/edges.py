@@ -365,30 +365,93 @@ def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np
 
     Args: xy (K, N, 2), values / use (K, N), center (K, 2), scale / floor (K,).
     """
+    out = np.empty(values.shape)
+    _plane_rows(np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(values, np.float64), np.ascontiguousarray(use, bool),
+                np.ascontiguousarray(center, np.float64), (0.15 * np.asarray(scale, np.float64)) ** 2,
+                np.ascontiguousarray(floor, np.float64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _median(buf, n):  # pragma: no cover - compiled
+    xs = np.sort(buf[:n])
+    return 0.5 * (xs[(n - 1) // 2] + xs[n // 2])
+
+
+@numba.njit(cache=True, nogil=True)
+def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover - compiled
+    """:func:`plane_levels` row by row: the robust selection, the ridge-regularised
+    normal equations (3 x 3, solved by elimination with partial pivoting; a singular
+    system keeps the previous coefficients)."""
     K, N = values.shape
-    A = np.concatenate([np.ones((K, N, 1)), xy - center[:, None, :]], axis=2)
-    pen = np.zeros((K, 3, 3))
-    pen[:, 1, 1] = pen[:, 2, 2] = (0.15 * scale) ** 2
-    med = masked_median(values, use)
-    res = values - med[:, None]
-    coef = np.zeros((K, 3))
-    coef[:, 0] = med
-    live = np.ones(K, bool)
-    for _ in range(2):
-        mad = 1.4826 * masked_median(np.abs(res), use)
-        sel = use & (np.abs(res) <= np.maximum(3 * mad, floor)[:, None])
-        live &= sel.sum(1) >= 6
-        if not live.any():
-            break
-        s = sel[live].astype(np.float64)
-        Al = A[live]
-        M = np.einsum("kn,kni,knj->kij", s, Al, Al) + s.sum(1)[:, None, None] * pen[live]
-        rhs = np.einsum("kn,kni,kn->ki", s, Al, values[live])
-        x, ok = _solve(M, rhs[..., None])
-        rows = np.nonzero(live)[0][ok]
-        coef[rows] = x[ok, :, 0]
-        res = values - np.einsum("kni,ki->kn", A, coef)
-    return np.einsum("kni,ki->kn", A, coef)
+    buf, res = np.empty(N), np.empty(N)
+    M, rhs = np.empty((3, 3)), np.empty(3)
+    for k in range(K):
+        n = 0
+        for i in range(N):
+            if use[k, i]:
+                buf[n] = values[k, i]
+                n += 1
+        c0 = _median(buf, n) if n else 0.0
+        c1 = c2 = 0.0
+        for i in range(N):
+            res[i] = values[k, i] - c0
+        for _ in range(2):
+            n = 0
+            for i in range(N):
+                if use[k, i]:
+                    buf[n] = abs(res[i])
+                    n += 1
+            lim = max(3 * (1.4826 * (_median(buf, n) if n else 0.0)), floor[k])
+            M[:] = 0.0
+            rhs[:] = 0.0
+            cnt = 0
+            for i in range(N):
+                if use[k, i] and abs(res[i]) <= lim:
+                    cnt += 1
+                    a1, a2 = xy[k, i, 0] - center[k, 0], xy[k, i, 1] - center[k, 1]
+                    v = values[k, i]
+                    M[0, 0] += 1.0
+                    M[0, 1] += a1
+                    M[0, 2] += a2
+                    M[1, 1] += a1 * a1
+                    M[1, 2] += a1 * a2
+                    M[2, 2] += a2 * a2
+                    rhs[0] += v
+                    rhs[1] += a1 * v
+                    rhs[2] += a2 * v
+            if cnt < 6:
+                break
+            M[1, 1] += cnt * pen[k]
+            M[2, 2] += cnt * pen[k]
+            M[1, 0], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[1, 2]
+            ok = True
+            for col in range(3):  # forward elimination with partial pivoting
+                piv = col
+                for row in range(col + 1, 3):
+                    if abs(M[row, col]) > abs(M[piv, col]):
+                        piv = row
+                if M[piv, col] == 0.0:
+                    ok = False
+                    break
+                if piv != col:
+                    for j in range(3):
+                        M[col, j], M[piv, j] = M[piv, j], M[col, j]
+                    rhs[col], rhs[piv] = rhs[piv], rhs[col]
+                for row in range(col + 1, 3):
+                    f = M[row, col] / M[col, col]
+                    for j in range(col, 3):
+                        M[row, j] -= f * M[col, j]
+                    rhs[row] -= f * rhs[col]
+            if ok:
+                x2 = rhs[2] / M[2, 2]
+                x1 = (rhs[1] - M[1, 2] * x2) / M[1, 1]
+                c0 = (rhs[0] - M[0, 1] * x1 - M[0, 2] * x2) / M[0, 0]
+                c1, c2 = x1, x2
+            for i in range(N):
+                res[i] = values[k, i] - (c0 + c1 * (xy[k, i, 0] - center[k, 0]) + c2 * (xy[k, i, 1] - center[k, 1]))
+        for i in range(N):
+            out[k, i] = c0 + c1 * (xy[k, i, 0] - center[k, 0]) + c2 * (xy[k, i, 1] - center[k, 1])
 
 
 def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
@@ -447,8 +510,8 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     dl = lam[:, 1] - lam[:, 0]
     # A ray is a segment (its padding repeats its end): its samples lie in the image when
     # both ends do.
-    ends = cen[:, :, None, None] + u[:, :, :, None] * lam[:, None, None, [0, -1]]  # (K, 2, N, 2)
-    lo_xy, hi_xy = ends.min(3), ends.max(3)
+    first, last = cen[:, :, None] + u * lam[:, None, :1], cen[:, :, None] + u * lam[:, None, -1:]  # (K, 2, N)
+    lo_xy, hi_xy = np.minimum(first, last), np.maximum(first, last)
     m = np.maximum(2, np.round(c["level_samples"] * S)).astype(np.intp)  # samples per plateau level
     v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
     ok = ray.copy()
@@ -631,10 +694,11 @@ def _radial_offsets(P: np.ndarray, cen: np.ndarray, Q: np.ndarray) -> tuple[np.n
     """Per point, its angle on the ellipse (cen, Q) seen as a unit circle, and its radial
     offset from the ellipse, px (K, N each)."""
     d = P - cen[:, None, :]
-    q = np.einsum("kij,knj->kni", sqrtm_spd(Q, 0.5), d)  # unit-circle frame
-    lam = np.hypot(q[..., 0], q[..., 1])
-    t = np.arctan2(q[..., 1], q[..., 0])
-    return t, (lam - 1.0) * np.hypot(d[..., 0], d[..., 1]) / np.maximum(lam, 1e-9)
+    R = sqrtm_spd(Q, 0.5)[:, None]  # to the unit-circle frame
+    dx, dy = d[..., 0], d[..., 1]
+    qx, qy = R[..., 0, 0] * dx + R[..., 0, 1] * dy, R[..., 1, 0] * dx + R[..., 1, 1] * dy
+    lam = np.hypot(qx, qy)
+    return np.arctan2(qy, qx), (lam - 1.0) * np.hypot(dx, dy) / np.maximum(lam, 1e-9)
 
 
 def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarray, c: dict, n_subsets: int = 40) -> np.ndarray:
@@ -800,6 +864,7 @@ def warm_up() -> None:
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
     _subset_medians(f2, np.ones((K, N, 5)), np.ones((K, 2, 5)), np.full(K, N, np.intp), np.ones((K, 2), bool), np.zeros((K, 2)))
     masked_median(f2, b2)
+    plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
     _WARM = True
 
 
