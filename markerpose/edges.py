@@ -48,7 +48,8 @@ def _masked_stat(x: np.ndarray, mask: np.ndarray, q: float, empty: float) -> np.
 @numba.njit(cache=True, nogil=True)
 def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
     """Per row of ``x``, the median (q < 0) or the linear q-th percentile of the masked-in
-    entries, as numpy computes them from the sorted values; ``empty`` for none."""
+    entries, as numpy computes them from the sorted values (found by selection); ``empty``
+    for none."""
     buf = np.empty(x.shape[1])
     for k in range(x.shape[0]):
         n = 0
@@ -59,14 +60,14 @@ def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
         if n == 0:
             out[k] = empty
             continue
-        xs = np.sort(buf[:n])
         if q < 0:
-            out[k] = 0.5 * (xs[(n - 1) // 2] + xs[n // 2])
+            out[k] = _median(buf, n)
             continue
         pos = (n - 1) * (q / 100.0)
         lo = int(np.floor(pos))
         t = pos - lo
-        a, b = xs[lo], xs[min(lo + 1, n - 1)]
+        a = _select(buf, n, lo)  # then buf[lo + 1:n] holds the larger values
+        b = buf[lo + 1 : n].min() if lo + 1 < n else a
         d = b - a
         out[k] = b - d * (1 - t) if t >= 0.5 else a + d * t  # numpy's lerp
 
@@ -374,8 +375,9 @@ def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np
 
 @numba.njit(cache=True, nogil=True)
 def _median(buf, n):  # pragma: no cover - compiled
-    xs = np.sort(buf[:n])
-    return 0.5 * (xs[(n - 1) // 2] + xs[n // 2])
+    """numpy's median of buf[:n] (n > 0), reordering it."""
+    lo = _select(buf, n, (n - 1) // 2)
+    return 0.5 * (lo + (buf[n // 2 : n].min() if n % 2 == 0 else lo))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -15,12 +15,16 @@ def test_masked_statistics_match_numpy(seed):
     x = rng.normal(size=(6, 37))
     mask = rng.random((6, 37)) < 0.6
     mask[0] = False  # a row with nothing masked in
+    x[1, :10] = 0.5  # ties
+    mask[2] = False
+    mask[2, 5] = True  # a single entry
     med = edges.masked_median(x, mask, empty=-1.0)
-    pct = edges.masked_percentile(x, mask, 75, empty=-1.0)
     for k in range(6):
-        want_med = np.median(x[k][mask[k]]) if mask[k].any() else -1.0
-        want_pct = np.percentile(x[k][mask[k]], 75) if mask[k].any() else -1.0
-        assert med[k] == want_med and pct[k] == want_pct
+        assert med[k] == (np.median(x[k][mask[k]]) if mask[k].any() else -1.0)
+    for q in (0, 10, 25, 50, 75, 99, 100):
+        pct = edges.masked_percentile(x, mask, q, empty=-1.0)
+        for k in range(6):
+            assert pct[k] == (np.percentile(x[k][mask[k]], q) if mask[k].any() else -1.0)
 
 
 def test_fit_ellipses_batch_matches_single_fits():
