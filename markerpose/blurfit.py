@@ -85,13 +85,16 @@ def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
     copy of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` =
     (the form's, L's, sigma's) divide the form's derivatives and multiply L's and
     sigma's (a reparametrisation)."""
-    u = np.array([np.cos(theta), np.sin(theta)])
-    L = max(float(L), 0.05)
-    # Only points within the blurred ellipse's bounding box can be non-zero.
-    ext = np.sqrt(np.diag(np.linalg.inv(Q))) + np.abs(u) * 0.5 * L + 6.0 * sigma
-    _disk_kernel(x, y, float(c[0]), float(c[1]), float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1]), float(u[0]), float(u[1]), L,
-                 float(sigma), float(ext[0]), float(ext[1]), float(sign), bool(jac), val, J, int(cols[0]), int(cols[1]), int(cols[2]),
-                 float(scales[0]), float(scales[1]), float(scales[2]))
+    u0, u1 = math.cos(theta), math.sin(theta)
+    L, sigma = max(float(L), 0.05), float(sigma)
+    q00, q01, q11 = float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1])
+    det = q00 * q11 - q01 * q01
+    # Only points within the blurred ellipse's bounding box (its half-widths: the inverse
+    # form's diagonal, square-rooted) can be non-zero.
+    ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma
+    ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma
+    _disk_kernel(x, y, float(c[0]), float(c[1]), q00, q01, q11, u0, u1, L, sigma, ext0, ext1, float(sign), bool(jac), val, J,
+                 int(cols[0]), int(cols[1]), int(cols[2]), float(scales[0]), float(scales[1]), float(scales[2]))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -187,11 +190,13 @@ class _Problem:
         self.noise = max(float(noise), 0.5)
         self.scale = float(np.mean([np.sqrt(1 / np.sqrt(np.linalg.det(Q))) for _, Q in self.cqs]))  # ~ sqrt(radius)
         self.k = len(self.cqs)
+        self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
 
     def pixels(self, reach, stride=1, motion=None):
         """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
         ``motion`` = (theta, L), only those a blurred ring can reach: within ``reach`` of
         an outer ellipse moved by up to L / 2 along the motion."""
+        self._kept = None  # the model kept for the old pixels
         h, w = self.gray.shape
         boxes, forms = [], []
         for c, Q in self.cqs:
@@ -249,23 +254,37 @@ class _Problem:
             rings.append((q[0:2], np.array([[q[2], q[3]], [q[3], q[4]]]) / self.scale**2, q[5:7]))
         return rings, p[-3], np.exp(p[-2]), np.exp(p[-1])
 
-    def evaluate(self, p, jac=False):
-        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None)."""
+    def model(self, p, jac=False):
+        """The rings' summed blurred indicator at the pixels (N,) and, with ``jac``, its
+        derivatives (N, 7 k + 3). The last one computed with derivatives is kept: the
+        optimiser's accepted trial is its next iterate, where the derivatives are needed
+        under new robust weights (which only the levels' linear fit depends on)."""
+        kept = self._kept
+        if kept is not None and np.array_equal(kept[0], p):
+            return kept[1], kept[2]
         if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
             raise ValueError("blur length or sigma out of range")
         rings, theta, L, sigma = self.unpack(p)
         N, k = len(self.v), self.k
         R = np.zeros(N)
-        J = np.zeros((N, 7 * k + 3)) if jac else None
+        J = np.zeros((N, 7 * k + 3) if jac else (1, 7 * k + 3))
         # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
         # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
-        Jw = J if jac else np.zeros((1, 7 * k + 3))
         for j, (c, Q, d) in enumerate(rings):
-            if np.linalg.eigvalsh(Q)[0] <= 0:
+            if not (Q[0, 0] > 0 and Q[0, 0] * Q[1, 1] - Q[0, 1] * Q[1, 0] > 0):
                 raise ValueError("ellipse form not positive definite")
-            _add_disk(self.x, self.y, c, Q, theta, L, sigma, 1.0, jac, R, Jw, (7 * j, -1, 7 * k), (self.scale**2, L, sigma))
-            _add_disk(self.x, self.y, c + d, Q / self.rho**2, theta, L, sigma, -1.0, jac, R, Jw, (7 * j, 7 * j + 5, 7 * k),
+            _add_disk(self.x, self.y, c, Q, theta, L, sigma, 1.0, jac, R, J, (7 * j, -1, 7 * k), (self.scale**2, L, sigma))
+            _add_disk(self.x, self.y, c + d, Q / self.rho**2, theta, L, sigma, -1.0, jac, R, J, (7 * j, 7 * j + 5, 7 * k),
                       (self.rho**2 * self.scale**2, L, sigma))
+        if not jac:
+            return R, None
+        self._kept = (p.copy(), R, J)
+        return R, J
+
+    def evaluate(self, p, jac=False, keep=False):
+        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None);
+        ``keep``: compute the model's derivatives too and keep them (see :meth:`model`)."""
+        R, J = self.model(p, jac or keep)
         xs, ys = self.xs, self.ys
         M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
         Mw = M * self.w[:, None]  # the levels are a weighted fit (robust weights)
@@ -279,8 +298,8 @@ class _Problem:
             Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
         return res, beta, Jr
 
-    def residual(self, p):
-        return self.evaluate(p)[0]
+    def residual(self, p, keep=False):
+        return self.evaluate(p, keep=keep)[0]
 
 
 def _robust_lm(prob, p, conf):
@@ -309,7 +328,7 @@ def _robust_lm(prob, p, conf):
             step = np.linalg.solve(H + lam * np.diag(D), -g)
             trial = p + step
             try:
-                rt = prob.residual(trial)
+                rt = prob.residual(trial, keep=True)  # accepted, it is the next iterate
                 Et = float(prob.w @ (rt * rt))
             except ValueError:  # the step left the valid ellipses
                 Et = np.inf
