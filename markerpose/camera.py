@@ -184,9 +184,9 @@ class Camera:
         """Remove lens distortion from pixel coordinates.
 
         Newton's method on the distortion model, per point, until the re-distorted
-        position is within 1e-7 px (a few iterations; OpenCV's default five fixed-point
-        iterations leave ~0.01 px in the corners of a 12 mm lens). Where Newton does not
-        converge, OpenCV's fixed-point iteration (``cv2.undistortPointsIter`` on OpenCV 4,
+        position is within 1e-7 px, and one step more (OpenCV's default five fixed-point
+        iterations are far from that in the corners of a wide lens). Where Newton does not
+        converge within 30 steps or leaves the lens's branch, OpenCV's fixed-point iteration (``cv2.undistortPointsIter`` on OpenCV 4,
         ``cv2.undistortPoints`` with criteria on OpenCV 5): 20 iterations, and 200 more
         for the points still off by more than 1e-7 px.
 

@@ -91,10 +91,11 @@ def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 # --- per-ray kernels (compiled) ------------------------------------------------------------------
-# A tracked frame samples some 45 000 profile points; in numpy each step of the profile
-# analysis is a pass over all of them with its own temporaries, and the passes, not the
-# arithmetic, are the cost. Numba runs each ray's analysis in one loop. The arithmetic is
-# numpy's, operation for operation, so the edge points are the same.
+# A tracked frame samples tens of thousands of profile points; in numpy each step of the
+# profile analysis is a pass over all of them with its own temporaries, and the passes,
+# not the arithmetic, are the cost. Numba runs each ray's analysis in one loop. The
+# arithmetic is numpy's, operation for operation, so the edge points are the same to
+# rounding.
 
 
 @numba.njit(cache=True, nogil=True)

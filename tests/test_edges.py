@@ -124,7 +124,8 @@ def test_ray_kernels_match_a_direct_reading(seed):
             for x, got in zip(xs, ints):
                 x = float(np.clip(x[k, i], grid[0], grid[-1]))
                 pts = np.r_[grid[grid < x], x]
-                assert got[k, i] == pytest.approx(np.trapezoid(np.interp(pts, grid, f), pts), abs=1e-9)
+                fp = np.interp(pts, grid, f)
+                assert got[k, i] == pytest.approx(np.sum(0.5 * (fp[1:] + fp[:-1]) * np.diff(pts)), abs=1e-9)
 
 
 def test_sampled_rays_are_bilinear_samples_and_their_plateaus():
@@ -147,3 +148,48 @@ def test_sampled_rays_are_bilinear_samples_and_their_plateaus():
     for k in range(2):
         np.testing.assert_allclose(v_in[k], want[k, :, : m[k]].mean(1), rtol=1e-12)
         np.testing.assert_allclose(v_out[k], want[k, :, S[k] - m[k] : S[k]].mean(1), rtol=1e-12)
+
+
+def test_plane_levels_match_a_direct_reading():
+    """The robust plateau planes: the median, then twice the rays within max(3 MAD,
+    floor) of the current fit, least squares with the ridge on the gradient; a row with
+    fewer than six such rays keeps what it had."""
+    rng = np.random.default_rng(11)
+    K, N = 4, 40
+    xy = rng.uniform(-30, 30, (K, N, 2)) + [100, 50]
+    center = np.tile([100.0, 50.0], (K, 1))
+    values = 80 + 0.8 * (xy[..., 0] - 100) - 0.3 * (xy[..., 1] - 50) + rng.normal(0, 2, (K, N))
+    values[:, :5] += 60  # an occluder's rays
+    use = rng.random((K, N)) < 0.9
+    use[3] = False
+    use[3, :5] = True  # too few rays for a plane
+    scale, floor = np.full(K, 20.0), np.full(K, 3.0)
+    got = edges.plane_levels(xy, values, use, center, scale, floor)
+    for k in range(K):
+        A = np.column_stack([np.ones(N), xy[k] - center[k]])
+        coef = np.array([np.median(values[k][use[k]]), 0.0, 0.0])
+        for _ in range(2):
+            res = values[k] - A @ coef
+            sel = use[k] & (np.abs(res) <= max(3 * 1.4826 * np.median(np.abs(res[use[k]])), floor[k]))
+            if sel.sum() < 6:
+                break
+            ridge = sel.sum() * (0.15 * scale[k]) ** 2 * np.diag([0.0, 1.0, 1.0])
+            coef = np.linalg.solve(A[sel].T @ A[sel] + ridge, A[sel].T @ values[k][sel])
+        np.testing.assert_allclose(got[k], A @ coef, rtol=0, atol=1e-9)
+    assert np.abs(got[0] - (80 + 0.8 * (xy[0, :, 0] - 100) - 0.3 * (xy[0, :, 1] - 50))).max() < 3  # the occluder ignored
+
+
+def test_subset_medians_match_numpy():
+    """The least-median screen's score of each subset's model: numpy's median of the
+    absolute residuals over the ring's points; inf for a degenerate subset."""
+    rng = np.random.default_rng(12)
+    K, N, S = 3, 31, 7
+    off, X, coef = rng.normal(size=(K, N)), rng.normal(size=(K, N, 5)), rng.normal(size=(K, S, 5))
+    cnt = np.array([31, 20, 9])
+    good = rng.random((K, S)) < 0.8
+    med = np.empty((K, S))
+    edges._subset_medians(off, X, coef, cnt, good, med)
+    for k in range(K):
+        for j in range(S):
+            want = np.median(np.abs(off[k, : cnt[k]] - X[k, : cnt[k]] @ coef[k, j])) if good[k, j] else np.inf
+            assert med[k, j] == pytest.approx(want, rel=1e-12)
