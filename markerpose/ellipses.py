@@ -221,15 +221,18 @@ class EllipseNet:
             None for the shipped default (:func:`markerpose.nets.default_weights`).
         conf: overrides of :data:`default_conf`.
         device: torch device (``.pt`` weights only).
-        threads: ONNX Runtime's threads (None: its default, every core).
+        threads: the runtime's threads (None: its default, every core).
+        backend: what runs ``.onnx`` weights (:data:`markerpose.nets.BACKENDS`).
     """
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", threads: int | None = None):
+    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", threads: int | None = None,
+                 backend: str = "onnxruntime"):
         self.conf = {**default_conf, **(conf or {})}
         for key, allowed in (("patch", PATCH_MODES), ("fit", FITS)):
             if self.conf[key] not in allowed:
                 raise ValueError(f"unknown {key} {self.conf[key]!r}; choose from {allowed}")
-        self.runner, self.meta, self.path = load_network(weights, "ellipses", lambda meta: build_network(), threads, device)
+        self.runner, self.meta, self.path = load_network(weights, "ellipses", lambda meta: build_network(), threads, device,
+                                                         backend=backend)
 
     def probabilities(self, patches: np.ndarray) -> np.ndarray:
         """(N, 120, 120) uint8 patches → (N, 120, 120) float32 mask probabilities."""

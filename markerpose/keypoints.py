@@ -163,15 +163,17 @@ class KeypointNet:
         stereo: use the thresholds tuned for views of a stereo pair (a looser
             false-positive budget, as the pair's epipolar and shape checks reject false
             triples) when the checkpoint has them; else those for single images.
-        threads: ONNX Runtime's threads (None: its default, every core).
+        threads: the runtime's threads (None: its default, every core).
+        backend: what runs ``.onnx`` weights (:data:`markerpose.nets.BACKENDS`).
     """
 
     def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", marker: Marker | None = None,
-                 stereo: bool = False, threads: int | None = None):
+                 stereo: bool = False, threads: int | None = None, backend: str = "onnxruntime"):
         def build(meta):
             return build_network(float(meta["width"]), meta.get("stem_width"))
 
-        self.runner, meta, self.path = load_network(weights, "keypoints", build, threads, device, required=("state_dict", "width"))
+        self.runner, meta, self.path = load_network(weights, "keypoints", build, threads, device, required=("state_dict", "width"),
+                                                    backend=backend)
         if "width" not in meta:
             raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
         # Decoding thresholds: the defaults, those tuned for this ID mode and operating

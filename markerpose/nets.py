@@ -143,6 +143,51 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
     return Runner(run, "onnxruntime"), meta
 
 
+BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run
+
+
+def _openvino_runner(path: Path, kind: str, threads: int | None, bf16: bool) -> tuple[Runner, dict]:
+    """The ``.onnx`` file on OpenVINO's CPU plugin, compiled once for any batch and input
+    size; ``bf16``: bfloat16 inference (fast on CPUs with AMX or AVX-512 BF16; the
+    outputs differ from float32's in the third digit)."""
+    try:
+        import openvino as ov
+    except ImportError as exc:
+        raise ValueError(f"{path}: the openvino backend needs OpenVINO (pip install -e \".[openvino]\")") from exc
+    core = ov.Core()
+    try:
+        model = core.read_model(str(path))
+    except Exception as exc:  # OpenVINO raises its own exception types for unreadable models
+        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
+        raise ValueError(f"{path} is not a readable ONNX model ({first})") from exc
+    try:
+        raw = model.get_rt_info(["framework", META_KEY]).astype(str)
+    except RuntimeError:  # no such entry: not a markerpose file (refused below)
+        raw = ""
+    try:
+        meta = json.loads(raw) if raw else {}
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: its {META_KEY!r} metadata is not JSON") from exc
+    if meta.get("format") != {"network": kind, "version": FORMAT}:
+        raise ValueError(f"{path} is not a markerpose {kind} model of format {FORMAT}: its format is {meta.get('format')}")
+    config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "bf16" if bf16 else "f32"}
+    if threads:
+        config["INFERENCE_NUM_THREADS"] = int(threads)
+    request = core.compile_model(model, "CPU", config).create_infer_request()
+    outputs = len(model.outputs)
+
+    def run(x):
+        request.infer({0: x})
+        return tuple(request.get_output_tensor(i).data.copy() for i in range(outputs))
+
+    return Runner(run, "openvino"), meta
+
+
+def have_backend(backend: str) -> bool:
+    """Whether ``.onnx`` weights can run on ``backend`` here (its package is installed)."""
+    return importlib.util.find_spec("openvino" if backend.startswith("openvino") else backend) is not None
+
+
 def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device: str, required: tuple) -> tuple[Runner, dict]:
     import torch
 
@@ -161,7 +206,7 @@ def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device
 
 
 def load_network(path: str | Path | None, kind: str, build: Callable[[dict], object], threads: int | None = None,
-                 device: str = "cpu", required: tuple = ("state_dict",)) -> tuple[Runner, dict, Path]:
+                 device: str = "cpu", required: tuple = ("state_dict",), backend: str = "onnxruntime") -> tuple[Runner, dict, Path]:
     """A network and what its file says besides the weights (format, width, tuned
     thresholds, metrics), from an ``.onnx`` file (ONNX Runtime) or a ``.pt`` one (PyTorch).
 
@@ -169,13 +214,19 @@ def load_network(path: str | Path | None, kind: str, build: Callable[[dict], obj
         path: the file (None: :func:`default_weights`).
         kind: "keypoints" or "ellipses".
         build: meta → the torch module to load ``.pt`` weights into.
-        threads: ONNX Runtime's intra-op threads (None: its default, every core).
+        threads: the runtime's threads (None: its default, every core).
+        backend: what runs ``.onnx`` weights (:data:`BACKENDS`): ONNX Runtime, or OpenVINO
+            at float32 or bfloat16.
     Returns:
         (runner, meta, path).
     """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose from {BACKENDS}")
     path = Path(path) if path is not None else default_weights(kind)
     if not path.is_file():
         raise ValueError(f"{kind} weights not found: {path} (train them with `markerpose train {kind}`)")
+    if path.suffix == ".onnx" and backend != "onnxruntime":
+        return (*_openvino_runner(path, kind, threads, backend == "openvino-bf16"), path)
     if path.suffix == ".onnx":
         return (*_onnx_runner(path, kind, threads), path)
     return (*_torch_runner(path, kind, build, device, required), path)
@@ -205,5 +256,5 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
     return path
 
 
-__all__ = ["FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_onnxruntime", "load_checkpoint",
-           "load_network", "load_weights"]
+__all__ = ["BACKENDS", "FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_backend", "have_onnxruntime",
+           "load_checkpoint", "load_network", "load_weights"]

@@ -41,6 +41,9 @@ class MarkerPose:
         detector: "neural" or "classical": shorthand for the presets "default" and
             "classical" (with another preset: that preset with this detector).
         threads: (in ``overrides``) the networks' inference threads (None: every core).
+        backend: (in ``overrides``) what runs the networks: "onnxruntime" (the default),
+            "openvino" or "openvino-bf16" (OpenVINO at float32 or bfloat16; the ``openvino``
+            extra).
         **overrides: one dict of settings per stage (``propose``, ``match``, ``refine``,
             ``verify``, ``solve``; see each stage's ``default_conf``), applied over the preset.
     """
@@ -55,8 +58,8 @@ class MarkerPose:
         c = self.conf
         neural = c["detector"] == "neural"
         self.ids = c["match"]["method"] if neural else "classical"
-        self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"]) if neural else None
-        self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"])
+        self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"], c["backend"]) if neural else None
+        self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
         self._history: list = []  # the last poses track() found, oldest first
         self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
         self._fits_left: int | None = None  # work budget of the cold detection under way

@@ -4,21 +4,22 @@ from __future__ import annotations
 
 import importlib.util
 
-from ..nets import default_weights, have_onnxruntime
+from ..nets import default_weights, have_backend, have_onnxruntime
 from ..presets import ORDER, PRESETS, is_neural
 
 DEFAULT = "default"
 
 
 def available(names=None) -> list[str]:
-    """Preset names, in report order, whose networks are present (all by default, or those
-    in ``names``); ``ValueError`` for an unknown name."""
+    """Preset names, in report order, whose networks are present and can run here (all by
+    default, or those in ``names``); ``ValueError`` for an unknown name."""
     unknown = [n for n in (names or ()) if n not in PRESETS]
     if unknown:
         raise ValueError(f"unknown preset(s) {unknown}; known: {list(ORDER)}")
     runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
     nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
-    return [n for n in ORDER if (names is None or n in names) and (nets or not is_neural(n))]
+    ok = [n for n in ORDER if (names is None or n in names) and (nets or not is_neural(n))]
+    return [n for n in ok if have_backend(PRESETS[n].get("backend", "onnxruntime")) or not is_neural(n)]
 
 
 __all__ = ["DEFAULT", "available"]

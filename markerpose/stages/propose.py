@@ -55,12 +55,12 @@ class NeuralProposer:
             one triple per view (:meth:`decoded`), "stereo" uses :meth:`candidates`.
     """
 
-    def __init__(self, conf: dict, marker: Marker, ids: str, threads: int | None = None):
+    def __init__(self, conf: dict, marker: Marker, ids: str, threads: int | None = None, backend: str = "onnxruntime"):
         self.conf = check_conf(conf)
         decoding = {"ids": "layout" if ids == "stereo" else ids}
         if ids != "stereo":
             decoding["second_look"] = float(conf["second_look"])
-        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True, threads=threads)
+        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
     def forget(self) -> None:
         """New frames: the inputs kept from the last ones' looks are dropped."""

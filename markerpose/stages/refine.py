@@ -54,7 +54,7 @@ class Refiner:
             only uses :meth:`triple`).
     """
 
-    def __init__(self, conf: dict, marker: Marker, neural: bool = True, threads: int | None = None):
+    def __init__(self, conf: dict, marker: Marker, neural: bool = True, threads: int | None = None, backend: str = "onnxruntime"):
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
@@ -70,7 +70,7 @@ class Refiner:
         if neural and conf["method"] == "ellipsegnet":
             from ..ellipses import EllipseNet
 
-            self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]}, threads=threads)
+            self.net = EllipseNet(conf["weights"], {"patch": conf["patch"], "fit": conf["fit"]}, threads=threads, backend=backend)
         # EllipSegNet's ellipses refitted on the image's edges (the moments fit has no ellipse).
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
         # Whether refined detections carry the rings' ellipses (what the plate check needs).
