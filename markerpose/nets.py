@@ -1,9 +1,10 @@
 """What both networks share at inference: loading a weights file safely and running it.
 
 A network ships twice in ``markerpose/weights/``: ``NAME.onnx`` for inference with ONNX
-Runtime (no PyTorch needed; the decoding thresholds tuned at export ride in the model's
-metadata) and ``NAME.pt`` for training (``--init``, ``--retune``). :func:`load_network`
-takes either and returns a :class:`Runner` that maps numpy inputs to numpy outputs.
+Runtime, or OpenVINO where chosen (no PyTorch needed; the decoding thresholds tuned at
+export ride in the model's metadata), and ``NAME.pt`` for training (``--init``,
+``--retune``). :func:`load_network` takes either and returns a :class:`Runner` that maps
+numpy inputs to numpy outputs.
 """
 
 from __future__ import annotations
@@ -102,7 +103,7 @@ def default_weights(kind: str) -> Path:
 
 class Runner:
     """A network ready for inference: ``runner(x)`` with x (B, 1, H, W) float32 → tuple of
-    float32 outputs. ``backend`` is "onnxruntime" or "torch"."""
+    float32 outputs. ``backend`` is "onnxruntime", "openvino", "openvino-bf16" or "torch"."""
 
     def __init__(self, fn: Callable, backend: str):
         self._fn, self.backend = fn, backend
@@ -148,8 +149,8 @@ BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights
 
 def _openvino_runner(path: Path, kind: str, threads: int | None, bf16: bool) -> tuple[Runner, dict]:
     """The ``.onnx`` file on OpenVINO's CPU plugin, compiled once for any batch and input
-    size; ``bf16``: bfloat16 inference (fast on CPUs with AMX or AVX-512 BF16; the
-    outputs differ from float32's in the third digit)."""
+    size; ``bf16``: bfloat16 inference (fast on CPUs with AMX; the outputs are not
+    float32's)."""
     try:
         import openvino as ov
     except ImportError as exc:
@@ -180,12 +181,15 @@ def _openvino_runner(path: Path, kind: str, threads: int | None, bf16: bool) -> 
         request.infer({0: x})
         return tuple(request.get_output_tensor(i).data.copy() for i in range(outputs))
 
-    return Runner(run, "openvino"), meta
+    return Runner(run, "openvino-bf16" if bf16 else "openvino"), meta
 
 
 def have_backend(backend: str) -> bool:
     """Whether ``.onnx`` weights can run on ``backend`` here (its package is installed)."""
-    return importlib.util.find_spec("openvino" if backend.startswith("openvino") else backend) is not None
+    try:
+        return importlib.util.find_spec("openvino" if backend.startswith("openvino") else backend) is not None
+    except (ImportError, ValueError):  # a broken or blocked installation
+        return False
 
 
 def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device: str, required: tuple) -> tuple[Runner, dict]:
@@ -208,7 +212,8 @@ def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device
 def load_network(path: str | Path | None, kind: str, build: Callable[[dict], object], threads: int | None = None,
                  device: str = "cpu", required: tuple = ("state_dict",), backend: str = "onnxruntime") -> tuple[Runner, dict, Path]:
     """A network and what its file says besides the weights (format, width, tuned
-    thresholds, metrics), from an ``.onnx`` file (ONNX Runtime) or a ``.pt`` one (PyTorch).
+    thresholds, metrics), from an ``.onnx`` file (ONNX Runtime or OpenVINO) or a ``.pt``
+    one (PyTorch).
 
     Args:
         path: the file (None: :func:`default_weights`).
@@ -225,6 +230,8 @@ def load_network(path: str | Path | None, kind: str, build: Callable[[dict], obj
     path = Path(path) if path is not None else default_weights(kind)
     if not path.is_file():
         raise ValueError(f"{kind} weights not found: {path} (train them with `markerpose train {kind}`)")
+    if backend != "onnxruntime" and path.suffix != ".onnx":
+        raise ValueError(f"{path}: the {backend} backend runs .onnx weights only")
     if path.suffix == ".onnx" and backend != "onnxruntime":
         return (*_openvino_runner(path, kind, threads, backend == "openvino-bf16"), path)
     if path.suffix == ".onnx":

@@ -48,7 +48,7 @@ PRESETS: dict[str, dict] = {
     "classical-subpixel-bias": {"detector": "classical", "solve": {"pose": "paper"}},
     "classical": {"detector": "classical"},
     # The default with its networks in bfloat16 on OpenVINO (the openvino extra): fast on
-    # CPUs with AMX or AVX-512 BF16.
+    # CPUs with AMX.
     "default-bf16": {"backend": "openvino-bf16"},
 }
 
@@ -102,7 +102,8 @@ default_conf = {
 
 def resolve(preset: str = "default", detector: str | None = None, **overrides) -> dict:
     """The full configuration: the stages' defaults, the preset's diff, then ``overrides``
-    (``detector`` and one dict per stage); ``ValueError`` for unknown names."""
+    (``detector``, ``threads``, ``backend`` and one dict per stage); ``ValueError`` for
+    unknown names."""
     conf = copy.deepcopy(default_conf)
     if detector is not None and preset == "default":
         preset = "classical" if detector == "classical" else "default"  # the shorthand

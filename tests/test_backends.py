@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose import nets
 from markerpose.experiments import configs
 from markerpose.synth import Imaging, look_at_pose, render_stereo
 
@@ -16,8 +17,8 @@ def test_openvino_gives_onnxruntimes_poses():
     pytest.importorskip("openvino")
     rig = mp.StereoRig.default()
     ort, f32, bf16 = mp.MarkerPose(rig), mp.MarkerPose(rig, backend="openvino"), mp.MarkerPose(rig, preset="default-bf16")
-    assert (ort.proposer.net.runner.backend, f32.refiner.net.runner.backend, bf16.proposer.net.runner.backend) == (
-        "onnxruntime", "openvino", "openvino")
+    assert (ort.proposer.net.runner.backend, f32.refiner.net.runner.backend, bf16.proposer.net.runner.backend,
+            bf16.refiner.net.runner.backend) == ("onnxruntime", "openvino", "openvino-bf16", "openvino-bf16")
     for seed, pose in enumerate(([10, 0, 600], [-40, 30, 450], [0, -20, 750])):
         f = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
         a, b, c = ort.estimate(*f.images), f32.estimate(*f.images), bf16.estimate(*f.images)
@@ -30,9 +31,14 @@ def test_a_missing_runtime_is_a_clear_error_and_its_preset_is_left_out(monkeypat
     monkeypatch.setitem(sys.modules, "openvino", None)  # importing it fails, as when it is not installed
     with pytest.raises(ValueError, match=r"pip install -e \".\[openvino\]\""):
         mp.MarkerPose(mp.StereoRig.default(), backend="openvino")
-    monkeypatch.setattr(configs, "have_backend", lambda backend: backend == "onnxruntime")
+    assert not nets.have_backend("openvino-bf16") and nets.have_backend("onnxruntime")
     names = configs.available()
     assert "default" in names and "default-bf16" not in names
+
+
+def test_openvino_runs_onnx_files_only():
+    with pytest.raises(ValueError, match="runs .onnx weights only"):
+        mp.MarkerPose(mp.StereoRig.default(), backend="openvino", propose={"weights": nets.WEIGHTS_DIR / "keypoints.pt"})
 
 
 def test_an_unknown_backend_is_refused():

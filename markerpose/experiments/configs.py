@@ -19,7 +19,11 @@ def available(names=None) -> list[str]:
     runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
     nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
     ok = [n for n in ORDER if (names is None or n in names) and (nets or not is_neural(n))]
-    return [n for n in ok if have_backend(PRESETS[n].get("backend", "onnxruntime")) or not is_neural(n)]
+    def runs(name):  # OpenVINO runs the .onnx files only
+        backend = PRESETS[name].get("backend", "onnxruntime")
+        return backend == "onnxruntime" or (have_backend(backend) and default_weights("keypoints").suffix == ".onnx")
+
+    return [n for n in ok if runs(n) or not is_neural(n)]
 
 
 __all__ = ["DEFAULT", "available"]
