@@ -215,8 +215,8 @@ def cmd_bench(args):
     if args.sequence:
         from .experiments import sequence
 
-        res = sequence.main({"frames": args.frames, "threads": args.threads, "seed": args.seed, "block": args.block}, args.out,
-                            progress=not args.quiet)
+        conf = {"frames": args.frames, "threads": args.threads, "seed": args.seed, "block": args.block, "preset": args.preset}
+        res = sequence.main(conf, args.out, progress=not args.quiet)
         print(sequence.report(res))
         print(f"Wrote {args.out}/: report.md, results.json, sequence.png")
         return
@@ -636,6 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--sequence", action="store_true", help="instead: a rendered 60 frames/s stereo video (still, by hand, fast, gone, dark), tracked and detected")
     b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
     b.add_argument("--seed", type=int, default=0, help="--sequence: seed of the noise and the background")
+    b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
     b.add_argument("--block", type=int, default=10,
                    help="--sequence: frames each method runs in a row before the next takes them (default 10; 1: every frame in turn)")
     b.add_argument("--out", default="markerpose-sequence", help="--sequence: output folder (default markerpose-sequence)")

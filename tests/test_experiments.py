@@ -254,7 +254,8 @@ def test_sequence_segments_and_summary():
 
 def test_sequence_methods_take_turns_in_blocks(monkeypatch):
     """``block``: each method runs a block of consecutive frames in a row, every frame gets
-    all three methods once, in order; a bad block size is a clear error."""
+    all three methods once, in order; ``preset`` picks track's and estimate's; a bad block
+    size or preset is a clear error."""
     from markerpose import synth
     from markerpose.experiments import sequence as sq
 
@@ -269,7 +270,8 @@ def test_sequence_methods_take_turns_in_blocks(monkeypatch):
         return real(self, left, right)
 
     monkeypatch.setattr(mp.MarkerPose, "estimate", logged)
-    res = sq.main({"frames": 40, "block": 16}, out_dir=None, progress=False)
+    res = sq.main({"frames": 40, "block": 16, "preset": "default-no-second-look"}, out_dir=None, progress=False)
+    assert '`MarkerPose(rig, preset="default-no-second-look").track`' in sq.report(res)
     assert [r["frame"] for r in res["frames"]] == list(range(40))
     assert all(r[m]["found"] for r in res["frames"] for m in sq.METHODS)
     # After the two warm-up calls, `estimate` and `paper` take turns in runs of 16, 16, 8 frames.
@@ -277,3 +279,5 @@ def test_sequence_methods_take_turns_in_blocks(monkeypatch):
     assert runs == [16, 16, 16, 16, 8, 8], runs
     with pytest.raises(ValueError, match="block"):
         sq.main({"frames": 40, "block": 0}, out_dir=None, progress=False)
+    with pytest.raises(ValueError, match="unknown preset"):
+        sq.main({"frames": 40, "preset": "no-such"}, out_dir=None, progress=False)
