@@ -28,8 +28,9 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
+
+from .jit import compiled
 
 _SQ2PI = np.sqrt(2 * np.pi)
 _SQ2 = np.sqrt(2.0)
@@ -97,7 +98,7 @@ def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
                  int(cols[0]), int(cols[1]), int(cols[2]), float(scales[0]), float(scales[1]), float(scales[2]))
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _disk_kernel(x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m,
                  sq, sl, ss):  # pragma: no cover - compiled
     """:func:`_add_disk` per point: the chord [s1, s2] of the ellipse along the motion
@@ -166,7 +167,7 @@ def _disk_kernel(x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign
             J[i, col_m + 2] += sign * j7 * ss
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _normal(t):  # pragma: no cover - compiled
     """(G, Phi, phi) of t: G(t) = t Phi(t) + phi(t), the antiderivative of the normal CDF
     Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0)."""

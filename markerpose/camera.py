@@ -26,8 +26,9 @@ from importlib import resources
 from pathlib import Path
 
 import cv2
-import numba
 import numpy as np
+
+from .jit import compiled
 
 # Sanity limits for rigs: values outside them load but cannot work (overflow, division
 # by ~0, singular matrices far from the code that reads the rig), so they are refused.
@@ -239,7 +240,7 @@ class Camera:
         return grid
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _distort(xn, K, dist, out):  # pragma: no cover - compiled
     """:meth:`Camera.distort` of each row of ``xn`` into ``out``."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
@@ -253,7 +254,7 @@ def _distort(xn, K, dist, out):  # pragma: no cover - compiled
         out[i, 1] = K[1, 1] * yd + K[1, 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _undistort(px, K, dist, xn, ok):  # pragma: no cover - compiled
     """Normalised coordinates ``xn`` whose distorted pixels are ``px``, by Newton's method
     from the distorted point; ``ok`` where the re-distorted point is within 1e-7 px."""

@@ -20,10 +20,10 @@ The method (see :func:`markerpose.classical.refine_ring` for its use):
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from .geometry import sqrtm_spd
+from .jit import compiled
 
 # --- masked statistics (numpy's median / linear percentile over the masked-in entries) ----------
 
@@ -45,7 +45,7 @@ def _masked_stat(x: np.ndarray, mask: np.ndarray, q: float, empty: float) -> np.
     return out.reshape(x.shape[:-1])
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
     """Per row of ``x``, the median (q < 0) or the linear q-th percentile of the masked-in
     entries, as numpy computes them from the sorted values (found by selection); ``empty``
@@ -98,7 +98,7 @@ def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # rounding.
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _sample_rays(img, rows, cx, cy, ux, uy, lam, S, m, v, v_in, v_out):  # pragma: no cover - compiled
     """For the rows k of ``rows``: bilinear samples v[k, i, s] of ``img`` at cen[k] + u[k, i] lam[k, s] (coordinates
     clipped to the image, as :func:`bilinear`); each ray's mean of its first and of its
@@ -131,7 +131,7 @@ def _sample_rays(img, rows, cx, cy, ux, uy, lam, S, m, v, v_in, v_out):  # pragm
             v_out[k, i] = (acc - at_sm) / mk
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no cover - compiled
     """Per ray of the profiles ``v`` normalised as f = (v - v_out) / dd (1 inside, 0
     outside): the 50 % crossing nearest the window centre (lambda, into ``e``), whether
@@ -179,7 +179,7 @@ def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no 
             width[k, i] = max(run, 0) * dl[k] * r[k, i]
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _ray_integrals(v, v_out, dd, lam, dl, S, xs, out):  # pragma: no cover - compiled
     """Per ray, the integral from lam[k, 0] to each x of xs[q] (lambda) of the
     piecewise-linear normalised profile f = (v - v_out) / dd, into out[q]."""
@@ -204,7 +204,7 @@ def _ray_integrals(v, v_out, dd, lam, dl, S, xs, out):  # pragma: no cover - com
                 out[q, k, i] = acc + step * (t * f0 + 0.5 * t * t * (f1 - f0))
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _scatter(P, w, mask, m, s, mu):  # pragma: no cover - compiled
     """Per row k: the mean m[k] and RMS radius s[k] of the masked-in points, and the
     weighted moments mu[k, (a, b)] = sum w x^a y^b (a + b <= 4, in the order of
@@ -261,7 +261,7 @@ def _scatter_index(rows: list, cols: list) -> np.ndarray:
 _S1, _S2, _S3 = _scatter_index(_D1, _D1), _scatter_index(_D1, _D2), _scatter_index(_D2, _D2)
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _select(a, n, kth):  # pragma: no cover - compiled
     """The kth smallest of a[:n], in place (Wirth's selection: afterwards a[:kth] holds
     the smaller ones, a[kth + 1:n] the larger)."""
@@ -285,7 +285,7 @@ def _select(a, n, kth):  # pragma: no cover - compiled
     return a[kth]
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _subset_medians(off, X, coef, cnt, good, med):  # pragma: no cover - compiled
     """med[k, s]: the median over ring k's first cnt[k] points of |off - X coef[k, s]|
     (inf where subset s is degenerate)."""
@@ -374,14 +374,14 @@ def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _median(buf, n):  # pragma: no cover - compiled
     """numpy's median of buf[:n] (n > 0), reordering it."""
     lo = _select(buf, n, (n - 1) // 2)
     return 0.5 * (lo + (buf[n // 2 : n].min() if n % 2 == 0 else lo))
 
 
-@numba.njit(cache=True, nogil=True)
+@compiled
 def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover - compiled
     """:func:`plane_levels` row by row: the robust selection, the ridge-regularised
     normal equations (3 x 3, solved by elimination with partial pivoting; a singular

@@ -237,3 +237,24 @@ print(len(kernels), before, all(k.signatures for k in kernels))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
     n, before, after = out.split()
     assert int(n) >= 9 and before == "False" and after == "True"
+
+
+def test_a_read_only_install_without_a_home_still_runs():
+    """Where numba finds nowhere to write its cache (a read-only install, no writable
+    home: here forced by a locator that never applies), the loops compile per process
+    instead of failing at import."""
+    import os
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+import markerpose as mp
+from markerpose import edges
+mp.MarkerPose(mp.StereoRig.default())
+print(edges.masked_median(np.array([[3.0, 1.0, 2.0]]), np.ones((1, 3), bool))[0])
+"""
+    env = {**os.environ, "NUMBA_CACHE_LOCATOR_CLASSES": "numba.core.caching.IPythonCacheLocator"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["2.0"]
