@@ -519,12 +519,12 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
     ok = ray.copy()
     ux, uy = np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1])
+    cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
     for g in np.unique(view):
         sel = view == g
         h, w = grays[g].shape
         ok[sel] &= (lo_xy[sel] >= 0).all(1) & (hi_xy[sel, 0] <= w - 1) & (hi_xy[sel, 1] <= h - 1)
-        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(sel)[0], cen[:, 0].copy(), cen[:, 1].copy(), ux, uy, lam, S, m,
-                     v, v_in, v_out)
+        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(sel)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
     edge = cen[:, :, None] + u  # (K, 2, N) current edge points
 
     # Rays that a blurred neighbour may reach (decided with the first-pass blur width).

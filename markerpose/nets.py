@@ -112,6 +112,24 @@ class Runner:
         return self._fn(np.ascontiguousarray(x, np.float32))
 
 
+def _unreadable(path: Path, exc: Exception) -> ValueError:
+    """The error for a file a runtime could not read (runtimes raise their own types)."""
+    first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
+    return ValueError(f"{path} is not a readable ONNX model ({first})")
+
+
+def _checked_meta(path: Path, kind: str, raw: str | None) -> dict:
+    """An ``.onnx`` file's markerpose metadata (JSON text, None or "" when absent), refused
+    unless it is a ``kind`` model of this format."""
+    try:
+        meta = json.loads(raw) if raw else {}
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: its {META_KEY!r} metadata is not JSON") from exc
+    if meta.get("format") != {"network": kind, "version": FORMAT}:
+        raise ValueError(f"{path} is not a markerpose {kind} model of format {FORMAT}: its format is {meta.get('format')}")
+    return meta
+
+
 def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, dict]:
     try:
         import onnxruntime as ort
@@ -127,15 +145,8 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
     try:
         session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     except Exception as exc:  # ORT raises its own exception types for unreadable models
-        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"{path} is not a readable ONNX model ({first})") from exc
-    raw = session.get_modelmeta().custom_metadata_map.get(META_KEY)
-    try:
-        meta = json.loads(raw) if raw else {}
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: its {META_KEY!r} metadata is not JSON") from exc
-    if meta.get("format") != {"network": kind, "version": FORMAT}:
-        raise ValueError(f"{path} is not a markerpose {kind} model of format {FORMAT}: its format is {meta.get('format')}")
+        raise _unreadable(path, exc) from exc
+    meta = _checked_meta(path, kind, session.get_modelmeta().custom_metadata_map.get(META_KEY))
     name = session.get_inputs()[0].name
 
     def run(x):
@@ -159,18 +170,12 @@ def _openvino_runner(path: Path, kind: str, threads: int | None, bf16: bool) -> 
     try:
         model = core.read_model(str(path))
     except Exception as exc:  # OpenVINO raises its own exception types for unreadable models
-        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else type(exc).__name__
-        raise ValueError(f"{path} is not a readable ONNX model ({first})") from exc
+        raise _unreadable(path, exc) from exc
     try:
         raw = model.get_rt_info(["framework", META_KEY]).astype(str)
     except RuntimeError:  # no such entry: not a markerpose file (refused below)
         raw = ""
-    try:
-        meta = json.loads(raw) if raw else {}
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: its {META_KEY!r} metadata is not JSON") from exc
-    if meta.get("format") != {"network": kind, "version": FORMAT}:
-        raise ValueError(f"{path} is not a markerpose {kind} model of format {FORMAT}: its format is {meta.get('format')}")
+    meta = _checked_meta(path, kind, raw)
     config = {"PERFORMANCE_HINT": "LATENCY", "INFERENCE_PRECISION_HINT": "bf16" if bf16 else "f32"}
     if threads:
         config["INFERENCE_NUM_THREADS"] = int(threads)
