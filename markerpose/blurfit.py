@@ -42,7 +42,7 @@ default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
-    "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
+    "grid_stride": 6,  # ... on every grid_stride-th pixel in x and y
     "stride": 2,  # the fit uses every stride-th pixel in x and y ...
     "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
     #                        marker's rings give about half as many at the nearest working
@@ -173,8 +173,12 @@ def _normal(t):  # pragma: no cover - compiled
     Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0)."""
     if abs(t) >= 5.0:
         return max(t, 0.0), 1.0 if t > 0 else 0.0, 0.0
-    P = 0.5 * math.erfc(-t / _SQ2)
-    p = np.exp(-0.5 * t * t) / _SQ2PI
+    e = math.exp(-0.5 * t * t)
+    p = e / _SQ2PI
+    # The upper tail by Abramowitz & Stegun 7.1.26 (|error| < 1.5e-7), sharing exp with p.
+    k = 1.0 / (1.0 + 0.3275911 * abs(t) / _SQ2)
+    Q = 0.5 * k * (0.254829592 + k * (-0.284496736 + k * (1.421413741 + k * (-1.453152027 + k * 1.061405429)))) * e
+    P = 1.0 - Q if t > 0 else Q
     return t * P + p, P, p
 
 
@@ -283,8 +287,15 @@ class _Problem:
         return R, J
 
     def evaluate(self, p, jac=False, keep=False):
-        """(residuals in noise sigmas, level coefficients, Jacobian of the residuals or None);
-        ``keep``: compute the model's derivatives too and keep them (see :meth:`model`)."""
+        """(residuals in noise sigmas, level coefficients, normal equations or None);
+        ``keep``: compute the model's derivatives too and keep them (see :meth:`model`).
+
+        With ``jac``, the normal equations (H, g) of the robustly weighted cost at ``p``:
+        H = Jr^T W Jr and g = Jr^T W r, Jr the residuals' Jacobian by variable projection
+        (Kaufman: Jr = (I - M (M^T W M)^-1 M^T W) Jm, Jm the model's derivatives times the
+        rings' contrast). They are formed from Jm without Jr: the projection's cross terms
+        collapse to B^T (M^T W M)^-1 B with B = M^T W Jm, and M^T W r = 0 at the levels'
+        weighted fit, so g = Jm^T W r."""
         R, J = self.model(p, jac or keep)
         xs, ys = self.xs, self.ys
         M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
@@ -292,12 +303,14 @@ class _Problem:
         MtM = Mw.T @ M + 1e-9 * np.eye(6)
         beta = np.linalg.solve(MtM, Mw.T @ self.v)
         res = (M @ beta - self.v) / self.noise
-        Jr = None
-        if jac:
-            wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
-            Jm = J * wgt[:, None]
-            Jr = Jm - M @ np.linalg.solve(MtM, Mw.T @ Jm)  # variable projection (Kaufman)
-        return res, beta, Jr
+        if not jac:
+            return res, beta, None
+        wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
+        ww = self.w * wgt
+        B = Mw.T @ (J * wgt[:, None])
+        H = J.T @ (J * (ww * wgt)[:, None]) - B.T @ np.linalg.solve(MtM, B)
+        g = J.T @ (ww * res)
+        return res, beta, (H, g)
 
     def residual(self, p, keep=False):
         return self.evaluate(p, keep=keep)[0]
@@ -317,11 +330,8 @@ def _robust_lm(prob, p, conf):
     lam, nfev = 1e-3, 1
     for _ in range(conf["max_iter"]):
         prob.w = 1 / (1 + r * r / f2)
-        r, _, J = prob.evaluate(p, jac=True)
+        r, _, (H, g) = prob.evaluate(p, jac=True)
         E = float(prob.w @ (r * r))
-        Jw = J * prob.w[:, None]
-        H = J.T @ Jw
-        g = Jw.T @ r
         D = np.diag(H).copy()
         D[D <= 0] = 1.0
         nfev += 1
