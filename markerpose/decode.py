@@ -74,9 +74,14 @@ def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
 
 def score_map(det_logits: np.ndarray) -> np.ndarray:
     """(65, Hc, Wc) detector logits → (8 Hc, 8 Wc) probability that a pixel is a centre."""
-    p = _softmax(det_logits.astype(np.float64), 0)[:-1]  # drop the "no centre" channel
-    hc, wc = p.shape[1:]
-    return p.reshape(CELL, CELL, hc, wc).transpose(2, 0, 3, 1).reshape(hc * CELL, wc * CELL)
+    return score_maps(det_logits[None])[0]
+
+
+def score_maps(det_logits: np.ndarray) -> np.ndarray:
+    """:func:`score_map` of a batch: (B, 65, Hc, Wc) logits → (B, 8 Hc, 8 Wc)."""
+    p = _softmax(np.asarray(det_logits, np.float64), 1)[:, :-1]  # drop the "no centre" channel
+    b, _, hc, wc = p.shape
+    return p.reshape(b, CELL, CELL, hc, wc).transpose(0, 3, 1, 4, 2).reshape(b, hc * CELL, wc * CELL)
 
 
 def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray:
@@ -100,13 +105,27 @@ def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray
     return np.array(kept, np.float64).reshape(-1, 3)
 
 
-def _refine(scores: np.ndarray, x: float, y: float) -> tuple[float, float]:
-    """Score-weighted centroid of the 3x3 neighbourhood: a fraction of a pixel better than the peak."""
-    h, w = scores.shape
-    x0, y0 = int(x), int(y)
-    ys, xs = np.mgrid[max(y0 - 1, 0) : min(y0 + 2, h), max(x0 - 1, 0) : min(x0 + 2, w)]
-    s = scores[ys, xs]
-    return float((s * xs).sum() / s.sum()), float((s * ys).sum() / s.sum())
+def _refine(scores: np.ndarray, cand: np.ndarray) -> np.ndarray:
+    """Peaks (N, 3) moved to their 3x3 neighbourhood's score-weighted centroid (inside the
+    map): a fraction of a pixel better than the peak."""
+    if not len(cand):
+        return cand
+    pad = np.pad(scores, 1)  # zeros outside the map weigh nothing
+    d = np.arange(-1, 2)
+    ys = cand[:, 1].astype(int)[:, None, None] + d[None, :, None]
+    xs = cand[:, 0].astype(int)[:, None, None] + d[None, None, :]
+    s = pad[ys + 1, xs + 1]
+    total = s.sum((1, 2))
+    out = cand.copy()
+    out[:, 0] = (s * xs).sum((1, 2)) / total
+    out[:, 1] = (s * ys).sum((1, 2)) / total
+    return out
+
+
+def peaks(det_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4) -> list[np.ndarray]:
+    """The location part of :func:`candidates` for a batch of images' detector logits
+    (B, 65, Hc, Wc): per image, (N, 3) rows (x, y, score), best first, N <= k."""
+    return [_refine(s, nms(s, nms_radius, threshold, k)) for s in score_maps(det_logits)]
 
 
 def candidates(det_logits: np.ndarray, id_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4):
@@ -121,10 +140,8 @@ def candidates(det_logits: np.ndarray, id_logits: np.ndarray, threshold: float, 
     pid = _softmax(id_logits.astype(np.float64), 0)  # (4, Hc, Wc)
     rows = np.clip((cand[:, 1] // CELL).astype(int), 0, pid.shape[1] - 1)
     cols = np.clip((cand[:, 0] // CELL).astype(int), 0, pid.shape[2] - 1)
-    prob = pid[:3, rows, cols].T  # (N, 3): P(ID = j) at candidate n
-    if len(cand):
-        cand[:, :2] = [_refine(scores, x, y) for x, y, _ in cand]
-    return cand, prob
+    prob = pid[:3, rows, cols].T  # (N, 3): P(ID = j) at candidate n (its peak's cell)
+    return _refine(scores, cand), prob
 
 
 # --- alignment (ours) -----------------------------------------------------------------

@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .decode import CELL, ID_MODES, candidates, decode
+from .decode import CELL, ID_MODES, decode, peaks
 from .decode import default_conf as decode_defaults
 from .evidence import ring_evidence
 from .marker import Marker
@@ -244,10 +244,9 @@ class KeypointNet:
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
             return self._candidates_near(images, threshold, k, zoom, r, near, window)
-        det, ids, scales, _ = self._forward(images, zoom)
+        det, _, scales, _ = self._forward(images, zoom)
         out = []
-        for k_, s in enumerate(scales):
-            cand, _ = candidates(det[k_], ids[k_], threshold, k, r)
+        for cand, s in zip(peaks(det, threshold, k, r), scales):
             cand[:, :2] = to_full(cand[:, :2], s)
             out.append(cand)
         return out
@@ -268,10 +267,9 @@ class KeypointNet:
         shapes = sorted({c.shape for c in crops})
         for shape in shapes:  # one batch per window size (one size unless an image is small)
             idx = [n for n, c in enumerate(crops) if c.shape == shape]
-            det, ids = self.logits(np.stack([crops[n] for n in idx]))
-            for n, d, i in zip(idx, det, ids):
+            det, _ = self.logits(np.stack([crops[n] for n in idx]))
+            for n, cand in zip(idx, peaks(det, threshold, k, r)):
                 j, x0, y0 = where[n]
-                cand, _ = candidates(d, i, threshold, k, r)
                 cand[:, :2] += (x0, y0)
                 found[j].append(cand)
         out = []

@@ -62,6 +62,22 @@ def test_blurred_disk_derivatives_match_finite_differences():
         assert np.linalg.norm(ana - num) < 0.06 * np.linalg.norm(num), name
 
 
+def test_the_normal_cdf_and_its_antiderivative_match_erfc():
+    """The model's normal CDF (a rational tail times the density's exp) against
+    math.erfc, its density exactly, and G = t Phi + phi."""
+    import math
+
+    for t in np.linspace(-7.0, 7.0, 2801):
+        G, P, p = blurfit._normal(t)
+        exact = 0.5 * math.erfc(-t / math.sqrt(2))
+        if abs(t) < 5:
+            assert abs(P - exact) < 1.5e-7, t
+            assert p == pytest.approx(math.exp(-0.5 * t * t) / math.sqrt(2 * math.pi), rel=1e-14)
+            assert G == pytest.approx(t * P + p, abs=1e-15)
+        else:  # the limits
+            assert (G, P, p) == (max(t, 0.0), float(t > 0), 0.0)
+
+
 @pytest.fixture(scope="module")
 def blurred_view():
     rig = StereoRig.default()
@@ -91,6 +107,60 @@ def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
     assert abs(np.degrees(fit["theta"]) - 70.0) < 1.5
     err = np.linalg.norm(np.array([c for c, _ in fit["cqs"]]) - truth.outer_centers, axis=1)
     assert err.max() < 0.1, err
+
+
+def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view):
+    """evaluate() forms H and g without the variable-projection Jacobian Jr: they equal
+    Jr^T W Jr and Jr^T W r computed from Jr itself, under arbitrary robust weights."""
+    _, img, truth = blurred_view
+    gray = C.to_gray(img)
+    prob = blurfit._Problem(gray, [geo.rect_to_cq(r) for r in _truth_rects(truth)], RHO, 2.0)
+    assert prob.pixels(6.0, stride=3, motion=(np.radians(70), 30.0))
+    p = prob.start()
+    p[-3], p[-2] = np.radians(68), np.log(22.0)
+    prob.w = np.random.default_rng(1).uniform(0.05, 1.0, len(prob.v))
+    r, beta, (H, g) = prob.evaluate(p, jac=True)
+    R, J = prob.model(p, True)
+    xs, ys, w = prob.xs, prob.ys, prob.w
+    M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
+    Jm = J * ((beta[3] + beta[4] * xs + beta[5] * ys) / prob.noise)[:, None]
+    Mw = M * w[:, None]
+    Jr = Jm - M @ np.linalg.solve(Mw.T @ M, Mw.T @ Jm)
+    np.testing.assert_allclose(H, Jr.T @ (Jr * w[:, None]), rtol=1e-7, atol=1e-9 * np.abs(H).max())
+    np.testing.assert_allclose(g, Jr.T @ (w * r), rtol=1e-7, atol=1e-9 * np.abs(g).max())
+
+
+def test_blurred_rings_hand_over_to_the_model_fit_after_two_edge_passes(blurred_view, monkeypatch):
+    """Edges wider than ``refine_blur_handover`` of the minor semi-axis (here about half
+    of it: set below that): two edge passes, then the blurred-ring fit, which gives the
+    centres the full edge iteration leads it to; without the blur fit the edge fit
+    iterates as before."""
+    from markerpose import edges
+
+    rig, img, truth = blurred_view
+    rects = _truth_rects(truth)
+    seed = [geo.cq_to_rect(c + np.array([1.5, -1.0]), Q) for c, Q in (geo.rect_to_cq(r) for r in rects)]
+    passes = []
+    points = edges.edge_points
+
+    def counted(*args, **kw):
+        passes[-1] += 1
+        return points(*args, **kw)
+
+    monkeypatch.setattr(edges, "edge_points", counted)
+    out = {}
+    on = {"refine_blur_handover": 0.45}
+    for name, conf in {"handover": on, "full": {"refine_blur_handover": 0.0}, "no blur fit": {**on, "blur_fit": False},
+                       "no blur fit, no handover": {"blur_fit": False, "refine_blur_handover": 0.0}}.items():
+        passes.append(0)
+        out[name] = C.refine_ellipses(img, seed, camera=rig.left, conf=conf)
+    assert passes[0] == 2 < passes[1]
+    assert passes[2] == passes[3] > 2
+    np.testing.assert_array_equal(out["no blur fit"][0], out["no blur fit, no handover"][0])
+    for name in ("handover", "full"):
+        centers, ok, _ = out[name]
+        assert ok.all() and np.linalg.norm(centers - truth.outer_centers, axis=1).max() < 0.1, name
+    assert np.abs(out["handover"][0] - out["full"][0]).max() < 0.02
 
 
 def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):

@@ -189,6 +189,29 @@ def test_nms_keeps_separated_maxima():
     np.testing.assert_array_equal(out[:, :2], [[10, 10], [50, 30]])
 
 
+def test_peaks_of_a_batch_are_each_images_candidates_at_their_3x3_centroids():
+    """decode.peaks (one softmax for a batch) gives what candidates gives image by image,
+    each peak at the score-weighted centroid of its 3x3 neighbourhood inside the map
+    (read directly here), also at the map's border."""
+    rng = np.random.default_rng(4)
+    det = rng.normal(0, 1, (3, 65, 6, 8)).astype(np.float32)
+    det[:, 64] += 2.0
+    det[0, 0, 0, 0] = det[1, 63, 5, 7] = det[2, 27, 2, 3] = 9.0  # peaks in a corner, the far corner, inside
+    ids = np.zeros((3, 4, 6, 8), np.float32)
+    found = dec.peaks(det, 0.01, 5, 2)
+    for b in range(3):
+        cand, _ = dec.candidates(det[b], ids[b], 0.01, 5, 2)
+        np.testing.assert_array_equal(found[b], cand)
+        scores = dec.score_map(det[b])
+        peaks = dec.nms(scores, 2, 0.01, 5)
+        assert len(peaks) == len(cand) > 0
+        for (x, y, sc), got in zip(peaks, cand):
+            ys, xs = np.mgrid[max(int(y) - 1, 0): int(y) + 2, max(int(x) - 1, 0): int(x) + 2]
+            ys, xs = ys[(ys < scores.shape[0]) & (xs < scores.shape[1])], xs[(ys < scores.shape[0]) & (xs < scores.shape[1])]
+            w = scores[ys, xs]
+            np.testing.assert_allclose(got, [(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum(), sc], rtol=1e-12)
+
+
 def test_default_nms_keeps_the_close_rings_of_a_steep_marker():
     """A steeply tilted marker can put two ring centres ~3-6 input px apart: the default
     decoding radius keeps both maxima (v0.8's radius of 4 kept one)."""
