@@ -42,7 +42,7 @@ default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
-    "grid_stride": 6,  # ... on every grid_stride-th pixel in x and y
+    "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
     "stride": 2,  # the fit uses every stride-th pixel in x and y ...
     "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
     #                        marker's rings give about half as many at the nearest working

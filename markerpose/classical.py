@@ -111,9 +111,6 @@ default_conf: dict = {
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
     #                           less than this, px (a seed known to be that close: tracking)
-    "refine_blur_handover": 0.8,  # ... or, with blur_fit, after the second pass when the ring's
-    #                               edges are wider than this fraction of its minor semi-axis
-    #                               (twice blur_fit_width: the blurred-ring fit will refit it; 0: never)
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
     "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse

@@ -789,9 +789,6 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
     Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
     unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
     levels are only reached near the true edge, so each pass halves the error at best.
-    With c["blur_fit"], an ellipse whose edges are wider than c["refine_blur_handover"]
-    times its minor semi-axis stops after two passes: the blurred-ring fit, which refits
-    such rings from any start within a few px, replaces its ellipse.
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px) or None when too few edge points are found.
@@ -801,7 +798,6 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
     active = np.ones(K, bool)
     found: list = [None] * K
     width = np.zeros(K)
-    handover = c.get("refine_blur_handover", 0.0) if c.get("blur_fit") else 0.0
     for it in range(max(1, c["refine_iters"])):
         a = np.nonzero(active)[0]
         if not len(a):
@@ -826,8 +822,6 @@ def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, 
             width[k] = wdg[i]
             if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
                 active[k] = False
-            elif it >= 1 and handover and wdg[i] > handover * _semi_axes(Qf[i]).min():
-                active[k] = False  # blurred: the blurred-ring fit takes over from here
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}

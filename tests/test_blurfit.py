@@ -130,39 +130,6 @@ def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view
     np.testing.assert_allclose(g, Jr.T @ (w * r), rtol=1e-7, atol=1e-9 * np.abs(g).max())
 
 
-def test_blurred_rings_hand_over_to_the_model_fit_after_two_edge_passes(blurred_view, monkeypatch):
-    """Edges wider than ``refine_blur_handover`` of the minor semi-axis (here about half
-    of it: set below that): two edge passes, then the blurred-ring fit, which gives the
-    centres the full edge iteration leads it to; without the blur fit the edge fit
-    iterates as before."""
-    from markerpose import edges
-
-    rig, img, truth = blurred_view
-    rects = _truth_rects(truth)
-    seed = [geo.cq_to_rect(c + np.array([1.5, -1.0]), Q) for c, Q in (geo.rect_to_cq(r) for r in rects)]
-    passes = []
-    points = edges.edge_points
-
-    def counted(*args, **kw):
-        passes[-1] += 1
-        return points(*args, **kw)
-
-    monkeypatch.setattr(edges, "edge_points", counted)
-    out = {}
-    on = {"refine_blur_handover": 0.45}
-    for name, conf in {"handover": on, "full": {"refine_blur_handover": 0.0}, "no blur fit": {**on, "blur_fit": False},
-                       "no blur fit, no handover": {"blur_fit": False, "refine_blur_handover": 0.0}}.items():
-        passes.append(0)
-        out[name] = C.refine_ellipses(img, seed, camera=rig.left, conf=conf)
-    assert passes[0] == 2 < passes[1]
-    assert passes[2] == passes[3] > 2
-    np.testing.assert_array_equal(out["no blur fit"][0], out["no blur fit, no handover"][0])
-    for name in ("handover", "full"):
-        centers, ok, _ = out[name]
-        assert ok.all() and np.linalg.norm(centers - truth.outer_centers, axis=1).max() < 0.1, name
-    assert np.abs(out["handover"][0] - out["full"][0]).max() < 0.02
-
-
 def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):
     """Above ``max_pixels`` the fit samples a sparser grid: fewer pixels, the same answer
     to a fraction of a pixel (what keeps a large decoy from costing seconds)."""
