@@ -261,6 +261,18 @@ _TRAIN_KEYS = ("lr", "schedule", "epochs", "batch_size", "train_size", "val_size
 
 
 def cmd_train_keypoints(args):
+    if args.int8:  # no training: an int8 copy of ONNX weights (needs onnx, not torch)
+        import importlib.util
+
+        if importlib.util.find_spec("onnx") is None:
+            raise ValueError("--int8 needs onnx: pip install -e \".[train]\"")
+        from .train import keypoints
+
+        src, dest = args.int8
+        t0 = time.perf_counter()
+        out = keypoints.quantize(src, dest, args.int8_images, args.workers)
+        print(f"wrote the int8 copy of {src} to {out} ({(time.perf_counter() - t0) / 60:.1f} min)")
+        return
     _need_torch()
     from .train import keypoints
 
@@ -661,6 +673,8 @@ def build_parser() -> argparse.ArgumentParser:
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
     tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")
+    tk.add_argument("--int8", nargs=2, metavar=("SRC", "DEST"), help="no training: write an int8 copy of the .onnx weights SRC to DEST, calibrated on rendered training images")
+    tk.add_argument("--int8-images", type=int, default=256, help="training images that calibrate --int8's activations")
     tk.add_argument("--val-negatives", type=int, default=None, help="marker-free validation images the export tunes the false-positive budget on (default 3000)")
     tk.add_argument("--window", type=int, nargs=2, default=[192, 144], metavar=("W", "H"),
                     help="training windows of the 320x240 images, multiples of 8 (default 192 144; 320 240: whole images)")

@@ -101,6 +101,12 @@ def default_weights(kind: str) -> Path:
     return WEIGHTS_DIR / f"{kind}.onnx" if have_onnxruntime() else WEIGHTS_DIR / f"{kind}.pt"
 
 
+def int8_weights(kind: str) -> Path:
+    """The shipped int8 copy of the ``kind`` network's ONNX weights (:func:`quantize_onnx`;
+    ONNX Runtime or OpenVINO run it)."""
+    return WEIGHTS_DIR / f"{kind}-int8.onnx"
+
+
 class Runner:
     """A network ready for inference: ``runner(x)`` with x (B, 1, H, W) float32 → tuple of
     float32 outputs. ``backend`` is "onnxruntime", "openvino", "openvino-bf16" or "torch"."""
@@ -268,5 +274,53 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
     return path
 
 
+def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
+    """An int8 copy of an ``.onnx`` network: weights per output channel, activations per
+    tensor (unsigned), as QuantizeLinear/DequantizeLinear pairs around each operator, the
+    activations' ranges calibrated (min-max) on ``batches`` ((B, 1, H, W) float32 inputs).
+    The markerpose metadata is kept, with ``int8`` (the number of calibration inputs)
+    added. Needs ``onnx`` (the train extra); the result runs on ONNX Runtime alone."""
+    import tempfile
+
+    import onnx
+    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    src, dest = Path(src), Path(dest)
+    model = onnx.load(str(src))
+    entry = next((m for m in model.metadata_props if m.key == META_KEY), None)
+    meta = json.loads(entry.value) if entry is not None else {}
+    if "format" not in meta:
+        raise ValueError(f"{src} is not a markerpose ONNX model (no {META_KEY!r} metadata)")
+    if "int8" in meta:
+        raise ValueError(f"{src} is already quantized")
+    name = model.graph.input[0].name
+    batches = [np.ascontiguousarray(b, np.float32) for b in batches]
+    if not batches:
+        raise ValueError("quantize_onnx needs calibration inputs")
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self._it = iter(batches)
+
+        def get_next(self):
+            b = next(self._it, None)
+            return None if b is None else {name: b}
+
+    with tempfile.TemporaryDirectory() as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        quant_pre_process(str(src), str(pre))  # shape inference and graph fusions first, as the tool advises
+        quantize_static(str(pre), str(dest), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8)
+    out = onnx.load(str(dest))
+    for m in list(out.metadata_props):
+        if m.key == META_KEY:
+            out.metadata_props.remove(m)
+    entry = out.metadata_props.add()
+    entry.key, entry.value = META_KEY, json.dumps({**meta, "int8": {"calibration_inputs": int(sum(len(b) for b in batches))}})
+    onnx.save(out, str(dest))
+    return dest
+
+
 __all__ = ["BACKENDS", "FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_backend", "have_onnxruntime",
-           "load_checkpoint", "load_network", "load_weights"]
+           "int8_weights", "load_checkpoint", "load_network", "load_weights", "quantize_onnx"]

@@ -50,6 +50,8 @@ PRESETS: dict[str, dict] = {
     # The default with its networks in bfloat16 on OpenVINO (the openvino extra): fast on
     # CPUs with AMX.
     "default-bf16": {"backend": "openvino-bf16"},
+    # The default with stage 1 in int8 (weights and activations), on ONNX Runtime.
+    "default-int8": {"propose": {"int8": True}},
 }
 
 ABOUT: dict[str, str] = {
@@ -68,13 +70,14 @@ ABOUT: dict[str, str] = {
     "classical-subpixel-bias": "classical-subpixel + bias correction",
     "classical": "classical-subpixel-bias + rigid pose: our best classical (detector='classical')",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra)",
+    "default-int8": "default with stage 1's network in int8 (weights and activations)",
 }
 
 # Reports list the default and the paper's configurations first, then the ablations.
 ORDER = (
     "default", "paper", "paper-classical", "classical", "neural-layout", "neural-layout-rigid", "neural-stereo",
     "default-no-transfer", "default-no-blur-fit", "default-no-second-look", "neural-classical-refine",
-    "default-masks-first", "classical-subpixel", "classical-subpixel-bias", "default-bf16",
+    "default-masks-first", "classical-subpixel", "classical-subpixel-bias", "default-bf16", "default-int8",
 )
 
 

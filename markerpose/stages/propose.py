@@ -20,9 +20,11 @@ import numpy as np
 from .. import classical
 from ..keypoints import KeypointNet, check_second_look
 from ..marker import Marker
+from ..nets import int8_weights
 
 default_conf = {
     "weights": None,  # neural: stage-1 weights file (None: the shipped one)
+    "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
     "candidates": 16,  # neural: candidates per view
     "threshold": 0.01,  # ... their least location score
     "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
@@ -60,7 +62,13 @@ class NeuralProposer:
         decoding = {"ids": "layout" if ids == "stereo" else ids}
         if ids != "stereo":
             decoding["second_look"] = float(conf["second_look"])
-        self.net = KeypointNet(conf["weights"], decoding, marker=marker, stereo=True, threads=threads, backend=backend)
+        weights = conf["weights"]
+        if conf["int8"]:
+            if weights is not None:
+                raise ValueError("propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
+                                 "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights")
+            weights = int8_weights("keypoints")
+        self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
     def forget(self) -> None:
         """New frames: the inputs kept from the last ones' looks are dropped."""

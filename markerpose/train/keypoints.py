@@ -562,6 +562,22 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
     return dest
 
 
+INT8_IMAGES = 256  # rendered training images that calibrate the int8 copy's activations
+
+
+def quantize(src: str | Path, dest: str | Path, n: int = INT8_IMAGES, workers: int = 2) -> Path:
+    """An int8 copy of stage-1 ONNX weights (:func:`markerpose.nets.quantize_onnx`), its
+    activations' ranges calibrated on the first ``n`` images of the training set (seed 0;
+    never a held-out set), eight to a batch. The decoding thresholds are the source's."""
+    from ..nets import quantize_onnx
+
+    if int(n) < 1:
+        raise ValueError(f"the int8 calibration needs at least one image, got {n}")
+    images = generate(int(n), seed=0, workers=workers, desc="render calibration")["image"]
+    x = images.astype(np.float32)[:, None] / 255.0  # the network's input, as kp.to_input makes it
+    return quantize_onnx(src, dest, [x[i : i + 8] for i in range(0, len(x), 8)])
+
+
 def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2,
              decodings=tuple(DECODINGS), second_look: float = 2.0) -> dict:
     """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached),

@@ -1,0 +1,80 @@
+"""Stage 1 in int8: the shipped quantized copy of the keypoint network (preset
+``default-int8``) and the tool that makes it (:func:`markerpose.nets.quantize_onnx`)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose import nets
+from markerpose.experiments import configs
+from markerpose.keypoints import KeypointNet
+from markerpose.synth import Imaging, look_at_pose, render_stereo
+
+POSES = ([10, 0, 600], [-40, 30, 450], [0, -20, 750])
+
+
+def _frames():
+    rig = mp.StereoRig.default()
+    for seed, pose in enumerate(POSES):
+        yield render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
+
+
+def test_int8_stage1_finds_float32s_candidates():
+    """The quantized network's candidates near each ring centre are within a fraction of
+    a pixel of the float32 network's, with scores within 0.1."""
+    f32, i8 = KeypointNet(), KeypointNet(nets.int8_weights("keypoints"))
+    for frame in _frames():
+        grays = [np.asarray(im) for im in frame.images]
+        for a, b, view in zip(f32.candidates(grays), i8.candidates(grays), frame.views):
+            for c in view.centers:
+                ka = np.argmin(np.linalg.norm(a[:, :2] - c, axis=1))
+                kb = np.argmin(np.linalg.norm(b[:, :2] - c, axis=1))
+                assert np.linalg.norm(a[ka, :2] - c) < 3.0  # stage 1 found the ring
+                assert np.linalg.norm(a[ka, :2] - b[kb, :2]) < 0.5
+                assert abs(a[ka, 2] - b[kb, 2]) < 0.1
+
+
+def test_default_int8_gives_the_defaults_poses():
+    """Stage 1 only proposes: the edge fit places the centres, so the poses agree to
+    1e-3 mm."""
+    rig = mp.StereoRig.default()
+    ref, i8 = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-int8")
+    assert i8.proposer.net.path == nets.int8_weights("keypoints") and ref.proposer.net.path != i8.proposer.net.path
+    for frame in _frames():
+        a, b = ref.estimate(*frame.images), i8.estimate(*frame.images)
+        assert a is not None and b is not None
+        assert np.linalg.norm(a.t - b.t) < 1e-3
+        assert np.linalg.norm(a.t - frame.T_left_marker[:3, 3]) < 0.05
+
+
+def test_int8_needs_the_shipped_weights_and_is_listed_where_it_runs():
+    with pytest.raises(ValueError, match="--int8 SRC DEST"):
+        mp.MarkerPose(mp.StereoRig.default(), propose={"int8": True, "weights": "mine.onnx"})
+    assert "default-int8" in configs.available()
+
+
+def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tmp_path):
+    pytest.importorskip("onnx")
+    import onnx
+
+    rng = np.random.default_rng(0)
+    batches = [rng.random((2, 1, 240, 320), np.float32) for _ in range(2)]
+    dest = nets.quantize_onnx(nets.WEIGHTS_DIR / "keypoints.onnx", tmp_path / "k8.onnx", batches)
+    meta = json.loads(next(m.value for m in onnx.load(str(dest)).metadata_props if m.key == nets.META_KEY))
+    src = json.loads(next(m.value for m in onnx.load(str(nets.WEIGHTS_DIR / "keypoints.onnx")).metadata_props if m.key == nets.META_KEY))
+    assert meta["int8"] == {"calibration_inputs": 4}
+    assert {k: v for k, v in meta.items() if k != "int8"} == src  # format, width, tuned thresholds
+    net = KeypointNet(dest)  # loads as any markerpose keypoints model
+    det, ids = net.logits(np.zeros((1, 240, 320), np.float32))
+    assert det.shape == (1, 65, 30, 40) and ids.shape == (1, 4, 30, 40)
+    with pytest.raises(ValueError, match="already quantized"):
+        nets.quantize_onnx(dest, tmp_path / "again.onnx", batches)
+    bare = onnx.load(str(nets.WEIGHTS_DIR / "keypoints.onnx"))
+    del bare.metadata_props[:]
+    onnx.save(bare, str(tmp_path / "bare.onnx"))
+    with pytest.raises(ValueError, match="not a markerpose ONNX model"):
+        nets.quantize_onnx(tmp_path / "bare.onnx", tmp_path / "x.onnx", batches)
+    with pytest.raises(ValueError, match="calibration inputs"):
+        nets.quantize_onnx(nets.WEIGHTS_DIR / "keypoints.onnx", tmp_path / "y.onnx", [])
