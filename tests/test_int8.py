@@ -66,6 +66,11 @@ def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tm
     src = json.loads(next(m.value for m in onnx.load(str(nets.WEIGHTS_DIR / "keypoints.onnx")).metadata_props if m.key == nets.META_KEY))
     assert meta["int8"] == {"calibration_inputs": 4}
     assert {k: v for k, v in meta.items() if k != "int8"} == src  # format, width, tuned thresholds
+    graph = onnx.load(str(dest)).graph
+    inits = {i.name: i for i in graph.initializer}
+    last = [n for n in graph.node if set(n.output) & {"det", "ids"}]
+    assert len(last) == 2 and all(inits[n.input[1]].data_type == onnx.TensorProto.FLOAT for n in last)  # float logits
+    assert sum(n.op_type == "QuantizeLinear" for n in graph.node) > 10  # the rest is int8
     net = KeypointNet(dest)  # loads as any markerpose keypoints model
     det, ids = net.logits(np.zeros((1, 240, 320), np.float32))
     assert det.shape == (1, 65, 30, 40) and ids.shape == (1, 4, 30, 40)
