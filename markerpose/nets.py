@@ -285,7 +285,12 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     import tempfile
 
     import onnx
-    from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     src, dest = Path(src), Path(dest)
