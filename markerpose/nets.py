@@ -240,7 +240,8 @@ def load_network(path: str | Path | None, kind: str, build: Callable[[dict], obj
         raise ValueError(f"unknown backend {backend!r}; choose from {BACKENDS}")
     path = Path(path) if path is not None else default_weights(kind)
     if not path.is_file():
-        raise ValueError(f"{kind} weights not found: {path} (train them with `markerpose train {kind}`)")
+        how = f"make them with `markerpose train {kind} --int8 SRC DEST`" if path == int8_weights(kind) else f"train them with `markerpose train {kind}`"
+        raise ValueError(f"{kind} weights not found: {path} ({how})")
     if backend != "onnxruntime" and path.suffix != ".onnx":
         raise ValueError(f"{path}: the {backend} backend runs .onnx weights only")
     if path.suffix == ".onnx" and backend != "onnxruntime":
@@ -274,14 +275,44 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
     return path
 
 
+def quantizable_meta(src: str | Path, kind: str | None = None) -> dict:
+    """The markerpose metadata of an ``.onnx`` network that :func:`quantize_onnx` can
+    quantize (of network ``kind`` when given), or ``ValueError`` saying why not. Needs
+    ``onnx``."""
+    import onnx
+    from google.protobuf.message import DecodeError
+
+    src = Path(src)
+    if not src.is_file():
+        raise ValueError(f"no such file: {src}")
+    try:
+        model = onnx.load(str(src), load_external_data=False)
+    except (DecodeError, ValueError, OSError) as exc:
+        raise ValueError(f"{src} is not a readable ONNX model") from exc
+    entry = next((m for m in model.metadata_props if m.key == META_KEY), None)
+    meta = _checked_meta(src, kind, entry.value if entry is not None else None) if kind else None
+    if meta is None:
+        try:
+            meta = json.loads(entry.value) if entry is not None else {}
+        except json.JSONDecodeError:
+            meta = {}
+        if "format" not in meta:
+            raise ValueError(f"{src} is not a markerpose ONNX model (no {META_KEY!r} metadata)")
+    if "int8" in meta:
+        raise ValueError(f"{src} is already quantized")
+    return meta
+
+
 def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     """An int8 copy of an ``.onnx`` network: weights per output channel, activations per
     tensor (unsigned), as QuantizeLinear/DequantizeLinear pairs around each operator, the
-    activations' ranges calibrated (min-max) on ``batches`` ((B, 1, H, W) float32 inputs).
-    The operators that produce the network's outputs stay float32: quantized logits lose
-    the resolution that ranks stage 1's candidates (a small marker's rings among them).
-    The markerpose metadata is kept, with ``int8`` (the number of calibration inputs)
-    added. Needs ``onnx`` (the train extra); the result runs on ONNX Runtime alone."""
+    activations' ranges calibrated (min-max) on ``batches`` ((B, 1, H, W) float32 inputs
+    in [0, 1]); the input's range is [0, 1] whatever the batches hold. The operators that
+    produce the network's outputs stay float32: quantized logits lose the resolution that
+    ranks stage 1's candidates (a small marker's rings among them). The markerpose
+    metadata is kept, with ``int8`` (the number of calibration inputs) added. Needs
+    ``onnx`` (the train extra) to make; the result runs without it, on ONNX Runtime (or
+    OpenVINO)."""
     import tempfile
 
     import onnx
@@ -294,17 +325,11 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     src, dest = Path(src), Path(dest)
-    model = onnx.load(str(src))
-    entry = next((m for m in model.metadata_props if m.key == META_KEY), None)
-    meta = json.loads(entry.value) if entry is not None else {}
-    if "format" not in meta:
-        raise ValueError(f"{src} is not a markerpose ONNX model (no {META_KEY!r} metadata)")
-    if "int8" in meta:
-        raise ValueError(f"{src} is already quantized")
-    name = model.graph.input[0].name
+    meta = quantizable_meta(src)
     batches = [np.ascontiguousarray(b, np.float32) for b in batches]
     if not batches:
         raise ValueError("quantize_onnx needs calibration inputs")
+    name = onnx.load(str(src)).graph.input[0].name
 
     class Reader(CalibrationDataReader):
         def __init__(self):
@@ -316,13 +341,22 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
 
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
-        quant_pre_process(str(src), str(pre))  # shape inference and graph fusions first, as the tool advises
+        # Shape inference and graph fusions first, as the tool advises (ONNX's own shape
+        # inference: the symbolic one needs sympy, and this network's shapes need none).
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
         graph = onnx.load(str(pre)).graph
         outputs = {o.name for o in graph.output}
         last = [n.name for n in graph.node if outputs & set(n.output)]
+        pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
         quantize_static(str(pre), str(dest), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_exclude=last)
+                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_exclude=last,
+                        extra_options={"TensorQuantOverrides": pinned})
     out = onnx.load(str(dest))
+    # Only the operator sets the nodes use: the tool declares every domain the installed
+    # runtime knows, which older runtimes refuse to load.
+    used = {n.domain for n in out.graph.node}
+    for op in [o for o in out.opset_import if o.domain not in used and o.domain not in ("", "ai.onnx")]:
+        out.opset_import.remove(op)
     for m in list(out.metadata_props):
         if m.key == META_KEY:
             out.metadata_props.remove(m)
@@ -333,4 +367,4 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
 
 
 __all__ = ["BACKENDS", "FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_backend", "have_onnxruntime",
-           "int8_weights", "load_checkpoint", "load_network", "load_weights", "quantize_onnx"]
+           "int8_weights", "load_checkpoint", "load_network", "load_weights", "quantizable_meta", "quantize_onnx"]

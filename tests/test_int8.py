@@ -36,23 +36,46 @@ def test_int8_stage1_finds_float32s_candidates():
                 assert abs(a[ka, 2] - b[kb, 2]) < 0.1
 
 
-def test_default_int8_gives_the_defaults_poses():
+@pytest.mark.parametrize("gain", [1.0, 2.2])
+def test_default_int8_gives_the_defaults_poses(gain):
     """Stage 1 only proposes: the edge fit places the centres, so the poses agree to
-    1e-3 mm."""
+    1e-3 mm, also on images brighter than the renderer's (the paper near 90 % of full
+    scale, as cameras are often set), outside most of the calibration images' range."""
     rig = mp.StereoRig.default()
     ref, i8 = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-int8")
     assert i8.proposer.net.path == nets.int8_weights("keypoints") and ref.proposer.net.path != i8.proposer.net.path
     for frame in _frames():
-        a, b = ref.estimate(*frame.images), i8.estimate(*frame.images)
+        images = [np.clip(np.asarray(im, np.float32) * gain, 0, 255).astype(np.uint8) for im in frame.images]
+        a, b = ref.estimate(*images), i8.estimate(*images)
         assert a is not None and b is not None
         assert np.linalg.norm(a.t - b.t) < 1e-3
         assert np.linalg.norm(a.t - frame.T_left_marker[:3, 3]) < 0.05
 
 
-def test_int8_needs_the_shipped_weights_and_is_listed_where_it_runs():
+def test_int8_needs_the_shipped_weights_and_is_listed_where_it_runs(monkeypatch, tmp_path):
     with pytest.raises(ValueError, match="--int8 SRC DEST"):
         mp.MarkerPose(mp.StereoRig.default(), propose={"int8": True, "weights": "mine.onnx"})
     assert "default-int8" in configs.available()
+    missing = tmp_path / "keypoints-int8.onnx"
+    monkeypatch.setattr(nets, "int8_weights", lambda kind: missing)
+    monkeypatch.setattr(configs, "int8_weights", lambda kind: missing)
+    assert "default-int8" not in configs.available() and "default" in configs.available()
+    with pytest.raises(ValueError, match="not found.*--int8 SRC DEST"):
+        nets.load_network(missing, "keypoints", None)
+
+
+def test_the_shipped_int8_file_loads_on_older_runtimes():
+    """Only the default operator set is declared (the quantization tool declares every
+    domain the installed runtime knows, which older ONNX Runtimes refuse), and the input
+    is quantized over [0, 1] in steps of 1/255: each grey level exactly."""
+    onnx = pytest.importorskip("onnx")
+    from onnx import numpy_helper
+
+    model = onnx.load(str(nets.int8_weights("keypoints")))
+    assert {o.domain for o in model.opset_import} <= {"", "ai.onnx"}
+    inits = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    q = next(n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == model.graph.input[0].name)
+    assert inits[q.input[1]] == pytest.approx(1 / 255) and inits[q.input[2]] == 0
 
 
 def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tmp_path):
@@ -65,6 +88,7 @@ def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tm
     meta = json.loads(next(m.value for m in onnx.load(str(dest)).metadata_props if m.key == nets.META_KEY))
     src = json.loads(next(m.value for m in onnx.load(str(nets.WEIGHTS_DIR / "keypoints.onnx")).metadata_props if m.key == nets.META_KEY))
     assert meta["int8"] == {"calibration_inputs": 4}
+    assert {o.domain for o in onnx.load(str(dest)).opset_import} <= {"", "ai.onnx"}
     assert {k: v for k, v in meta.items() if k != "int8"} == src  # format, width, tuned thresholds
     graph = onnx.load(str(dest)).graph
     inits = {i.name: i for i in graph.initializer}
@@ -83,3 +107,9 @@ def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tm
         nets.quantize_onnx(tmp_path / "bare.onnx", tmp_path / "x.onnx", batches)
     with pytest.raises(ValueError, match="calibration inputs"):
         nets.quantize_onnx(nets.WEIGHTS_DIR / "keypoints.onnx", tmp_path / "y.onnx", [])
+    with pytest.raises(ValueError, match="not a markerpose keypoints model"):
+        nets.quantizable_meta(nets.WEIGHTS_DIR / "ellipses.onnx", "keypoints")
+    with pytest.raises(ValueError, match="not a readable ONNX model"):
+        nets.quantizable_meta(nets.WEIGHTS_DIR / "keypoints.pt")
+    with pytest.raises(ValueError, match="no such file"):
+        nets.quantizable_meta(tmp_path / "none.onnx")

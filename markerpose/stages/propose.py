@@ -66,7 +66,7 @@ class NeuralProposer:
         if conf["int8"]:
             if weights is not None:
                 raise ValueError("propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
-                                 "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights")
+                                 "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8")
             weights = int8_weights("keypoints")
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
