@@ -568,18 +568,13 @@ INT8_IMAGES = 256  # rendered training images that calibrate the int8 copy's act
 def quantize(src: str | Path, dest: str | Path, n: int = INT8_IMAGES, workers: int = 2) -> Path:
     """An int8 copy of stage-1 ONNX weights (:func:`markerpose.nets.quantize_onnx`), its
     activations' ranges calibrated on the first ``n`` images of the training set (seed 0;
-    never a held-out set), each as rendered and once more through the training's
-    photometric augmentation (what the network was trained on), eight to a batch. The
-    decoding thresholds are the source's."""
+    never a held-out set), eight to a batch. The decoding thresholds are the source's."""
     from ..nets import quantizable_meta, quantize_onnx
-    from .augment import photometric
 
     quantizable_meta(src, "keypoints")  # before minutes of rendering
     if int(n) < 1:
         raise ValueError(f"the int8 calibration needs at least one image, got {n}")
     images = generate(int(n), seed=0, workers=workers, desc="render calibration")["image"]
-    rng = np.random.default_rng(0)
-    images = np.concatenate([images, np.stack([photometric(im, rng) for im in images])])
     x = images.astype(np.float32)[:, None] / 255.0  # the network's input, as kp.to_input makes it
     return quantize_onnx(src, dest, [x[i : i + 8] for i in range(0, len(x), 8)])
 
