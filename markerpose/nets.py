@@ -289,11 +289,12 @@ def quantizable_meta(src: str | Path, kind: str | None = None) -> dict:
         model = onnx.load(str(src), load_external_data=False)
     except (DecodeError, ValueError, OSError) as exc:
         raise ValueError(f"{src} is not a readable ONNX model") from exc
-    entry = next((m for m in model.metadata_props if m.key == META_KEY), None)
-    meta = _checked_meta(src, kind, entry.value if entry is not None else None) if kind else None
-    if meta is None:
+    raw = next((m.value for m in model.metadata_props if m.key == META_KEY), None)
+    if kind:
+        meta = _checked_meta(src, kind, raw)
+    else:
         try:
-            meta = json.loads(entry.value) if entry is not None else {}
+            meta = json.loads(raw) if raw else {}
         except json.JSONDecodeError:
             meta = {}
         if "format" not in meta:
@@ -329,15 +330,6 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     batches = [np.ascontiguousarray(b, np.float32) for b in batches]
     if not batches:
         raise ValueError("quantize_onnx needs calibration inputs")
-    name = onnx.load(str(src)).graph.input[0].name
-
-    class Reader(CalibrationDataReader):
-        def __init__(self):
-            self._it = iter(batches)
-
-        def get_next(self):
-            b = next(self._it, None)
-            return None if b is None else {name: b}
 
     with tempfile.TemporaryDirectory() as tmp:
         pre = Path(tmp) / "pre.onnx"
@@ -345,6 +337,16 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
         # inference: the symbolic one needs sympy, and this network's shapes need none).
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
         graph = onnx.load(str(pre)).graph
+        name = graph.input[0].name
+
+        class Reader(CalibrationDataReader):
+            def __init__(self):
+                self._it = iter(batches)
+
+            def get_next(self):
+                b = next(self._it, None)
+                return None if b is None else {name: b}
+
         outputs = {o.name for o in graph.output}
         last = [n.name for n in graph.node if outputs & set(n.output)]
         pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}

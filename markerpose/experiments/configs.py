@@ -18,14 +18,14 @@ def available(names=None) -> list[str]:
         raise ValueError(f"unknown preset(s) {unknown}; known: {list(ORDER)}")
     runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
     nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
-    ok = [n for n in ORDER if (names is None or n in names) and (nets or not is_neural(n))]
+
     def runs(name):  # OpenVINO runs the .onnx files only, and so does int8
         backend = PRESETS[name].get("backend", "onnxruntime")
-        if PRESETS[name].get("propose", {}).get("int8") and not (have_backend(backend) and int8_weights("keypoints").is_file()):
-            return False
+        if PRESETS[name].get("propose", {}).get("int8"):
+            return have_backend(backend) and int8_weights("keypoints").is_file()
         return backend == "onnxruntime" or (have_backend(backend) and default_weights("keypoints").suffix == ".onnx")
 
-    return [n for n in ok if runs(n) or not is_neural(n)]
+    return [n for n in ORDER if (names is None or n in names) and (not is_neural(n) or (nets and runs(n)))]
 
 
 __all__ = ["DEFAULT", "available"]
