@@ -99,7 +99,7 @@ default_conf: dict = {
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
-    "blur_fit_max_move": 3.0,  # ... keeping the edge fit if a centre would move farther, px
+    "blur_fit_max_move": 3.0,  # ... no ring refined if it would move a centre farther, px
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
@@ -646,13 +646,16 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     ring has an ellipse and either the widest edge-refined outer edge (75th percentile
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
     semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
-    a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too; a centre
-    that moves farther than conf["blur_fit_max_move"] px keeps the edge fit (all or none).
+    a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too. When a
+    fitted centre lies farther than conf["blur_fit_max_move"] px from the edge fit's
+    (of a ring the edge fit refined), the two disagree and no ring is refined: under that
+    much blur the edge fit itself can be that far off, and a pose from it would be wrong.
+    When only a ring the edge fit gave up on moves that far, the edge fit is kept.
     Three rings whose sizes do not fit their spacing (not the marker) are left alone. With a camera the
     edge fit's distortion correction (the shift from the distorted-image ellipse's
     centre to the undistorted one's) carries over.
 
-    Returns the rings, refitted or unchanged.
+    Returns the rings: refitted, unchanged, or unrefined where the two fits disagree.
     """
     c = _merge_conf(conf)
     if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
@@ -680,10 +683,16 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
     if fit is None:
         return rings
+    far = [not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"])
+           for r, (cen, _) in zip(rings, fit["cqs"])]
+    if any(f and r.refined for f, r in zip(far, rings)):
+        # The blur model puts a ring far from where its edges were fitted: under such blur
+        # the edge fit can be as far off, so neither is trusted.
+        return [replace(r, refined=False) for r in rings]
+    if any(far):  # a seed the edge fit gave up on went astray: the edge fit stands
+        return rings
     out = []
     for r, (cen, Q) in zip(rings, fit["cqs"]):
-        if not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"]):
-            return rings
         shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
         out.append(replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q), _blur=fit["length"]))
     return out

@@ -204,6 +204,20 @@ def test_refinement_under_heavy_blur_beats_the_edge_fit(blurred_view):
     assert e_model.max() < e_edge.max(), (e_model, e_edge)
 
 
+def test_a_blur_fit_that_disagrees_with_the_edge_fit_refines_no_ring(blurred_view):
+    # Under heavy blur the edge fit can be pixels off along the motion; when the blur
+    # model puts a centre farther from it than the bound, neither fit is kept: the rings
+    # come back unrefined rather than at the edge fit's centres (a wrong pose).
+    rig, img, truth = blurred_view
+    rects = _truth_rects(truth)
+    edge, _, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit": False})
+    model, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
+    moved = np.linalg.norm(model - edge, axis=1).max()
+    assert ok.all() and moved > 0.05
+    _, ok_bound, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_max_move": moved / 2})
+    assert not ok_bound.any()
+
+
 def test_sharp_images_keep_the_edge_fit():
     # Without blur the model fit does not run: identical results with it switched off.
     rig = StereoRig.default()
