@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 
 from .jit import compiled
@@ -43,7 +44,9 @@ default_conf: dict = {
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
     "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
-    "stride": 2,  # the fit uses every stride-th pixel in x and y ...
+    "stride": 3,  # the fit uses every stride-th pixel in x and y, each the mean of the
+    #               block of this size around it (odd: one more when even), so that every
+    #               pixel's noise is averaged in at a ninth of the model evaluations ...
     "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
     #                        marker's rings give about half as many at the nearest working
     #                        distance, a large ring-like decoy several times more (seconds)
@@ -189,10 +192,13 @@ class _Problem:
     disk's offset (2); then theta, log L, log sigma shared by all rings.
     """
 
-    def __init__(self, gray, cqs, rho, noise):
+    def __init__(self, gray, cqs, rho, noise, box=1):
         self.cqs = [(np.asarray(c, float), np.asarray(Q, float)) for c, Q in cqs]
-        self.rho, self.gray = rho, gray
-        self.noise = max(float(noise), 0.5)
+        self.rho, self.gray, self.box = rho, gray, int(box)
+        # A block mean's noise: white noise would be box times smaller, but neighbouring
+        # pixels' noise is correlated in real images (demosaicing, compression), and a
+        # loss scale set too small sends a start that is a pixel off into a poor minimum.
+        self.noise = max(float(noise) * 2 / (self.box + 1), 0.5)
         self.scale = float(np.mean([np.sqrt(1 / np.sqrt(np.linalg.det(Q))) for _, Q in self.cqs]))  # ~ sqrt(radius)
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
@@ -232,9 +238,15 @@ class _Problem:
             r = np.sqrt(np.maximum(disc, 0))
             s1, s2 = (-B - r) / A, (-B + r) / A
             inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
-        self.x = xx[inside].astype(np.float64)
-        self.y = yy[inside].astype(np.float64)
-        self.v = self.gray[yy[inside], xx[inside]].astype(np.float64)
+        yi, xi = yy[inside], xx[inside]
+        self.x, self.y = xi.astype(np.float64), yi.astype(np.float64)
+        if self.box > 1:  # each pixel's value: the mean of the box around it
+            r = self.box // 2
+            ya, xa = max(y0 - r, 0), max(x0 - r, 0)
+            crop = np.asarray(self.gray[ya : y1 + r + 1, xa : x1 + r + 1], np.float32)
+            self.v = cv2.blur(crop, (self.box, self.box))[yi - ya, xi - xa].astype(np.float64)
+        else:
+            self.v = self.gray[yi, xi].astype(np.float64)
         ctr = np.mean([c for c, _ in self.cqs], axis=0)
         span = max(x1 - x0, y1 - y0) / 2
         self.xs, self.ys = (self.x - ctr[0]) / span, (self.y - ctr[1]) / span
@@ -372,14 +384,14 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         conf: overrides of :data:`default_conf`.
     Returns:
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
-        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas), ``contrast`` (ring
+        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
         level minus paper level at the marker's middle, grey levels), ``nfev``; or None when
         too few pixels are usable or the fit fails.
     """
     c = dict(default_conf)
     if conf:
         c.update(conf)
-    prob = _Problem(gray, cqs, rho, noise)
+    prob = _Problem(gray, cqs, rho, noise, box=int(c["stride"]) | 1)
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.
