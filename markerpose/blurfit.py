@@ -48,8 +48,8 @@ default_conf: dict = {
     #               block of this size around it (odd: one more when even), so that every
     #               pixel's noise is averaged in at a ninth of the model evaluations ...
     "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
-    #                        marker's rings give about half as many at the nearest working
-    #                        distance, a large ring-like decoy several times more (seconds)
+    #                        marker's rings give fewer even at the nearest working distance,
+    #                        a large ring-like decoy many more (seconds of fitting)
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
     "xtol": 1e-4,  # convergence: relative parameter change ...
     "ftol": 1e-4,  # ... or relative cost change ...
@@ -194,7 +194,7 @@ class _Problem:
 
     def __init__(self, gray, cqs, rho, noise, box=1):
         self.cqs = [(np.asarray(c, float), np.asarray(Q, float)) for c, Q in cqs]
-        self.rho, self.gray, self.box = rho, gray, int(box)
+        self.rho, self.gray, self.box = rho, gray, int(box) | 1  # odd: centred on its pixel
         # A block mean's noise: white noise would be box times smaller, but neighbouring
         # pixels' noise is correlated in real images (demosaicing, compression), and a
         # loss scale set too small sends a start that is a pixel off into a poor minimum.
@@ -334,8 +334,9 @@ def _robust_lm(prob, p, conf):
     model cannot explain (the plate's edge, clutter, an occluder) stop counting; the
     weights also enter the levels' linear fit. Each iteration takes one damped
     Gauss-Newton step on the weighted cost by the normal equations (few parameters, many
-    pixels). Returns (parameters, number of model evaluations); the parameters are None
-    when a centre went farther than conf["max_move"] (a start that missed the rings)."""
+    pixels). Returns (parameters, number of model evaluations, gave up): it gives up, with
+    the parameters where it stopped, when a centre went farther than conf["max_move"]
+    (a start that missed the rings)."""
     f2 = conf["loss_scale"] ** 2
     start = prob.centers(p).copy()
     r = prob.residual(p)
@@ -360,16 +361,16 @@ def _robust_lm(prob, p, conf):
                 break
             lam *= 10
             if lam > 1e8:
-                return p, nfev
+                return p, nfev, False
         small = (E - Et <= conf["ftol"] * E or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
                  or np.abs(prob.centers(step)).max() <= conf["center_tol"])
         p, r = trial, rt
         if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
-            return None, nfev
+            return p, nfev, True
         lam = max(lam / 10, 1e-7)
         if small:
             break
-    return p, nfev
+    return p, nfev, False
 
 
 def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
@@ -385,7 +386,9 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     Returns:
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
         ``sigma`` (px), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
-        level minus paper level at the marker's middle, grey levels), ``nfev``; or None when
+        level minus paper level at the marker's middle, grey levels), ``nfev`` and
+        ``gave_up``: True when a centre went farther than ``max_move`` from its start and
+        the fit stopped there (its ellipses are where it stopped, not a fit); or None when
         too few pixels are usable or the fit fails.
     """
     c = dict(default_conf)
@@ -417,10 +420,10 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         if not prob.pixels(c["margin"], stride=stride, motion=motion):
             return None
     try:
-        p, nfev = _robust_lm(prob, p0, c)
+        p, nfev, gave_up = _robust_lm(prob, p0, c)
     except (np.linalg.LinAlgError, ValueError):
         return None
-    if p is None or not np.all(np.isfinite(p)):
+    if not np.all(np.isfinite(p)):
         return None
     r, beta, _ = prob.evaluate(p)
     rings, theta, L, sigma = prob.unpack(p)
@@ -432,6 +435,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         "rms": float(np.sqrt(np.mean(r * r))),
         "contrast": float(beta[3]),
         "nfev": nfev,
+        "gave_up": gave_up,
     }
 
 

@@ -167,6 +167,7 @@ class Ring:
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
+    _rejected: bool = field(default=False, repr=False)  # the blurred-ring fit and the edge fit disagreed: neither holds
 
 
 # --- input handling ------------------------------------------------------------------------
@@ -641,8 +642,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
 
     Under linear motion blur longer than the black band the edge fit of
-    :func:`refine_ring` is noisy and biased along the motion (up to ~1.5 px with 25 px of
-    blur); the model fit uses every pixel around the three rings. It runs when every
+    :func:`refine_ring` is noisy and biased along the motion (pixels off under the
+    heaviest blur); the model fit uses every pixel around the three rings. It runs when every
     ring has an ellipse and either the widest edge-refined outer edge (75th percentile
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
     semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
@@ -683,13 +684,14 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
     if fit is None:
         return rings
+    # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
     far = [not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"])
            for r, (cen, _) in zip(rings, fit["cqs"])]
     if any(f and r.refined for f, r in zip(far, rings)):
         # The blur model puts a ring far from where its edges were fitted: under such blur
         # the edge fit can be as far off, so neither is trusted.
-        return [replace(r, refined=False) for r in rings]
-    if any(far):  # a seed the edge fit gave up on went astray: the edge fit stands
+        return [replace(r, refined=False, _rejected=True) for r in rings]
+    if any(far) or fit["gave_up"]:  # a seed the edge fit gave up on went astray: the edge fit stands
         return rings
     out = []
     for r, (cen, Q) in zip(rings, fit["cqs"]):
@@ -799,7 +801,7 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera)
         chosen = refine_blurred(gray, chosen, marker, c, noise)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)),
-                     blur_px=_blur_length(chosen))
+                     refined=np.array([not r._rejected for r in chosen]), blur_px=_blur_length(chosen))
 
 
 def detect(
@@ -897,6 +899,8 @@ def refine_points(
     if subpixel:
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
         rings = refine_blurred(gray, rings, marker, c, noise)
+        rings = [None if r is not None and r._rejected else r for r in rings]  # neither fit holds
+        found = np.array([r is not None for r in rings])
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     out = (centers, found, [None if r is None else r.outer for r in rings])
     return (*out, _blur_length(rings)) if with_blur else out

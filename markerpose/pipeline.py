@@ -270,6 +270,10 @@ class MarkerPose:
             return None
         il, ir, cl, cr = pair
         found = [self._timed("refine", self.refiner.triple, v, tri, cost, cam) for v, tri, cost, cam in zip(views, (il, ir), (cl, cr), self.rig.cameras)]
+        for det, view in zip(found, verify.VIEWS):
+            if not det.refined.all():
+                self._failed(f"the blurred-ring fit and the edge fit disagree in the {view} view")
+                return None
         return self._solved(found)
 
     def _fit(self, fn, *args):

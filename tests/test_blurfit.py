@@ -7,6 +7,8 @@ radius): edge fit alone up to ~1.5 px off along the motion; the model fit <= 0.0
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -170,11 +172,14 @@ def test_a_start_that_missed_the_rings_is_given_up_by_the_move_bound(blurred_vie
         calls.append(out)
         return out
 
-    # Started 8 px off, the fit must move farther than 2 px: the optimiser itself gives up.
+    # Started 8 px off, the fit must move farther than 2 px: the optimiser itself gives up,
+    # and says so, with a centre beyond the bound where it stopped.
     off = [(c + np.array([8.0, 0.0]), Q) for c, Q in cqs]
     monkeypatch.setattr(blurfit, "_robust_lm", counted)
-    assert blurfit.fit_blurred_rings(gray, off, RHO, C.noise_sigma(gray), conf={"max_move": 2.0}) is None
-    assert calls[0][0] is None
+    stopped = blurfit.fit_blurred_rings(gray, off, RHO, C.noise_sigma(gray), conf={"max_move": 2.0})
+    assert calls[0][2] and stopped["gave_up"] and not free["gave_up"]
+    moved = np.linalg.norm(np.array([c for c, _ in stopped["cqs"]]) - np.array([c for c, _ in off]), axis=1)
+    assert moved.max() > 2.0
 
 
 def test_detections_report_the_motion_blur():
@@ -204,18 +209,55 @@ def test_refinement_under_heavy_blur_beats_the_edge_fit(blurred_view):
     assert e_model.max() < e_edge.max(), (e_model, e_edge)
 
 
-def test_a_blur_fit_that_disagrees_with_the_edge_fit_refines_no_ring(blurred_view):
+def _fit_moving(monkeypatch, ring, by, gave_up=False):
+    """blurfit.fit_blurred_rings, with ring ``ring``'s fitted centre moved by ``by`` px."""
+    fit = blurfit.fit_blurred_rings
+
+    def moved(*args, **kwargs):
+        out = fit(*args, **kwargs)
+        c, Q = out["cqs"][ring]
+        out["cqs"][ring] = (c + np.array([by, 0.0]), Q)
+        return {**out, "gave_up": gave_up}
+
+    monkeypatch.setattr(blurfit, "fit_blurred_rings", moved)
+
+
+@pytest.mark.parametrize("by, gave_up", [(4.0, False), (7.0, True)])
+def test_a_blur_fit_that_disagrees_with_the_edge_fit_refines_no_ring(blurred_view, monkeypatch, by, gave_up):
     # Under heavy blur the edge fit can be pixels off along the motion; when the blur
-    # model puts a centre farther from it than the bound, neither fit is kept: the rings
-    # come back unrefined rather than at the edge fit's centres (a wrong pose).
+    # model puts an edge-fitted ring farther from it than the bound (or goes that far and
+    # gives up), neither fit is kept: the rings come back unrefined rather than at the
+    # edge fit's centres (a wrong pose). Every path that refines rings says so.
     rig, img, truth = blurred_view
     rects = _truth_rects(truth)
-    edge, _, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit": False})
-    model, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
-    moved = np.linalg.norm(model - edge, axis=1).max()
-    assert ok.all() and moved > 0.05
-    _, ok_bound, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_max_move": moved / 2})
-    assert not ok_bound.any()
+    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
+    assert ok.all()
+    _fit_moving(monkeypatch, 1, by, gave_up)
+    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
+    assert not ok.any()
+    _, found, _ = C.refine_points(img, truth.outer_centers, Marker(), camera=rig.left)
+    assert not found.any()
+    gray = C.to_gray(img)
+    rings = C.refine_views([gray], [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]], Marker(),
+                           C.default_conf, [C.noise_sigma(gray)], [rig.left])[0]
+    det = C.refine_triple(gray, rings, (0, 1, 2), 0.0, Marker(), True, {}, C.noise_sigma(gray), rig.left)
+    assert not det.refined.any()
+
+
+def test_a_seed_without_edges_that_goes_astray_keeps_the_edge_fit(blurred_view, monkeypatch):
+    # A ring the edge fit gave up on has no edge-fitted centre to disagree with: when only
+    # its seed moves far, the rings the edge fit refined keep their centres.
+    rig, img, truth = blurred_view
+    rects = _truth_rects(truth)
+    gray = C.to_gray(img)
+    rings = C.refine_views([gray], [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]], Marker(),
+                           C.default_conf, [C.noise_sigma(gray)], [rig.left])[0]
+    assert all(r.refined for r in rings)
+    rings[2] = replace(rings[2], refined=False)
+    _fit_moving(monkeypatch, 2, 4.0)
+    out = C.refine_blurred(gray, rings, Marker(), noise=C.noise_sigma(gray))
+    assert [r.refined for r in out] == [True, True, False] and not any(r._rejected for r in out)
+    assert all(np.array_equal(a.center, b.center) for a, b in zip(out, rings))
 
 
 def test_sharp_images_keep_the_edge_fit():

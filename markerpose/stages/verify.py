@@ -48,7 +48,7 @@ def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -
         for det, view in zip(found, VIEWS):
             if not det.refined.all():
                 rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-                return f"the sub-pixel edge fit failed on {rings} in the {view} view"
+                return f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or the blurred-ring fit disagreed with it)"
     # The IDs give the correspondences; the epipolar constraint checks them.
     d = np.diag(epipolar_distance(rig, found[0].centers, found[1].centers))
     both = found[0].refined & found[1].refined
