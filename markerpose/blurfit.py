@@ -394,7 +394,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     c = dict(default_conf)
     if conf:
         c.update(conf)
-    prob = _Problem(gray, cqs, rho, noise, box=int(c["stride"]) | 1)
+    prob = _Problem(gray, cqs, rho, noise, box=c["stride"])
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.
