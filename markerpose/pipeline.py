@@ -62,6 +62,7 @@ class MarkerPose:
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
         self._history: list = []  # the last poses track() found, oldest first
         self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
+        self._after_cold = False  # track(): the last pose was detected cold after the prior failed
         self._fits_left: int | None = None  # work budget of the cold detection under way
         self.why: str | None = None  # after a call that found nothing: the first reason met
 
@@ -193,7 +194,15 @@ class MarkerPose:
         t0 = self._start()
         try:
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
+            if est is None and self._after_cold and len(self._history) > 1:
+                # The last pose was detected cold after the prior failed: the step into it may
+                # be a jump (the marker moved or was put down out of sight of the prior), not
+                # a velocity; the marker standing still there is the other prior.
+                est = self._tracked(grays, self._history[-1])
+                if est is not None:
+                    self._history = self._history[-1:]  # and the motion starts from there
             history = self._history
+            after_cold = est is None and bool(history)
             if est is None:
                 self.why = None  # the prior's failure is not why the frame has no pose
                 self._noise = (None, 0)
@@ -201,6 +210,7 @@ class MarkerPose:
                 est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*history, est.T][-3:] if est is not None else []
+            self._after_cold = after_cold and est is not None
             return est
         finally:
             self.timings["total"] = time.perf_counter() - t0
@@ -209,6 +219,7 @@ class MarkerPose:
         """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
         self._history = []
         self._noise = (None, 0)
+        self._after_cold = False
 
     def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
         """The rings refitted from their predicted ellipses in both views, verified, solved."""

@@ -93,3 +93,18 @@ def test_track_with_the_classical_detector(rig, sequence):
     found = [tracker.track(*f.images) for f in frames]
     assert all(e is not None for e in found) and found[-1].source == "tracked"
     assert tracker.track(empty[0], empty[1]) is None
+
+
+@needs_nets
+def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
+    # The marker put down 15 mm away between two frames, then held still: the frame of the
+    # jump is detected cold; the next one is tracked (standing still at the found pose, not
+    # moving on by the jump), and so are those after it.
+    frames, _ = sequence
+    T = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
+    still = [render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=20 + k) for k in range(3)]
+    tracker = mp.MarkerPose(rig)
+    for f in frames[:4]:
+        tracker.track(*f.images)
+    sources = [tracker.track(*f.images).source for f in still]
+    assert sources == ["detected", "tracked", "tracked"]
