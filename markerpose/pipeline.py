@@ -63,6 +63,7 @@ class MarkerPose:
         self._history: list = []  # the last poses track() found, oldest first
         self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
         self._after_cold = False  # track(): the last pose was detected cold after the prior failed
+        self._lost: tuple | None = None  # track(), lost: (block means of the last pair detected cold, pairs skipped since)
         self._fits_left: int | None = None  # work budget of the cold detection under way
         self.why: str | None = None  # after a call that found nothing: the first reason met
 
@@ -188,11 +189,23 @@ class MarkerPose:
         predicted from the last poses are refitted on the image's edges in both views and
         verified; where that fails (the marker lost, moved too fast), the pair is
         detected cold, as :meth:`estimate` does. ``Estimate.source`` says which
-        ("tracked" or "detected"). Call :meth:`reset` between sequences.
+        ("tracked" or "detected"). While the marker is lost, a pair that has not changed
+        since the last one detected without it returns None at once (``track``:
+        ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
+        :meth:`reset` between sequences.
         """
         grays = self._pair(left, right)
         t0 = self._start()
         try:
+            c = self.conf["track"]
+            now = None
+            if not self._history and self._lost is not None and c["lost_change"]:
+                now = [track.blocks(g, c["lost_block"]) for g in grays]
+                before, skipped = self._lost
+                if skipped + 1 < c["lost_refresh"] and not any(track.changed(a, b, c["lost_change"]) for a, b in zip(before, now)):
+                    self._lost = (before, skipped + 1)
+                    self.why = "lost, and the pair has not changed since the last one detected without the marker"
+                    return None
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
             if est is None and self._after_cold and len(self._history) > 1:
                 # The last pose was detected cold after the prior failed: the step into it may
@@ -211,6 +224,8 @@ class MarkerPose:
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*history, est.T][-3:] if est is not None else []
             self._after_cold = after_cold and est is not None
+            # Lost: this pair is what the next ones must differ from to be detected again.
+            self._lost = None if est is not None else (now or [track.blocks(g, c["lost_block"]) for g in grays], 0)
             return est
         finally:
             self.timings["total"] = time.perf_counter() - t0
@@ -220,6 +235,7 @@ class MarkerPose:
         self._history = []
         self._noise = (None, 0)
         self._after_cold = False
+        self._lost = None
 
     def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
         """The rings refitted from their predicted ellipses in both views, verified, solved."""

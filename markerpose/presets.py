@@ -137,6 +137,7 @@ def resolve(preset: str = "default", detector: str | None = None, **overrides) -
         raise ValueError(f"unknown ids method {conf['match']['method']!r}; choose from {match.METHODS}")
     propose.check_conf(conf["propose"])
     solve.check_conf(conf["solve"])
+    track.check_conf(conf["track"])
     return conf
 
 

@@ -1,11 +1,12 @@
 """MarkerPose.track: the previous frames as the prior (markerpose.stages.track)."""
 
+import cv2
 import numpy as np
 import pytest
 
 import markerpose as mp
 from markerpose.nets import default_weights
-from markerpose.stages.track import inside, predict
+from markerpose.stages.track import blocks, changed, inside, predict
 from markerpose.synth import Imaging, clutter_background, look_at_pose, render_stereo
 
 needs_nets = pytest.mark.skipif(not default_weights("keypoints").is_file(), reason="no shipped weights")
@@ -108,3 +109,64 @@ def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
         tracker.track(*f.images)
     sources = [tracker.track(*f.images).source for f in still]
     assert sources == ["detected", "tracked", "tracked"]
+
+
+def test_changed_sees_a_ring_coming_into_view_not_the_noise():
+    rng = np.random.default_rng(3)
+    bg = clutter_background((640, 480), rng) * 180 + 20
+    yy, xx = np.mgrid[:480, :640]
+    band = (np.hypot(xx - 300.3, yy - 200.6) > 6) & (np.hypot(xx - 300.3, yy - 200.6) < 12)  # a far ring's 6 px band
+
+    def shot(sigma, extra=0.0, blur=0.0):
+        noise = rng.normal(0, 1, bg.shape)
+        if blur:  # noise correlated across pixels, as demosaicing and denoising make it
+            noise = cv2.GaussianBlur(noise, (0, 0), blur) / cv2.GaussianBlur(noise, (0, 0), blur).std()
+        return np.clip(bg + extra + sigma * noise, 0, 255).astype(np.uint8)
+
+    for sigma in (1.0, 3.0):
+        base = blocks(shot(sigma), 8)
+        assert base.shape == (60, 80) and base.dtype == np.float32
+        for blur in (0.0, 1.5):
+            assert not any(changed(base, blocks(shot(sigma, blur=blur), 8), 6.0) for _ in range(5))
+        # The ring comes in, its band 4 noise sigmas under the paper (the edge fit takes 2).
+        assert changed(base, blocks(shot(sigma, np.where(band, -4 * sigma - 1, 0.0)), 8), 6.0)
+    base = blocks(shot(3.0), 8)
+    # The whole scene changed (another view, the light): a change, however robust the spread.
+    assert changed(base, blocks(np.clip(shot(3.0) * 1.1, 0, 255).astype(np.uint8), 8), 6.0)
+    assert changed(base, blocks(np.roll(shot(3.0), 40, axis=1), 8), 6.0)
+    # Exact means, the partial last row and column of pixels left out.
+    odd = (np.arange(35 * 19) % 251).astype(np.uint8).reshape(19, 35)
+    np.testing.assert_allclose(blocks(odd, 8), odd[:16, :32].reshape(2, 8, 4, 8).mean((1, 3)), rtol=1e-6)
+
+
+@needs_nets
+def test_while_lost_an_unchanged_pair_is_not_detected_again(rig):
+    # A still scene without the marker, in the dark (the marker's faintest change), fresh
+    # sensor noise every frame: after one cold detection finds nothing, unchanged pairs
+    # return None without a detection until the refresh; the marker coming into view is
+    # found on its first frame.
+    rng = np.random.default_rng(11)
+    bgs = tuple(clutter_background((1280, 1024), rng) for _ in range(2))
+    dark = Imaging(alpha=0.0625)
+    away = [render_stereo(rig, look_at_pose([700.0, 0, 560], 30, 45, 10), imaging=dark, background=bgs, seed=40 + k) for k in range(4)]
+    here = render_stereo(rig, look_at_pose([-5.0, 0, 560], 30, 45, 10), imaging=dark, background=bgs, seed=50)
+    tracker = mp.MarkerPose(rig, track={"lost_refresh": 3})
+    detected = []
+    for f in away:
+        assert tracker.track(*f.images) is None
+        detected.append("propose" in tracker.timings)
+    assert detected == [True, False, False, True]  # cold, skipped twice, cold again (the refresh)
+    assert "not changed" in (tracker.track(*away[0].images), tracker.why)[1]  # the next unchanged pair
+    est = tracker.track(*here.images)
+    assert est is not None and est.source == "detected"
+    assert np.linalg.norm(est.t - here.T_left_marker[:3, 3]) < 0.05
+    # With the gate off every lost pair is detected cold.
+    off = mp.MarkerPose(rig, track={"lost_change": 0})
+    for f in away[:2]:
+        assert off.track(*f.images) is None and "propose" in off.timings
+
+
+def test_track_conf_is_checked(rig):
+    for bad in ({"lost_change": -1}, {"lost_block": 0}, {"lost_refresh": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            mp.MarkerPose(rig, detector="classical", track=bad)
