@@ -188,7 +188,8 @@ class MarkerPose:
         Uses the previous frames as the prior (:mod:`markerpose.stages.track`): the rings
         predicted from the last poses are refitted on the image's edges in both views and
         verified; where that fails (the marker lost, moved too fast), the pair is
-        detected cold, as :meth:`estimate` does. ``Estimate.source`` says which
+        detected cold: first with stage 1 looking only near the predicted marker, then
+        in the whole images, as :meth:`estimate` does. ``Estimate.source`` says which
         ("tracked" or "detected"). While the marker is lost, a pair that has not changed
         since the last one detected without it returns None at once (``track``:
         ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
@@ -217,10 +218,14 @@ class MarkerPose:
             history = self._history
             after_cold = est is None and bool(history)
             if est is None:
-                self.why = None  # the prior's failure is not why the frame has no pose
                 self._noise = (None, 0)
+                if history:  # first a detection near where the prior put the marker
+                    self.why = None  # the prior's failure is not why the frame has no pose
+                    est = self._near(grays, track.predict(history))
                 history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
-                est = self._cold(grays)
+                if est is None:
+                    self.why = None
+                    est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*history, est.T][-3:] if est is not None else []
             self._after_cold = after_cold and est is not None
@@ -270,22 +275,57 @@ class MarkerPose:
                 if f is None:
                     self._failed(f"stage 1 decoded no triple in the {view} view")
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
-        m = self.conf["match"]
         self._budget()
         cand = None
         for zoom in self.proposer.looks():
             cand = self._timed("propose", self.proposer.candidates, grays, zoom, cand)
-            triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
-                                  m["epipolar_tol"], m["shape_tol"], m["max_triples"])
-            if not triples:
-                self._failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
-                             "matches across the views with the marker's 3D shape")
-            est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples], zoom)
-            if est is None and m["transfer"]:
-                est = self._transferred(grays, cand, zoom)
+            est = self._from_candidates(grays, cand, zoom)
             if est is not None:
                 return est
         return None
+
+    def _from_candidates(self, grays: list, cand: list, zoom: float) -> Estimate | None:
+        """Stage 1's candidates of both views (from the look ``zoom``) matched by the marker's
+        3D shape, each triple refined and verified in turn, then the transfer fallback."""
+        m = self.conf["match"]
+        triples = self._timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
+                              m["epipolar_tol"], m["shape_tol"], m["max_triples"])
+        if not triples:
+            self._failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
+                         "matches across the views with the marker's 3D shape")
+        est = self._first_accepted(grays, [[(pl, s), (pr, s)] for pl, pr, s in triples], zoom)
+        if est is None and m["transfer"]:
+            est = self._transferred(grays, cand, zoom)
+        return est
+
+    def _near(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
+        """A cold detection whose stage 1 sees, in each view, only a window around where the
+        prior predicted the marker (``track.near_margin`` of the predicted marker's extent
+        beyond it on each side); None where that finds nothing or the window would hold
+        most of the image (the whole-image detection is then no dearer)."""
+        margin = self.conf["track"]["near_margin"]
+        if self.proposer is None or self.ids != "stereo" or not margin:
+            return None
+        mk = self.marker
+        w, h = look_size(1.0)
+        centres, half = [], 0.0
+        for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            ell = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            r = max(max(e[1]) for e in ell) / 2
+            lo = np.min([e[0] for e in ell], axis=0) - r
+            hi = np.max([e[0] for e in ell], axis=0) + r
+            H, W = gray.shape
+            if hi[0] < 0 or hi[1] < 0 or lo[0] > W - 1 or lo[1] > H - 1:  # predicted out of this view
+                return None
+            extent = (hi - lo) / (W / w, H / h)  # in stage 1's input, px
+            half = max(half, float(extent.max()) * (0.5 + margin))
+            centres.append(((lo + hi) / 2)[None])
+        half = 8 * int(np.ceil(half / 8))  # the network's cells
+        if 2 * half >= 0.75 * min(w, h):
+            return None
+        self._budget()
+        cand = self._timed("propose", self.proposer.near, grays, centres, half)
+        return self._from_candidates(grays, cand, 1.0)
 
     def _classical(self, grays: list) -> Estimate | None:
         """Paper §3.4: each view's ring triples, paired by the epipolar constraint, refined."""

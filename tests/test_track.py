@@ -167,6 +167,34 @@ def test_while_lost_an_unchanged_pair_is_not_detected_again(rig):
 
 
 def test_track_conf_is_checked(rig):
-    for bad in ({"lost_change": -1}, {"lost_block": 0}, {"lost_refresh": 0}):
+    for bad in ({"near_margin": -1}, {"lost_change": -1}, {"lost_block": 0}, {"lost_refresh": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             mp.MarkerPose(rig, detector="classical", track=bad)
+
+
+@needs_nets
+def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, sequence):
+    # The marker put down 15 mm from where its motion predicted it: stage 1 looks only in a
+    # window around the prediction (a fraction of the image) and finds it there. Put down
+    # 200 mm away, outside that window: found by the whole-image detection after it.
+    frames, _ = sequence
+    near_pose = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
+    far_pose = look_at_pose([-150.0, 60.0, 640.0], 25, 45, 0)
+    for T, looks in ((near_pose, ["near"]), (far_pose, ["near", "whole"])):
+        f = render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=30)
+        tracker = mp.MarkerPose(rig)
+        for g in frames[:4]:
+            tracker.track(*g.images)
+        seen = []
+        near, whole = tracker.proposer.near, tracker.proposer.candidates
+        tracker.proposer.near = lambda *a: seen.append("near") or near(*a)
+        tracker.proposer.candidates = lambda *a: seen.append("whole") or whole(*a)
+        est = tracker.track(*f.images)
+        assert est is not None and est.source == "detected" and np.linalg.norm(est.t - T[:3, 3]) < 0.02
+        assert seen[: len(looks)] == looks and (len(looks) == 2 or "whole" not in seen)
+    # near_margin 0: the whole images at once.
+    tracker = mp.MarkerPose(rig, track={"near_margin": 0})
+    for g in frames[:4]:
+        tracker.track(*g.images)
+    tracker.proposer.near = lambda *a: pytest.fail("no near look with near_margin 0")
+    assert tracker.track(*render_stereo(rig, near_pose, imaging=Imaging(alpha=0.8), seed=30).images).source == "detected"

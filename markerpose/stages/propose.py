@@ -89,6 +89,13 @@ class NeuralProposer:
             near = [p[: int(c["second_look_near"]), :2] for p in previous]
         return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]))
 
+    def near(self, grays: list[np.ndarray], points: list, half: int) -> list[np.ndarray]:
+        """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look
+        that sees only windows of 2 ``half`` x 2 ``half`` input px around ``points`` (per
+        view, (M, 2) full-resolution pixels): where a tracker's prior put the marker."""
+        c = self.conf
+        return self.net.candidates(grays, c["threshold"], c["candidates"], 1.0, c["nms"], near=points, window=int(half))
+
     def decoded(self, grays: list[np.ndarray]) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
         return self.net(grays)

@@ -5,7 +5,9 @@ new frame (:func:`predict`); the rings' outer ellipses under that pose
 (:func:`~markerpose.geometry.ring_ellipses`) seed the sub-pixel edge fit in both views
 directly — no stage 1, no EllipSegNet. The result passes the usual verification
 (every centre edge-fitted, epipolar distances, plate check, the marker's shape) and a
-quality gate on the reprojection error; otherwise the frame is detected cold.
+quality gate on the reprojection error; otherwise the frame is detected cold, first with
+stage 1 looking only around where the marker was predicted (``near_margin``), then in the
+whole images.
 
 While the marker is lost, a pair that has not changed since the last cold detection that
 found nothing (:func:`changed`: no block of either view moved beyond its noise) is not
@@ -27,6 +29,9 @@ default_conf = {
     #                         convergence as a cold detection's does
     "noise_every": 30,  # tracked frames between estimates of the images' noise (the edge
     #                     fit's contrast floor); a cold detection also renews it
+    "near_margin": 0.5,  # when the prior fails: stage 1 first looks only this many predicted
+    #                      marker extents beyond the predicted marker in each view (0: the
+    #                      whole images at once), then in the whole images
     "lost_change": 6.0,  # while lost: a block mean that moved more than this many times the
     #                      blocks' noise (and a grey level) since the last cold detection is
     #                      a change, and the pair is detected cold (0: every lost pair is)
@@ -86,6 +91,8 @@ def changed(before: np.ndarray, after: np.ndarray, k: float, level: float = 1.0,
 
 def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
+    if float(conf["near_margin"]) < 0:
+        raise ValueError(f"near_margin must be >= 0 (0: no near look), got {conf['near_margin']!r}")
     if float(conf["lost_change"]) < 0:
         raise ValueError(f"lost_change must be >= 0 (0: no gate), got {conf['lost_change']!r}")
     if int(conf["lost_block"]) < 1:
