@@ -172,6 +172,15 @@ def test_track_conf_is_checked(rig):
             mp.MarkerPose(rig, detector="classical", track=bad)
 
 
+def _spy_looks(proposer) -> list:
+    """The proposer's looks from now on, in order ("near", "whole"), as a list it fills."""
+    seen: list = []
+    near, whole = proposer.near, proposer.candidates
+    proposer.near = lambda *a: seen.append("near") or near(*a)
+    proposer.candidates = lambda *a: seen.append("whole") or whole(*a)
+    return seen
+
+
 @needs_nets
 def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, sequence):
     # The marker put down 15 mm from where its motion predicted it: stage 1 looks only in a
@@ -185,10 +194,7 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
         tracker = mp.MarkerPose(rig)
         for g in frames[:4]:
             tracker.track(*g.images)
-        seen = []
-        near, whole = tracker.proposer.near, tracker.proposer.candidates
-        tracker.proposer.near = lambda *a: seen.append("near") or near(*a)
-        tracker.proposer.candidates = lambda *a: seen.append("whole") or whole(*a)
+        seen = _spy_looks(tracker.proposer)
         est = tracker.track(*f.images)
         assert est is not None and est.source == "detected" and np.linalg.norm(est.t - T[:3, 3]) < 0.02
         assert seen[: len(looks)] == looks and (len(looks) == 2 or "whole" not in seen)
