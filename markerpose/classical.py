@@ -106,7 +106,8 @@ default_conf: dict = {
     "blur_fit_budget": None,  # ... and while this FitBudget (shared by one detection's
     #                            refinements) has fits left; None: no limit
     "blur_fit_gate": None,  # ... and when this test (gray, centres (3, 2)) -> bool passes
-    #                          (e.g. ring evidence: a decoy's is low); None: no test
+    #                          (e.g. ring evidence: a decoy's is low); None: no test. Where
+    #                          either stops a fit that is due, no ring of the view is refined
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
@@ -637,6 +638,13 @@ def _sizes_fit_spacing(cqs: list, marker: Marker, tol: float) -> bool:
     return bool(expected > 0 and np.all(np.abs(np.log(areas / expected)) <= 2 * np.log(tol)))
 
 
+def _unrefined(rings: list) -> list:
+    """The rings of a view, none counted as refined (where the edge fit had refined any)."""
+    if not any(r.refined for r in rings):
+        return rings
+    return [replace(r, refined=False, _rejected=True) for r in rings]
+
+
 def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None) -> list:
     """The marker's edge-refined rings, fitted again together under a motion-blur model
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
@@ -651,7 +659,10 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     fitted centre lies farther than conf["blur_fit_max_move"] px from the edge fit's
     (of a ring the edge fit refined), the two disagree and no ring is refined: under that
     much blur the edge fit itself can be that far off, and a pose from it would be wrong.
-    When only a ring the edge fit gave up on moves that far, the edge fit is kept.
+    When only a ring the edge fit gave up on moves that far, the edge fit is kept. Where
+    the fit is due (edge-fitted rings with edges that wide) but may not run — the
+    ring-evidence gate (conf["blur_fit_gate"]) refuses the three rings or the detection's
+    budget of fits (conf["blur_fit_budget"]) is spent — no ring is refined either.
     Three rings whose sizes do not fit their spacing (not the marker) are left alone. With a camera the
     edge fit's distortion correction (the shift from the distorted-image ellipse's
     centre to the undistorted one's) carries over.
@@ -668,10 +679,13 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
         return rings
     if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
         return rings
+    # Wide edges the model may not check (the ring-evidence gate refuses them, or the
+    # detection's budget of fits is spent) are not trusted either: under that much blur the
+    # edge fit alone can be pixels off and still pass every check of the pose.
     if c["blur_fit_gate"] is not None and not c["blur_fit_gate"](gray, np.array([r.center for r in rings], np.float64)):
-        return rings
+        return _unrefined(rings)
     if c["blur_fit_budget"] is not None and not c["blur_fit_budget"].take():
-        return rings
+        return _unrefined(rings)
     from . import blurfit
 
     noise = noise_sigma(gray) if noise is None else noise
@@ -690,7 +704,7 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     if any(f and r.refined for f, r in zip(far, rings)):
         # The blur model puts a ring far from where its edges were fitted: under such blur
         # the edge fit can be as far off, so neither is trusted.
-        return [replace(r, refined=False, _rejected=True) for r in rings]
+        return _unrefined(rings)
     if any(far) or fit["gave_up"]:  # a seed the edge fit gave up on went astray: the edge fit stands
         return rings
     out = []

@@ -244,6 +244,20 @@ def test_a_blur_fit_that_disagrees_with_the_edge_fit_refines_no_ring(blurred_vie
     assert not det.refined.any()
 
 
+def test_wide_edges_the_blur_fit_may_not_check_refine_no_ring(blurred_view):
+    # The fit is due (edges smeared to the black band's width) but the detection's budget
+    # of fits is spent, or the ring-evidence gate refuses the rings: the edge fit alone is
+    # not trusted under that much blur, so no ring counts as refined.
+    rig, img, truth = blurred_view
+    rects = _truth_rects(truth)
+    for conf in ({"blur_fit_budget": C.FitBudget(0)}, {"blur_fit_gate": lambda gray, centres: False}):
+        _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf=conf)
+        assert not ok.any(), conf
+    budget = C.FitBudget(1)  # one fit left: it runs, and refines the rings
+    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_budget": budget})
+    assert ok.all() and budget.left == 0
+
+
 def test_a_seed_without_edges_that_goes_astray_keeps_the_edge_fit(blurred_view, monkeypatch):
     # A ring the edge fit gave up on has no edge-fitted centre to disagree with: when only
     # its seed moves far, the rings the edge fit refined keep their centres.
@@ -269,6 +283,10 @@ def test_sharp_images_keep_the_edge_fit():
     a, _, _ = C.refine_ellipses(img, rects, camera=rig.left)
     b, _, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit": False})
     np.testing.assert_array_equal(a, b)
+    # Nor does a spent budget of fits matter there: the edge fit stands.
+    c, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_budget": C.FitBudget(0)})
+    assert ok.all()
+    np.testing.assert_array_equal(a, c)
 
 
 def test_fit_refuses_rings_outside_the_image():
