@@ -168,7 +168,8 @@ class Ring:
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
-    _rejected: bool = field(default=False, repr=False)  # the blurred-ring fit and the edge fit disagreed: neither holds
+    _rejected: bool = field(default=False, repr=False)  # under heavy blur the edge fit is not trusted: the blurred-ring
+    #                                                     fit disagreed with it, or was due and could not run
 
 
 # --- input handling ------------------------------------------------------------------------
@@ -913,7 +914,7 @@ def refine_points(
     if subpixel:
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
         rings = refine_blurred(gray, rings, marker, c, noise)
-        rings = [None if r is not None and r._rejected else r for r in rings]  # neither fit holds
+        rings = [None if r is not None and r._rejected else r for r in rings]  # not trusted (refine_blurred)
         found = np.array([r is not None for r in rings])
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     out = (centers, found, [None if r is None else r.outer for r in rings])

@@ -208,7 +208,7 @@ class MarkerPose:
                     self.why = "lost, and the pair has not changed since the last one detected without the marker"
                     return None
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
-            if est is None and self._after_cold and len(self._history) > 1:
+            if est is None and self._after_cold:
                 # The last pose was detected cold after the prior failed: the step into it may
                 # be a jump (the marker moved or was put down out of sight of the prior), not
                 # a velocity; the marker standing still there is the other prior.
@@ -221,7 +221,7 @@ class MarkerPose:
                 self._noise = (None, 0)
                 if history:  # first a detection near where the prior put the marker
                     self.why = None  # the prior's failure is not why the frame has no pose
-                    est = self._near(grays, track.predict(history))
+                    est = self._near(grays, history[-1] if self._after_cold else track.predict(history))
                 history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
                 if est is None:
                     self.why = None
@@ -230,7 +230,10 @@ class MarkerPose:
             self._history = [*history, est.T][-3:] if est is not None else []
             self._after_cold = after_cold and est is not None
             # Lost: this pair is what the next ones must differ from to be detected again.
-            self._lost = None if est is not None else (now or [track.blocks(g, c["lost_block"]) for g in grays], 0)
+            if est is not None or not c["lost_change"]:
+                self._lost = None
+            else:
+                self._lost = (now or [track.blocks(g, c["lost_block"]) for g in grays], 0)
             return est
         finally:
             self.timings["total"] = time.perf_counter() - t0
@@ -275,7 +278,8 @@ class MarkerPose:
                 if f is None:
                     self._failed(f"stage 1 decoded no triple in the {view} view")
             return self._first_accepted(grays, [found] if found[0] is not None and found[1] is not None else [])
-        self._budget()
+        if self._fits_left is None:  # else the frame's budget, of which a near look took a part
+            self._budget()
         cand = None
         for zoom in self.proposer.looks():
             cand = self._timed("propose", self.proposer.candidates, grays, zoom, cand)
@@ -300,9 +304,15 @@ class MarkerPose:
 
     def _near(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
         """A cold detection whose stage 1 sees, in each view, only a window around where the
-        prior predicted the marker (``track.near_margin`` of the predicted marker's extent
-        beyond it on each side); None where that finds nothing or the window would hold
-        most of the image (the whole-image detection is then no dearer)."""
+        prior put the marker (pose ``T_pred``; ``track.near_margin`` of the predicted
+        marker's extent beyond it on each side), refining its best hypothesis only.
+
+        It starts the frame's work budget (:meth:`_budget`), which the whole-image detection
+        after it continues, so that a frame costs no more than :meth:`estimate` allows.
+        None where it finds nothing, and without a look where it cannot help: the classical
+        detector or a stage 1 that decodes one triple per view, ``near_margin`` 0, the
+        predicted marker outside a view, or a window of three quarters of the input's
+        height or more (the whole images are then hardly dearer)."""
         margin = self.conf["track"]["near_margin"]
         if self.proposer is None or self.ids != "stereo" or not margin:
             return None
@@ -324,8 +334,13 @@ class MarkerPose:
         if 2 * half >= 0.75 * min(w, h):
             return None
         self._budget()
-        cand = self._timed("propose", self.proposer.near, grays, centres, half)
-        return self._from_candidates(grays, cand, 1.0)
+        left = self._fits_left
+        self._fits_left = min(left, 1)
+        try:
+            cand = self._timed("propose", self.proposer.near, grays, centres, half)
+            return self._from_candidates(grays, cand, 1.0)
+        finally:
+            self._fits_left = left - (min(left, 1) - self._fits_left)
 
     def _classical(self, grays: list) -> Estimate | None:
         """Paper §3.4: each view's ring triples, paired by the epipolar constraint, refined."""

@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 from markerpose import geometry as geo
-from markerpose import Marker, StereoRig
+from markerpose import Marker, MarkerPose, StereoRig
 from markerpose import blurfit
 from markerpose import classical as C
 from markerpose import synth
+from markerpose.nets import default_weights
 
 RHO = Marker().inner_diameter / Marker().outer_diameter
 
@@ -256,6 +257,20 @@ def test_wide_edges_the_blur_fit_may_not_check_refine_no_ring(blurred_view):
     budget = C.FitBudget(1)  # one fit left: it runs, and refines the rings
     _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_budget": budget})
     assert ok.all() and budget.left == 0
+
+
+@pytest.mark.skipif(not default_weights("keypoints").is_file(), reason="no shipped weights")
+def test_a_detection_without_blur_fits_left_gives_no_pose_under_heavy_blur():
+    # The same 25 px-blurred pair: found with the default budget of blurred-ring fits;
+    # with none left, its wide edges are not trusted, and no pose comes back (with why).
+    rig = StereoRig.default()
+    T = synth.look_at_pose([10, -10, 720], 35, 60, 30)
+    frame = synth.render_stereo(rig, T, imaging=synth.Imaging(alpha=0.6, motion_blur=25, motion_angle=70), seed=3)
+    est = MarkerPose(rig).estimate(*frame.images)
+    assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.05 and min(d.blur_px for d in est.detections) > 20
+    tracker = MarkerPose(rig, refine={"max_blur_fits": 0})
+    assert tracker.estimate(*frame.images) is None
+    assert "not refined" in tracker.why and "could not run" in tracker.why
 
 
 def test_a_seed_without_edges_that_goes_astray_keeps_the_edge_fit(blurred_view, monkeypatch):

@@ -48,7 +48,8 @@ def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -
         for det, view in zip(found, VIEWS):
             if not det.refined.all():
                 rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-                return f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or the blurred-ring fit disagreed with it)"
+                return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
+                        "blurred-ring fit disagreed with it or could not run)")
     # The IDs give the correspondences; the epipolar constraint checks them.
     d = np.diag(epipolar_distance(rig, found[0].centers, found[1].centers))
     both = found[0].refined & found[1].refined
@@ -72,9 +73,12 @@ def plate_rejection(det: Detection, camera, marker: Marker, tol: float, view: st
         return f"the {view} view's rings could not be refined"
     if plate_poses(det, camera, marker, tol):
         return None
-    if not det.refined.all() or det.ellipses is None:
+    if not det.refined.all():
         rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-        return f"the sub-pixel edge fit failed on {rings or 'every ring'} in the {view} view"
+        return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
+                "blurred-ring fit disagreed with it or could not run)")
+    if det.ellipses is None:
+        return f"the {view} view's rings have no fitted ellipses to check"
     poses = view_poses(camera, det.centers, det.ellipses, marker.points3d, marker.outer_radius)
     misfit = f"{poses[0][0]:.3f}" if poses else "no pose"
     return f"plate check: the {view} view's rings fit no pose of the marker (misfit {misfit}, limit {tol:g})"
