@@ -110,7 +110,7 @@ def read_image(path) -> np.ndarray:
 def cmd_estimate(args):
     from .pipeline import MarkerPose
 
-    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
+    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector, **_overrides(args.settings))
     images = [read_image(p) for p in (args.left, args.right)]
     est = tracker.estimate(*images)
     if est is None:
@@ -180,7 +180,7 @@ def cmd_track(args):
     from .pipeline import MarkerPose
     from .video import IGTLSender, ShowSink, VideoSink, open_stereo, track_stream
 
-    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector)
+    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector, **_overrides(args.settings))
     stream = open_stereo(args.left, args.right, args.fps)
     sinks = []
     try:
@@ -422,6 +422,42 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _setting(text: str) -> tuple[str, str | None, object]:
+    """``STAGE.KEY=VALUE`` (or ``KEY=VALUE`` for ``threads`` / ``backend``) → (stage or
+    key, key or None, value); the value is read as JSON (numbers, true, false, null,
+    lists), anything else as a string."""
+    import json
+
+    name, sep, raw = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected STAGE.KEY=VALUE (e.g. track.lost_change=0), got {text!r}")
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        value = raw
+    stage, dot, key = name.partition(".")
+    return (stage, key, value) if dot else (stage, None, value)
+
+
+def _overrides(settings: list | None) -> dict:
+    """--set settings → MarkerPose's overrides: one dict per stage, and top-level keys."""
+    out: dict = {}
+    for stage, key, value in settings or ():
+        if key is None:
+            out[stage] = value
+        else:
+            if not isinstance(out.setdefault(stage, {}), dict):
+                raise ValueError(f"--set {stage}.{key}: {stage} is not a stage with settings")
+            out[stage][key] = value
+    return out
+
+
+def _add_set_arg(p) -> None:
+    p.add_argument("--set", dest="settings", action="append", type=_setting, metavar="STAGE.KEY=VALUE",
+                   help="a stage setting over the preset (README: configuration), e.g. track.lost_change=0 or "
+                        "match.max_fits=5; repeatable")
+
+
 def _pixel(text: str) -> tuple[float, float]:
     try:
         u, v = (float(x) for x in text.split(","))
@@ -547,6 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
     e.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
     e.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")
+    _add_set_arg(e)
     _add_marker_args(e)
     e.set_defaults(func=cmd_estimate)
 
@@ -586,6 +623,7 @@ def build_parser() -> argparse.ArgumentParser:
     k.add_argument("--igtl-name", default="MarkerToTracker", help="the TRANSFORM's device name (default MarkerToTracker)")
     k.add_argument("--igtl-public", action="store_true", help="listen on the network interface, not only on 127.0.0.1")
     k.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_set_arg(k)
     _add_marker_args(k)
     k.set_defaults(func=cmd_track)
 

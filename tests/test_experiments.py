@@ -169,6 +169,17 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     assert out["found"] and np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 0.05  # mm
     np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)  # the rigid fit by default
     assert 0 < out["residual_px"] < 0.1
+    # --set: a stage setting over the preset; the paper's pose construction is not orthonormal.
+    pair = [str(tmp_path / "left.png"), str(tmp_path / "right.png")]
+    assert cli.main(["estimate", *pair, "--set", "solve.pose=paper", "--set", "match.max_fits=5", "--set", "threads=1"]) == 0
+    R = np.array(json.loads(capsys.readouterr().out)["T_left_marker"])[:3, :3]
+    assert np.abs(R @ R.T - np.eye(3)).max() > 1e-9
+    assert cli.main(["estimate", *pair, "--set", "track.nope=1"]) == 2
+    err = capsys.readouterr().err
+    assert "nope" in err and err.count("\n") == 1
+    with pytest.raises(SystemExit):
+        cli.main(["estimate", *pair, "--set", "lost_change"])
+    assert "STAGE.KEY=VALUE" in capsys.readouterr().err
     # User errors: one line on stderr, exit 2; "not found" is exit 1 with {"found": false}.
     capsys.readouterr()
     assert cli.main(["estimate", str(tmp_path / "missing.png"), str(tmp_path / "right.png")]) == 2
