@@ -330,6 +330,19 @@ def cmd_eval_pipeline(args):
     print(endtoend.report(res))
 
 
+def cmd_eval_blur_distance(args):
+    from .experiments import blurdistance
+
+    conf = {"pairs": args.pairs}
+    if args.lengths:
+        conf["lengths"] = tuple(args.lengths)
+    if args.configs:
+        conf["configs"] = tuple(args.configs)
+    res = blurdistance.main(conf, args.out, progress=not args.quiet)
+    print(blurdistance.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json, blur-distance.png")
+
+
 def cmd_eval_keypoints(args):
     from .train import keypoints as tk
 
@@ -743,6 +756,13 @@ def build_parser() -> argparse.ArgumentParser:
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pipeline)
+    eb = esub.add_parser("blur-distance", help="the distance c0-c1 under motion blur along it, per blur length and configuration")
+    eb.add_argument("--pairs", type=_positive_int, default=40, help="poses, each rendered at every blur length (default 40)")
+    eb.add_argument("--lengths", type=float, nargs="+", help="blur lengths, px (default 0 5 9 13 17 21 25)")
+    eb.add_argument("--configs", nargs="*", help="preset names (default: default paper)")
+    eb.add_argument("--out", default="markerpose-blur-distance", help="output folder: report.md, results.json, blur-distance.png")
+    eb.add_argument("--quiet", action="store_true")
+    eb.set_defaults(func=cmd_eval_blur_distance)
     return p
 
 

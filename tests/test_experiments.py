@@ -292,3 +292,23 @@ def test_sequence_methods_take_turns_in_blocks(monkeypatch):
         sq.main({"frames": 40, "block": 0}, out_dir=None, progress=False)
     with pytest.raises(ValueError, match="unknown preset"):
         sq.main({"frames": 40, "preset": "no-such"}, out_dir=None, progress=False)
+
+
+def test_blur_distance_c0_c1_under_blur_along_it(tmp_path):
+    from markerpose import StereoRig
+    from markerpose.experiments import blurdistance as bd
+    from markerpose.marker import Marker
+    from markerpose.synth import look_at_pose
+
+    rig, marker = StereoRig.default(), Marker()
+    # The blur's direction is the image direction of c0 -> c1: +x for an unrolled marker.
+    assert abs(bd.along_c0_c1(rig, marker, look_at_pose([0.0, 0.0, 560.0]))[0]) < 1.0
+    res = bd.main({"pairs": 2, "lengths": (0.0, 25.0), "configs": ("classical",)}, tmp_path, progress=False)
+    rows = res["summary"]["classical"]
+    assert [r["length_px"] for r in rows] == [0.0, 25.0] and res["true_mm"] == 25.0
+    # The same poses at both lengths, found, the distance within a few hundredths of a mm.
+    assert all(r["found"] == 1.0 and abs(r["mean_mm"]) < 0.03 for r in rows)
+    assert (tmp_path / "report.md").read_text().startswith("# Distance c0-c1") and (tmp_path / "blur-distance.png").stat().st_size > 0
+    for bad in ({"pairs": 0}, {"lengths": (-1.0,)}, {"lengths": ()}):
+        with pytest.raises(ValueError):
+            bd.main(bad, None, progress=False)
