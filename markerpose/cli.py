@@ -108,9 +108,7 @@ def read_image(path) -> np.ndarray:
 
 
 def cmd_estimate(args):
-    from .pipeline import MarkerPose
-
-    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector, **_overrides(args.settings))
+    tracker = _tracker(args)
     images = [read_image(p) for p in (args.left, args.right)]
     est = tracker.estimate(*images)
     if est is None:
@@ -177,10 +175,9 @@ def cmd_calibrate(args):
 
 
 def cmd_track(args):
-    from .pipeline import MarkerPose
     from .video import IGTLSender, ShowSink, VideoSink, open_stereo, track_stream
 
-    tracker = MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=args.detector, **_overrides(args.settings))
+    tracker = _tracker(args)
     stream = open_stereo(args.left, args.right, args.fps)
     sinks = []
     try:
@@ -435,10 +432,13 @@ def _positive_int(text: str) -> int:
     return n
 
 
+TOP_LEVEL = ("detector", "threads", "backend")  # settings of the whole pipeline, not of a stage
+
+
 def _setting(text: str) -> tuple[str, str | None, object]:
-    """``STAGE.KEY=VALUE`` (or ``KEY=VALUE`` for ``threads`` / ``backend``) → (stage or
-    key, key or None, value); the value is read as JSON (numbers, true, false, null,
-    lists), anything else as a string."""
+    """``STAGE.KEY=VALUE`` (or ``KEY=VALUE`` for ``detector`` / ``threads`` / ``backend``) →
+    (stage or key, key or None, value); the value is read as JSON (numbers, true, false,
+    null, lists), anything else as a string."""
     import json
 
     name, sep, raw = text.partition("=")
@@ -452,23 +452,65 @@ def _setting(text: str) -> tuple[str, str | None, object]:
     return (stage, key, value) if dot else (stage, None, value)
 
 
+def _checked(stage: str, key: str, value, default):
+    """``value`` if it has the type of the setting's ``default``, else ``ValueError``: a
+    switch takes true or false (JSON's; ``False`` would be a string, and true), a number a
+    number, a name a string; a setting whose default is None takes anything."""
+    if default is None:
+        return value
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+        want = "true or false"
+    elif isinstance(default, (int, float)):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+        want = "a finite number"
+    elif isinstance(default, str):
+        ok = isinstance(value, str)
+        want = "a string"
+    else:
+        ok = isinstance(value, list)
+        want = "a list, e.g. [1, 2]"
+    if not ok:
+        raise ValueError(f"--set {stage}.{key}: expected {want}, got {value!r}")
+    return value
+
+
 def _overrides(settings: list | None) -> dict:
-    """--set settings → MarkerPose's overrides: one dict per stage, and top-level keys."""
+    """--set settings → MarkerPose's overrides: one dict per stage, and top-level keys;
+    ``ValueError`` (one line) for an unknown stage or setting, or a value of the wrong type."""
+    from .presets import default_conf
+
     out: dict = {}
     for stage, key, value in settings or ():
-        if key is None:
+        if stage in TOP_LEVEL:
+            if key is not None:
+                raise ValueError(f"--set {stage}.{key}: {stage} takes a value, e.g. --set {stage}=...")
             out[stage] = value
-        else:
-            if not isinstance(out.setdefault(stage, {}), dict):
-                raise ValueError(f"--set {stage}.{key}: {stage} is not a stage with settings")
-            out[stage][key] = value
+            continue
+        if stage not in default_conf:
+            known = [k for k in default_conf if k not in TOP_LEVEL]
+            raise ValueError(f"--set {stage}{'.' + key if key else ''}: unknown stage {stage!r}; stages: {known}")
+        if key is None:
+            raise ValueError(f"--set {stage}: expected {stage}.KEY=VALUE")
+        if key not in default_conf[stage]:
+            raise ValueError(f"--set {stage}.{key}: unknown {stage} setting; known: {sorted(default_conf[stage])}")
+        out.setdefault(stage, {})[key] = _checked(stage, key, value, default_conf[stage][key])
     return out
+
+
+def _tracker(args):
+    """The MarkerPose of a command's --rig, marker, --preset / --detector and --set."""
+    from .pipeline import MarkerPose
+
+    overrides = _overrides(args.settings)
+    detector = overrides.pop("detector", args.detector)
+    return MarkerPose(_rig(args.rig), _marker(args), preset=args.preset, detector=detector, **overrides)
 
 
 def _add_set_arg(p) -> None:
     p.add_argument("--set", dest="settings", action="append", type=_setting, metavar="STAGE.KEY=VALUE",
-                   help="a stage setting over the preset (README: configuration), e.g. track.lost_change=0 or "
-                        "match.max_fits=5; repeatable")
+                   help="a stage setting over the preset (README: stage settings), e.g. track.lost_change=0 or "
+                        "match.max_fits=5; also threads=N, backend=NAME, detector=NAME; repeatable")
 
 
 def _pixel(text: str) -> tuple[float, float]:

@@ -174,12 +174,19 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     assert cli.main(["estimate", *pair, "--set", "solve.pose=paper", "--set", "match.max_fits=5", "--set", "threads=1"]) == 0
     R = np.array(json.loads(capsys.readouterr().out)["T_left_marker"])[:3, :3]
     assert np.abs(R @ R.T - np.eye(3)).max() > 1e-9
-    assert cli.main(["estimate", *pair, "--set", "track.nope=1"]) == 2
-    err = capsys.readouterr().err
-    assert "nope" in err and err.count("\n") == 1
+    assert cli.main(["estimate", *pair, "--set", "detector=classical", "--set", "solve.bias_correction=false"]) == 0
+    assert json.loads(capsys.readouterr().out)["found"]
+    # Wrong settings: a one-line error naming them, exit 2 (a Python-style False would be a
+    # string, and true).
+    for bad, says in ((["track.nope=1"], "unknown track setting"), (["solve.bias_correction=False"], "expected true or false"),
+                      (["match.max_fits=many"], "expected a finite number"), (["track=1"], "expected track.KEY=VALUE"),
+                      (["threads.x=1"], "threads takes a value"), (["stagex.y=1"], "unknown stage 'stagex'")):
+        assert cli.main(["estimate", *pair, *sum((["--set", b] for b in bad), [])]) == 2
+        err = capsys.readouterr().err
+        assert says in err and err.count("\n") == 1, err
     with pytest.raises(SystemExit):
         cli.main(["estimate", *pair, "--set", "lost_change"])
-    assert "STAGE.KEY=VALUE" in capsys.readouterr().err
+    assert "got 'lost_change'" in capsys.readouterr().err
     # User errors: one line on stderr, exit 2; "not found" is exit 1 with {"found": false}.
     capsys.readouterr()
     assert cli.main(["estimate", str(tmp_path / "missing.png"), str(tmp_path / "right.png")]) == 2
@@ -294,21 +301,27 @@ def test_sequence_methods_take_turns_in_blocks(monkeypatch):
         sq.main({"frames": 40, "preset": "no-such"}, out_dir=None, progress=False)
 
 
-def test_blur_distance_c0_c1_under_blur_along_it(tmp_path):
+def test_blur_distance_c0_c1_under_blur_along_it(tmp_path, monkeypatch):
     from markerpose import StereoRig
     from markerpose.experiments import blurdistance as bd
     from markerpose.marker import Marker
     from markerpose.synth import look_at_pose
 
     rig, marker = StereoRig.default(), Marker()
-    # The blur's direction is the image direction of c0 -> c1: +x for an unrolled marker.
-    assert abs(bd.along_c0_c1(rig, marker, look_at_pose([0.0, 0.0, 560.0]))[0]) < 1.0
-    res = bd.main({"pairs": 2, "lengths": (0.0, 25.0), "configs": ("classical",)}, tmp_path, progress=False)
+    # The blur's direction is the image direction of c0 -> c1 (x right, y down): +x for an
+    # unrolled marker, turned by the roll (y up in the marker is y down in the image).
+    assert all(abs(a) < 1.5 for a in bd.along_c0_c1(rig, marker, look_at_pose([0.0, 0.0, 560.0])))
+    assert all(abs(a + 30) < 2 for a in bd.along_c0_c1(rig, marker, look_at_pose([0.0, 0.0, 560.0], roll_deg=30)))
+    poses = []
+    render = bd.render_stereo
+    monkeypatch.setattr(bd, "render_stereo", lambda rig_, T, *a, **k: (poses.append(T), render(rig_, T, *a, **k))[1])
+    res = bd.main({"pairs": 2, "lengths": (0.0, 25.0, 25.0), "configs": ("classical",)}, tmp_path, progress=False)
     rows = res["summary"]["classical"]
-    assert [r["length_px"] for r in rows] == [0.0, 25.0] and res["true_mm"] == 25.0
-    # The same poses at both lengths, found, the distance within a few hundredths of a mm.
-    assert all(r["found"] == 1.0 and abs(r["mean_mm"]) < 0.03 for r in rows)
+    assert [r["length_px"] for r in rows] == [0.0, 25.0] and res["true_mm"] == 25.0  # a repeated length once
+    assert len(poses) == 4 and np.array_equal(poses[0], poses[1]) and np.array_equal(poses[2], poses[3])  # the same poses at both
+    # Found, the distance within a few hundredths of a mm.
+    assert all(r["found"] == 1.0 and abs(r["mean_mm"]) < 0.03 and r["max_abs_mm"] >= r["p95_abs_mm"] for r in rows)
     assert (tmp_path / "report.md").read_text().startswith("# Distance c0-c1") and (tmp_path / "blur-distance.png").stat().st_size > 0
-    for bad in ({"pairs": 0}, {"lengths": (-1.0,)}, {"lengths": ()}):
+    for bad in ({"pairs": 0}, {"lengths": (-1.0,)}, {"lengths": ()}, {"lengths": (0.5,)}, {"lengths": (float("inf"),)}, {"lengths": (float("nan"),)}):
         with pytest.raises(ValueError):
             bd.main(bad, None, progress=False)
