@@ -456,20 +456,15 @@ def _checked(stage: str, key: str, value, default):
     """``value`` if it has the type of the setting's ``default``, else ``ValueError``: a
     switch takes true or false (JSON's; ``False`` would be a string, and true), a number a
     number, a name a string; a setting whose default is None takes anything."""
-    if default is None:
-        return value
     if isinstance(default, bool):
-        ok = isinstance(value, bool)
-        want = "true or false"
+        ok, want = isinstance(value, bool), "true or false"
     elif isinstance(default, (int, float)):
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
         want = "a finite number"
     elif isinstance(default, str):
-        ok = isinstance(value, str)
-        want = "a string"
-    else:
-        ok = isinstance(value, list)
-        want = "a list, e.g. [1, 2]"
+        ok, want = isinstance(value, str), "a string"
+    else:  # None: a weights file, a budget, ...
+        return value
     if not ok:
         raise ValueError(f"--set {stage}.{key}: expected {want}, got {value!r}")
     return value

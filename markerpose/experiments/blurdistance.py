@@ -67,21 +67,17 @@ def _poses(conf: dict) -> list[np.ndarray]:
 
 def along_c0_c1(rig: StereoRig, marker: Marker, T_left_marker: np.ndarray) -> list[float]:
     """Per view, the image direction of c0 -> c1 (degrees, image axes: x right, y down)."""
-    out = []
-    for cam, T in zip(rig.cameras, (T_left_marker, rig.T_right_left @ T_left_marker)):
-        p = cam.project(marker.points3d[:2] @ T[:3, :3].T + T[:3, 3])
-        d = p[1] - p[0]
-        out.append(float(np.degrees(np.arctan2(d[1], d[0]))))
-    return out
+    T = T_left_marker
+    p = rig.project(marker.points3d[:2] @ T[:3, :3].T + T[:3, 3])  # (view, c0/c1, xy)
+    d = p[:, 1] - p[:, 0]
+    return [float(a) for a in np.degrees(np.arctan2(d[:, 1], d[:, 0]))]
 
 
 def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: bool = True) -> dict:
     """Render, estimate, summarise; with ``out_dir``, write the report, JSON and plot."""
     c = check_conf({**default_conf, **(conf or {})})
     rig, marker = StereoRig.default(), Marker()
-    names = available(c["configs"])
-    if not names:
-        raise ValueError(f"none of the configurations {list(c['configs'])} can run here (their networks or runtime are missing)")
+    names = available(c["configs"], require=True)
     out = None
     if out_dir is not None:  # before the work: a path that cannot be a folder fails now
         out = Path(out_dir)

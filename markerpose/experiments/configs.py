@@ -10,9 +10,10 @@ from ..presets import ORDER, PRESETS, is_neural
 DEFAULT = "default"
 
 
-def available(names=None) -> list[str]:
+def available(names=None, require: bool = False) -> list[str]:
     """Preset names, in report order, whose networks are present and can run here (all by
-    default, or those in ``names``); ``ValueError`` for an unknown name."""
+    default, or those in ``names``); ``ValueError`` for an unknown name, and with
+    ``require`` when none can run (before an experiment's work)."""
     unknown = [n for n in (names or ()) if n not in PRESETS]
     if unknown:
         raise ValueError(f"unknown preset(s) {unknown}; known: {list(ORDER)}")
@@ -25,7 +26,10 @@ def available(names=None) -> list[str]:
             return have_backend(backend) and int8_weights("keypoints").is_file()
         return backend == "onnxruntime" or (have_backend(backend) and default_weights("keypoints").suffix == ".onnx")
 
-    return [n for n in ORDER if (names is None or n in names) and (not is_neural(n) or (nets and runs(n)))]
+    out = [n for n in ORDER if (names is None or n in names) and (not is_neural(n) or (nets and runs(n)))]
+    if require and not out:
+        raise ValueError(f"none of the presets {list(names or ORDER)} can run here (their networks or runtime are missing)")
+    return out
 
 
 __all__ = ["DEFAULT", "available"]

@@ -315,9 +315,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-experiments
         raise ValueError(f"trials and pairs must be >= 1, got {c['trials']} and {c['pairs']}")
     t0 = time.perf_counter()
     rig, marker = StereoRig.default(), Marker()
-    configs = available(c["configs"])
-    if not configs:
-        raise ValueError(f"none of the presets {c['configs']} can run here (missing weights or torch)")
+    configs = available(c["configs"], require=True)
     trackers = {name: MarkerPose(rig, marker, preset=name) for name in configs}
     robot = robot_trials(c, rig, marker, trackers, progress)
     lv = levels(c, rig, marker, trackers, progress)

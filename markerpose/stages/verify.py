@@ -37,6 +37,13 @@ def plate_poses(det: Detection | None, camera, marker: Marker, tol: float) -> li
 VIEWS = ("left", "right")
 
 
+def _unrefined_reason(det: Detection, view: str) -> str:
+    """Why a view's detection has rings that do not count as refined."""
+    rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
+    return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
+            "blurred-ring fit disagreed with it or could not run)")
+
+
 def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> str | None:
     """Why refined detections of both views may not give a pose, or None when they may:
     every centre refined (when ``all_refined``), same-ID centres on each other's
@@ -47,9 +54,7 @@ def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -
     if all_refined:
         for det, view in zip(found, VIEWS):
             if not det.refined.all():
-                rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-                return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
-                        "blurred-ring fit disagreed with it or could not run)")
+                return _unrefined_reason(det, view)
     # The IDs give the correspondences; the epipolar constraint checks them.
     d = np.diag(epipolar_distance(rig, found[0].centers, found[1].centers))
     both = found[0].refined & found[1].refined
@@ -74,9 +79,7 @@ def plate_rejection(det: Detection, camera, marker: Marker, tol: float, view: st
     if plate_poses(det, camera, marker, tol):
         return None
     if not det.refined.all():
-        rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-        return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
-                "blurred-ring fit disagreed with it or could not run)")
+        return _unrefined_reason(det, view)
     if det.ellipses is None:
         return f"the {view} view's rings have no fitted ellipses to check"
     poses = view_poses(camera, det.centers, det.ellipses, marker.points3d, marker.outer_radius)
