@@ -11,6 +11,8 @@ views (:mod:`markerpose.stages.match`). Pure numpy/OpenCV: no torch here.
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 
@@ -78,10 +80,21 @@ def score_map(det_logits: np.ndarray) -> np.ndarray:
 
 
 def score_maps(det_logits: np.ndarray) -> np.ndarray:
-    """:func:`score_map` of a batch: (B, 65, Hc, Wc) logits → (B, 8 Hc, 8 Wc)."""
-    p = _softmax(np.asarray(det_logits, np.float64), 1)[:, :-1]  # drop the "no centre" channel
+    """:func:`score_map` of a batch: (B, 65, Hc, Wc) logits → (B, 8 Hc, 8 Wc), float32."""
+    # In place and in float32, the precision the network and NMS work in: the exponential
+    # of every cell's 65 logits is most of the decoding's time.
+    p = np.array(det_logits, np.float32)
+    p -= p.max(axis=1, keepdims=True)
+    np.exp(p, out=p)
+    p /= p.sum(axis=1, keepdims=True)
+    p = p[:, :-1]  # drop the "no centre" channel
     b, _, hc, wc = p.shape
     return p.reshape(b, CELL, CELL, hc, wc).transpose(0, 3, 1, 4, 2).reshape(b, hc * CELL, wc * CELL)
+
+
+@functools.lru_cache(maxsize=8)
+def _square(size: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
 
 
 def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray:
@@ -91,15 +104,17 @@ def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray
         (N, 3) rows (x, y, score), N <= k.
     """
     size = 2 * radius + 1
-    scores = scores.astype(np.float32)  # compare like with like: dilate works in float32
-    dil = cv2.dilate(scores, cv2.getStructuringElement(cv2.MORPH_RECT, (size, size)))
+    scores = np.asarray(scores, np.float32)  # compare like with like: dilate works in float32
+    dil = cv2.dilate(scores, _square(size))
     ys, xs = np.nonzero((scores >= dil) & (scores >= threshold))
     s = scores[ys, xs]
     order = np.argsort(-s)
     kept: list[tuple[float, float, float]] = []
-    for j in order:  # plateaus: drop maxima within the radius of a better one
-        if all((xs[j] - x) ** 2 + (ys[j] - y) ** 2 > radius**2 for x, y, _ in kept):
-            kept.append((float(xs[j]), float(ys[j]), float(s[j])))
+    r2 = radius**2
+    # Python numbers, not numpy scalars: the loop below is most of the time otherwise.
+    for x0, y0, s0 in zip(xs[order].tolist(), ys[order].tolist(), s[order].tolist()):
+        if all((x0 - x) ** 2 + (y0 - y) ** 2 > r2 for x, y, _ in kept):  # plateaus: drop maxima near a better one
+            kept.append((float(x0), float(y0), s0))
         if len(kept) == k:
             break
     return np.array(kept, np.float64).reshape(-1, 3)
@@ -110,11 +125,12 @@ def _refine(scores: np.ndarray, cand: np.ndarray) -> np.ndarray:
     map): a fraction of a pixel better than the peak."""
     if not len(cand):
         return cand
-    pad = np.pad(scores, 1)  # zeros outside the map weigh nothing
     d = np.arange(-1, 2)
     ys = cand[:, 1].astype(int)[:, None, None] + d[None, :, None]
     xs = cand[:, 0].astype(int)[:, None, None] + d[None, None, :]
-    s = pad[ys + 1, xs + 1]
+    h, w = scores.shape
+    inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)  # outside the map weighs nothing
+    s = np.where(inside, scores[ys.clip(0, h - 1), xs.clip(0, w - 1)], 0.0)
     total = s.sum((1, 2))
     out = cand.copy()
     out[:, 0] = (s * xs).sum((1, 2)) / total

@@ -31,6 +31,7 @@ INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
 PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
 PAPER_HEAD = 256
 _MARKER = Marker()  # the default marker
+_UNIT = np.arange(256, dtype=np.float32) / 255.0  # uint8 grey level -> the network's [0, 1]
 
 
 def layer_widths(width: float = 1.0, stem_width: float | None = None) -> tuple[tuple[int, ...], int]:
@@ -90,6 +91,8 @@ def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]
     """
     w, h = size
     small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+    if small.dtype == np.uint8:  # a table lookup: the same values as dividing, several times faster
+        return cv2.LUT(small, _UNIT), np.array([gray.shape[1] / w, gray.shape[0] / h])
     return small.astype(np.float32) / 255.0, np.array([gray.shape[1] / w, gray.shape[0] / h])
 
 
