@@ -13,7 +13,10 @@ The stages live in :mod:`markerpose.stages`; this class only runs them in order.
 
 from __future__ import annotations
 
+import functools
+import threading
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -28,6 +31,54 @@ from .stages import match, propose, refine, solve, track, verify
 from .stages.match import best_per_set, layout_orders, stereo_triples, transfer, transfer_sources
 
 MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
+
+
+class _SerialBlas:
+    """numpy's BLAS on one thread while any tracker handles a frame, as it was outside.
+
+    The pipeline's products are small (at most a few thousand pixels by a few dozen
+    parameters) and gain nothing from more threads, while OpenBLAS's idle threads
+    busy-wait for a while after each product and take the cores that the networks'
+    runtime needs next. Counted across threads: the first frame in sets one thread, the
+    last one out puts back what was there."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._inside = 0
+        self._pools = None  # threadpoolctl's BLAS pools, found when first needed
+        self._limit = None
+
+    @contextmanager
+    def __call__(self):
+        with self._lock:
+            if self._inside == 0:
+                if self._pools is None:
+                    from threadpoolctl import ThreadpoolController
+
+                    self._pools = ThreadpoolController().select(user_api="blas")
+                self._limit = self._pools.limit(limits=1)
+            self._inside += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._inside -= 1
+                if self._inside == 0:
+                    self._limit.restore_original_limits()
+                    self._limit = None
+
+
+serial_blas = _SerialBlas()
+
+
+def _blas_serial(method):
+    """The method run with numpy's BLAS on one thread (:class:`_SerialBlas`)."""
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with serial_blas():
+            return method(self, *args, **kwargs)
+
+    return run
 
 
 class MarkerPose:
@@ -95,6 +146,7 @@ class MarkerPose:
         self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t
         return out
 
+    @_blas_serial
     def detect(self, image, view: int = 0) -> Detection | None:
         """Ring centres c0, c1, c2 in one view (the fitted outer ellipses' centres), or None.
 
@@ -164,6 +216,7 @@ class MarkerPose:
         check_size(gr, self.rig.right, "right image")
         return [gl, gr]
 
+    @_blas_serial
     def estimate(self, left, right) -> Estimate | None:
         """Pose of the marker from a stereo pair, or None if it is not found in both views.
         Stateless: every pair is detected from scratch (see :meth:`track` for video).
@@ -182,6 +235,7 @@ class MarkerPose:
         finally:
             self.timings["total"] = time.perf_counter() - t0
 
+    @_blas_serial
     def track(self, left, right) -> Estimate | None:
         """Pose of the marker in the next pair of a video stream, or None.
 

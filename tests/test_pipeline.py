@@ -249,3 +249,42 @@ def test_inconsistent_pair_costs_a_bounded_amount_of_work(rig, frame, swap, monk
     calls.update(fits=0, blur=0)
     assert unbounded.estimate(*((right, left) if swap else (left, left))) is None
     assert calls["fits"] > tracker.conf["match"]["max_fits"]  # the budget is what bounds it
+
+
+def _blas_threads() -> list:
+    from threadpoolctl import ThreadpoolController
+
+    return [p["num_threads"] for p in ThreadpoolController().select(user_api="blas").info()]
+
+
+def test_blas_runs_on_one_thread_inside_a_call_only(rig, frame, monkeypatch):
+    from threadpoolctl import threadpool_limits
+
+    if not _blas_threads():
+        pytest.skip("numpy's BLAS is not one threadpoolctl can see")
+    tracker = mp.MarkerPose(rig)
+    inside = []
+    cold = tracker._cold
+    monkeypatch.setattr(tracker, "_cold", lambda grays: (inside.append(_blas_threads()), cold(grays))[1])
+    with threadpool_limits(limits=2, user_api="blas"):
+        est = tracker.estimate(*frame.images)
+        assert est is not None and inside and all(n == 1 for n in inside[0])
+        assert all(n == 2 for n in _blas_threads())  # put back after the call
+
+
+def test_serial_blas_is_counted_across_overlapping_calls():
+    from threadpoolctl import threadpool_limits
+
+    from markerpose.pipeline import _SerialBlas
+
+    if not _blas_threads():
+        pytest.skip("numpy's BLAS is not one threadpoolctl can see")
+    serial = _SerialBlas()
+    with threadpool_limits(limits=2, user_api="blas"):
+        outer = serial()
+        outer.__enter__()
+        with serial():  # a second tracker's frame (another thread) starts and ends meanwhile
+            assert all(n == 1 for n in _blas_threads())
+        assert all(n == 1 for n in _blas_threads())  # the first one is still running
+        outer.__exit__(None, None, None)
+        assert all(n == 2 for n in _blas_threads())
