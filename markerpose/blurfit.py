@@ -44,6 +44,8 @@ default_conf: dict = {
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
     "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
+    "grid_search": "axes",  # "axes": every direction at the middle length, then every length
+    #                        at the best direction; "full": every (direction, length) pair
     "stride": 3,  # the fit uses every stride-th pixel in x and y, each the mean of the
     #               block of this size around it (odd: one more when even), so that every
     #               pixel's noise is averaged in at a ninth of the model evaluations ...
@@ -400,15 +402,23 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     # sparse pixel grid.
     if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=c["grid_stride"]):
         return None
-    best = None
-    for th in np.arange(c["grid_angles"]) * np.pi / c["grid_angles"]:
-        for L in c["grid_lengths"]:
-            p = base.copy()
-            p[-3], p[-2] = th, np.log(L)
-            r = prob.residual(p)
-            cost = float(r @ r)
-            if best is None or cost < best[0]:
-                best = (cost, p)
+
+    def cost(th, L):
+        p = base.copy()
+        p[-3], p[-2] = th, np.log(L)
+        r = prob.residual(p)
+        return float(r @ r), p
+
+    angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
+    if c["grid_search"] == "full":
+        best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
+    elif c["grid_search"] == "axes":
+        # The direction shows at any length near the true one; the length then at that direction.
+        middle = lengths[len(lengths) // 2]
+        best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
+        best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
+    else:
+        raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
     p0 = best[1]
     if np.exp(p0[-2]) < c["min_length"]:
         return None

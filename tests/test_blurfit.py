@@ -112,6 +112,26 @@ def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
     assert err.max() < 0.1, err
 
 
+def test_the_search_along_the_axes_agrees_with_the_full_grid(blurred_view, monkeypatch):
+    rig, img, truth = blurred_view
+    gray = C.to_gray(img)
+    start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
+    looked = []
+    residual = blurfit._Problem.residual
+    monkeypatch.setattr(blurfit._Problem, "residual", lambda self, p, keep=False: (looked.append(keep), residual(self, p, keep))[1])
+    fits = {}
+    for search in ("full", "axes"):
+        looked.clear()
+        fits[search] = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf={"grid_search": search})
+        fits[search + " grid"] = looked.index(True) - 1  # the grid's costs come before the first step's trial
+    assert fits["full grid"] == 8 * 3 and fits["axes grid"] == 8 + 2
+    a, b = (np.array([c for c, _ in fits[k]["cqs"]]) for k in ("full", "axes"))
+    assert np.abs(a - b).max() < 0.01
+    assert fits["axes"]["length"] == pytest.approx(fits["full"]["length"], abs=0.05)
+    with pytest.raises(ValueError, match="grid_search"):
+        blurfit.fit_blurred_rings(gray, start, RHO, 2.0, conf={"grid_search": "random"})
+
+
 def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view):
     """evaluate() forms H and g without the variable-projection Jacobian Jr: they equal
     Jr^T W Jr and Jr^T W r computed from Jr itself, under arbitrary robust weights."""
