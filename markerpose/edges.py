@@ -635,17 +635,13 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
     K, N = mask.shape
     m, s, mu = np.empty((K, 2)), np.empty(K), np.empty((K, len(_MOMENTS)))
     w = np.ones((K, N)) if weights is None else np.ascontiguousarray(weights, np.float64)
-    _scatter(np.ascontiguousarray(P, np.float64), w, np.ascontiguousarray(mask), m, s, mu)
+    mask = np.ascontiguousarray(mask)
+    _scatter(np.ascontiguousarray(P, np.float64), w, mask, m, s, mu)
     valid = (mask.sum(1) >= 6) & (s > 0)
-    s1 = np.where(valid, s, 1.0)  # the points normalised by it: well-conditioned scatter matrices
-    rows = np.arange(K)[:, None, None]
-    S1, S2, S3 = mu[rows, _S1], mu[rows, _S2], mu[rows, _S3]
-    S3[~valid] = np.eye(3)
-    T, ok = _solve(S3, -S2.transpose(0, 2, 1))
-    valid &= ok
-    M = S1 + S2 @ T
-    M = np.stack([M[:, 2] / 2, -M[:, 1], M[:, 0] / 2], axis=1)
-    M[~valid] = np.eye(3)
+    M, T = np.empty((K, 3, 3)), np.empty((K, 3, 3))
+    _reduced_scatter(mu, _S1, _S2, _S3, valid, M, T)
+    # The 3 x 3 eigenproblem stays with numpy: numba's eig refuses matrices whose
+    # eigenvalues turn out complex (a fit that is no ellipse), numpy returns them.
     try:
         _, V = np.linalg.eig(M)
     except np.linalg.LinAlgError:
@@ -655,28 +651,111 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
                 V[k] = np.real(np.linalg.eig(M[k])[1])
             except np.linalg.LinAlgError:
                 valid[k] = False
-    V = np.real(V)
-    cond = 4 * V[:, 0] * V[:, 2] - V[:, 1] ** 2  # (K, 3): per eigenvector
-    pos = cond > 0
-    valid &= pos.any(1)
-    a1 = np.take_along_axis(V, np.argmax(pos, axis=1)[:, None, None], 2)[..., 0]  # the first with cond > 0
-    A, B, C = a1.T
-    Dd, E, F = np.einsum("kij,kj->ki", T, a1).T
-    A2 = np.stack([np.stack([A, B / 2], 1), np.stack([B / 2, C], 1)], 1)
-    b2 = np.stack([Dd / 2, E / 2], 1)
-    A2s = A2.copy()
-    A2s[~valid] = np.eye(2)
-    uc, ok = _solve(A2s, -b2[..., None])
-    uc = uc[..., 0]
-    valid &= ok
-    fc = F + np.einsum("ki,ki->k", b2, uc)
-    valid &= fc != 0
-    Qu = A2 / np.where(fc != 0, -fc, 1.0)[:, None, None]
-    finite = np.isfinite(Qu).all((1, 2))
-    valid &= finite
-    Qs = np.where(finite[:, None, None], Qu, np.eye(2))
-    valid &= np.linalg.eigvalsh(Qs)[:, 0] > 0
-    return m + s1[:, None] * uc, Qu / (s1**2)[:, None, None], valid
+    cen, Q = np.empty((K, 2)), np.empty((K, 2, 2))
+    _ellipse_from_conic(np.ascontiguousarray(np.real(V)), T, m, s, valid, cen, Q)
+    return cen, Q, valid
+
+
+@compiled
+def _lu_solve(A, B):  # pragma: no cover - compiled
+    """X with A X = B for a small square A (Gaussian elimination with partial pivoting,
+    as LAPACK's gesv) and whether A was regular (an exactly zero pivot: not)."""
+    n = A.shape[0]
+    A, X = A.copy(), B.copy()
+    for j in range(n):
+        p = j
+        for i in range(j + 1, n):
+            if abs(A[i, j]) > abs(A[p, j]):
+                p = i
+        if A[p, j] == 0.0:
+            return X, False
+        if p != j:
+            for c in range(n):
+                A[j, c], A[p, c] = A[p, c], A[j, c]
+            for c in range(X.shape[1]):
+                X[j, c], X[p, c] = X[p, c], X[j, c]
+        for i in range(j + 1, n):
+            f = A[i, j] / A[j, j]
+            for c in range(j, n):
+                A[i, c] -= f * A[j, c]
+            for c in range(X.shape[1]):
+                X[i, c] -= f * X[j, c]
+    for j in range(n - 1, -1, -1):
+        for c in range(X.shape[1]):
+            acc = X[j, c]
+            for i in range(j + 1, n):
+                acc -= A[j, i] * X[i, c]
+            X[j, c] = acc / A[j, j]
+    return X, True
+
+
+@compiled
+def _reduced_scatter(mu, S1i, S2i, S3i, valid, M, T):  # pragma: no cover - compiled
+    """Per fit k, from the moments mu[k]: T[k] = -S3^-1 S2^T and the reduced scatter
+    matrix M[k] = C1^-1 (S1 + S2 T) (Halir-Flusser) whose eigenvector is the conic's
+    quadratic part; valid[k] is cleared where S3 is singular (M[k] then the identity)."""
+    S1, S2, S3 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    for k in range(mu.shape[0]):
+        M[k] = 0.0
+        T[k] = 0.0
+        for a in range(3):
+            M[k, a, a] = 1.0
+        if not valid[k]:
+            continue
+        for a in range(3):
+            for b in range(3):
+                S1[a, b], S2[a, b], S3[a, b] = mu[k, S1i[a, b]], mu[k, S2i[a, b]], mu[k, S3i[a, b]]
+        Tk, ok = _lu_solve(S3, -S2.T.copy())
+        if not ok:
+            valid[k] = False
+            continue
+        T[k] = Tk
+        R = S1 + S2 @ Tk
+        for b in range(3):
+            M[k, 0, b], M[k, 1, b], M[k, 2, b] = R[2, b] / 2, -R[1, b], R[0, b] / 2
+
+
+@compiled
+def _ellipse_from_conic(V, T, m, s, valid, cen, Q):  # pragma: no cover - compiled
+    """Per fit k: the eigenvector of V[k] that is an ellipse (4 a c - b^2 > 0, the first
+    such) completed by T[k] to the conic, its centre and form Q (x - c)^T Q (x - c) = 1,
+    mapped back from the points' normalisation (m[k], s[k]); valid[k] cleared where none
+    is an ellipse or the conic is degenerate (cen, Q then 0 and the identity)."""
+    for k in range(V.shape[0]):
+        cen[k] = 0.0
+        Q[k, 0, 0], Q[k, 0, 1], Q[k, 1, 0], Q[k, 1, 1] = 1.0, 0.0, 0.0, 1.0
+        if not valid[k]:
+            continue
+        j = -1
+        for e in range(3):
+            if 4 * V[k, 0, e] * V[k, 2, e] - V[k, 1, e] ** 2 > 0:
+                j = e
+                break
+        if j < 0:
+            valid[k] = False
+            continue
+        A, B, C = V[k, 0, j], V[k, 1, j], V[k, 2, j]
+        D = T[k, 0, 0] * A + T[k, 0, 1] * B + T[k, 0, 2] * C
+        E = T[k, 1, 0] * A + T[k, 1, 1] * B + T[k, 1, 2] * C
+        F = T[k, 2, 0] * A + T[k, 2, 1] * B + T[k, 2, 2] * C
+        A2 = np.array([[A, B / 2], [B / 2, C]])
+        b2 = np.array([[-D / 2], [-E / 2]])
+        uc, ok = _lu_solve(A2, b2)
+        if not ok:
+            valid[k] = False
+            continue
+        fc = F + (D / 2) * uc[0, 0] + (E / 2) * uc[1, 0]
+        if fc == 0:
+            valid[k] = False
+            continue
+        q00, q01, q11 = A / -fc, (B / 2) / -fc, C / -fc
+        if not (np.isfinite(q00) and np.isfinite(q01) and np.isfinite(q11)) or not (q00 > 0 and q00 * q11 - q01 * q01 > 0):
+            valid[k] = False
+            continue
+        sk = s[k]
+        cen[k, 0], cen[k, 1] = m[k, 0] + sk * uc[0, 0], m[k, 1] + sk * uc[1, 0]
+        s2 = sk * sk
+        Q[k, 0, 0], Q[k, 0, 1], Q[k, 1, 0], Q[k, 1, 1] = q00 / s2, q01 / s2, q01 / s2, q11 / s2
 
 
 _SUBSETS: dict = {}  # (n, count) → the fixed random 5-point subsets of n points
@@ -865,6 +944,7 @@ def warm_up() -> None:
     crossings(v, f2, f2, lam, np.full(K, 1 / 3), S, f2)
     integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
+    fit_ellipses(np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None], b2)
     _subset_medians(f2, np.ones((K, N, 5)), np.ones((K, 2, 5)), np.full(K, N, np.intp), np.ones((K, 2), bool), np.zeros((K, 2)))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))

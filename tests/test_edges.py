@@ -46,6 +46,23 @@ def test_fit_ellipses_batch_matches_single_fits():
         assert np.linalg.norm(cen[k] - truth[k]) < 0.1
 
 
+def test_fit_ellipses_is_exact_on_an_ellipse_and_refuses_degenerate_points():
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    c, a, b, th = np.array([412.3, 287.9]), 55.0, 21.0, 0.7
+    R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    ellipse = c + (R @ np.stack([a * np.cos(t), b * np.sin(t)])).T
+    line = np.stack([t, 2 * t + 1], -1)  # collinear
+    same = np.full((40, 2), 200.0)  # one point repeated
+    P = np.stack([ellipse, line, same, ellipse])
+    M = np.ones((4, 40), bool)
+    M[3, 5:] = False  # five points: too few
+    cen, Q, ok = edges.fit_ellipses(P, M)
+    assert ok.tolist() == [True, False, False, False]
+    np.testing.assert_allclose(cen[0], c, atol=1e-9)
+    np.testing.assert_allclose(Q[0], R @ np.diag([1 / a**2, 1 / b**2]) @ R.T, rtol=1e-9)
+    assert classical.fit_ellipse(line) is None
+
+
 @pytest.mark.parametrize("blur", [0.0, 20.0])
 def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
     """Six rings of both views refined together equal each ring refined alone (same
