@@ -16,6 +16,7 @@ torch; the decoding is numpy.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import cv2
@@ -146,8 +147,9 @@ def _suppress(cand: np.ndarray, radius: float) -> np.ndarray:
     """Candidates (N, 3) best first, without those within ``radius`` of a better one (the
     same peak seen from two overlapping windows)."""
     keep: list[int] = []
-    for n in np.argsort(-cand[:, 2], kind="stable"):
-        if all(np.hypot(*(cand[n, :2] - cand[m, :2])) > radius for m in keep):
+    xy = cand[:, :2].tolist()  # Python numbers: numpy's per-element calls were most of the time
+    for n in np.argsort(-cand[:, 2], kind="stable").tolist():
+        if all(math.hypot(xy[n][0] - xy[m][0], xy[n][1] - xy[m][1]) > radius for m in keep):
             keep.append(n)
     return cand[keep]
 
