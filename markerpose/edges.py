@@ -286,24 +286,61 @@ def _select(a, n, kth):  # pragma: no cover - compiled
 
 
 @compiled
-def _subset_medians(off, X, coef, cnt, good, med):  # pragma: no cover - compiled
-    """med[k, s]: the median over ring k's first cnt[k] points of |off - X coef[k, s]|
-    (inf where subset s is degenerate)."""
-    K, S, J = coef.shape
-    buf = np.empty(off.shape[1])
+def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
+    """:func:`lmeds_inliers` per ring k: each 5-point subset idx[k, s] of its first
+    cnt[k] points fitted exactly (skipped when |det| <= 1e-6), the subset with the
+    smallest median absolute residual kept (the first of equals), and keep[k] set to the
+    points within max(2.5 robust sigmas, min_px) of its model; keep[k] = mask[k] when no
+    subset is regular.
+
+    A subset's median is only computed when it can beat the best so far: while fewer
+    than half the residuals lie below the best median, its median cannot be smaller."""
+    K, N = off.shape
+    S = idx.shape[1]
+    A, b = np.empty((5, 5)), np.empty((5, 1))
+    best = np.empty(5)
+    buf = np.empty(N)
     for k in range(K):
         n = cnt[k]
+        best_med = np.inf
+        found = False
         for s in range(S):
-            if not good[k, s]:
-                med[k, s] = np.inf
+            for r in range(5):
+                q = idx[k, s, r]
+                for j in range(5):
+                    A[r, j] = X[k, q, j]
+                b[r, 0] = off[k, q]
+            coef, det = _lu_solve_det(A, b)
+            if not abs(det) > 1e-6:
                 continue
+            below = 0
             for i in range(n):
                 pred = 0.0
-                for j in range(J):
-                    pred += coef[k, s, j] * X[k, i, j]
+                for j in range(5):
+                    pred += coef[j, 0] * X[k, i, j]
                 buf[i] = abs(off[k, i] - pred)
+                if buf[i] < best_med:
+                    below += 1
+            if found and below < (n + 1) // 2:  # the (n - 1) // 2-th smallest is >= best
+                continue
             hi = _select(buf, n, n // 2)
-            med[k, s] = 0.5 * (buf[: n // 2].max() + hi) if n % 2 == 0 else hi
+            med = 0.5 * (buf[: n // 2].max() + hi) if n % 2 == 0 else hi
+            if not found or med < best_med:
+                best_med = med
+                for j in range(5):
+                    best[j] = coef[j, 0]
+            found = True
+        if not found:
+            for i in range(N):
+                keep[k, i] = mask[k, i]
+            continue
+        sigma = 1.4826 * (1 + 5.0 / max(n - 5, 1)) * best_med
+        thr = max(2.5 * sigma, min_px)
+        for i in range(N):
+            pred = 0.0
+            for j in range(5):
+                pred += best[j] * X[k, i, j]
+            keep[k, i] = mask[k, i] and abs(off[k, i] - pred) <= thr
 
 
 # --- ray profiles --------------------------------------------------------------------------------
@@ -657,23 +694,27 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
 
 
 @compiled
-def _lu_solve(A, B):  # pragma: no cover - compiled
-    """X with A X = B for a small square A (Gaussian elimination with partial pivoting,
-    as LAPACK's gesv) and whether A was regular (an exactly zero pivot: not)."""
+def _lu_solve_det(A, B):  # pragma: no cover - compiled
+    """(X with A X = B, det A) for a small square A by Gaussian elimination with partial
+    pivoting, as LAPACK's gesv and numpy's det; det is exactly 0 at a zero pivot (X then
+    unfinished)."""
     n = A.shape[0]
     A, X = A.copy(), B.copy()
+    det = 1.0
     for j in range(n):
         p = j
         for i in range(j + 1, n):
             if abs(A[i, j]) > abs(A[p, j]):
                 p = i
         if A[p, j] == 0.0:
-            return X, False
+            return X, 0.0
         if p != j:
+            det = -det
             for c in range(n):
                 A[j, c], A[p, c] = A[p, c], A[j, c]
             for c in range(X.shape[1]):
                 X[j, c], X[p, c] = X[p, c], X[j, c]
+        det *= A[j, j]
         for i in range(j + 1, n):
             f = A[i, j] / A[j, j]
             for c in range(j, n):
@@ -686,7 +727,15 @@ def _lu_solve(A, B):  # pragma: no cover - compiled
             for i in range(j + 1, n):
                 acc -= A[j, i] * X[i, c]
             X[j, c] = acc / A[j, j]
-    return X, True
+    return X, det
+
+
+@compiled
+def _lu_solve(A, B):  # pragma: no cover - compiled
+    """X with A X = B for a small square A (:func:`_lu_solve_det`) and whether A was
+    regular (an exactly zero pivot: not)."""
+    X, det = _lu_solve_det(A, B)
+    return X, det != 0.0
 
 
 @compiled
@@ -794,28 +843,12 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     The subsets come from a fixed seed: the result is deterministic. ``P``'s valid points
     come first in each row (as :func:`edge_points` returns them).
     """
-    K = len(mask)
     t, off = _radial_offsets(P, cen, Q)
     X = np.stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)], axis=2)  # (K, N, 5)
     cnt = mask.sum(1)
     idx = np.stack([_subsets(int(n), n_subsets) for n in cnt])  # (K, S, 5)
-    rows = np.arange(K)[:, None, None]
-    A = X[rows, idx]  # (K, S, 5, 5)
-    good = np.abs(np.linalg.det(A)) > 1e-6
-    keep = mask.copy()
-    if not good.any():
-        return keep
-    coef = np.zeros((K, n_subsets, 5))
-    coef[good] = np.linalg.solve(A[good], off[rows, idx][good][..., None])[..., 0]
-    med = np.empty((K, n_subsets))
-    _subset_medians(off, X, coef, cnt, good, med)
-    best = np.argmin(med, axis=1)
-    mb = med[np.arange(K), best]
-    res = np.abs(off - np.einsum("kj,knj->kn", coef[np.arange(K), best], X))
-    sigma = 1.4826 * (1 + 5.0 / np.maximum(cnt - 5, 1)) * mb
-    inl = res <= np.maximum(2.5 * sigma, c["outlier_min_px"])[:, None]
-    some = good.any(1)
-    keep[some] = mask[some] & inl[some]
+    keep = np.empty(mask.shape, bool)
+    _lmeds(X, np.ascontiguousarray(off), np.ascontiguousarray(mask), cnt, idx, float(c["outlier_min_px"]), keep)
     return keep
 
 
@@ -945,7 +978,7 @@ def warm_up() -> None:
     integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
     fit_ellipses(np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None], b2)
-    _subset_medians(f2, np.ones((K, N, 5)), np.ones((K, 2, 5)), np.full(K, N, np.intp), np.ones((K, 2), bool), np.zeros((K, 2)))
+    _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
     _WARM = True

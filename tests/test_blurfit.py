@@ -373,7 +373,7 @@ def test_a_tracker_is_compiled_before_its_first_frame():
 import numba
 import markerpose as mp
 from markerpose import blurfit, camera, edges
-inner = ("_select", "_normal", "_median", "_lu_solve")  # called only from other kernels, compiled into them
+inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det")  # called only from other kernels, compiled into them
 kernels = [v for m in (edges, camera, blurfit) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)

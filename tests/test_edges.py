@@ -196,17 +196,46 @@ def test_plane_levels_match_a_direct_reading():
     assert np.abs(got[0] - (80 + 0.8 * (xy[0, :, 0] - 100) - 0.3 * (xy[0, :, 1] - 50))).max() < 3  # the occluder ignored
 
 
-def test_subset_medians_match_numpy():
-    """The least-median screen's score of each subset's model: numpy's median of the
-    absolute residuals over the ring's points; inf for a degenerate subset."""
-    rng = np.random.default_rng(12)
-    K, N, S = 3, 31, 7
-    off, X, coef = rng.normal(size=(K, N)), rng.normal(size=(K, N, 5)), rng.normal(size=(K, S, 5))
-    cnt = np.array([31, 20, 9])
-    good = rng.random((K, S)) < 0.8
-    med = np.empty((K, S))
-    edges._subset_medians(off, X, coef, cnt, good, med)
-    for k in range(K):
-        for j in range(S):
-            want = np.median(np.abs(off[k, : cnt[k]] - X[k, : cnt[k]] @ coef[k, j])) if good[k, j] else np.inf
-            assert med[k, j] == pytest.approx(want, rel=1e-12)
+def _lmeds_reference(P, mask, cen, Q, min_px, n_subsets=40):
+    """lmeds_inliers written plainly with numpy: every subset's median, then the best."""
+    t, off = edges._radial_offsets(P, cen, Q)
+    X = np.stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)], axis=2)
+    keep = mask.copy()
+    for k in range(len(mask)):
+        n = int(mask[k].sum())
+        meds, coefs = [], []
+        for sub in edges._subsets(n, n_subsets):
+            A = X[k, sub]
+            if not abs(np.linalg.det(A)) > 1e-6:
+                continue
+            coefs.append(np.linalg.solve(A, off[k, sub]))
+            meds.append(np.median(np.abs(off[k, :n] - X[k, :n] @ coefs[-1])))
+        if meds:
+            b = int(np.argmin(meds))
+            sigma = 1.4826 * (1 + 5.0 / max(n - 5, 1)) * meds[b]
+            keep[k] = mask[k] & (np.abs(off[k] - X[k] @ coefs[b]) <= max(2.5 * sigma, min_px))
+    return keep
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_least_median_screen_matches_a_plain_numpy_one(seed):
+    """Rings' edge points with noise, a spoilt sector on one and outliers: the compiled
+    screen (which skips subsets that cannot beat the best) keeps what numpy's plain one
+    keeps, and drops the spoilt sector."""
+    rng = np.random.default_rng(seed)
+    K, N = 4, 120
+    P, mask = np.zeros((K, N, 2)), np.zeros((K, N), bool)
+    cen, Q = rng.uniform(100, 400, (K, 2)), np.zeros((K, 2, 2))
+    for k, n in enumerate((120, 77, 40, 13)):
+        a, b = rng.uniform(20, 50), rng.uniform(10, 20)
+        Q[k] = np.diag([1 / a**2, 1 / b**2])
+        t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        r = 1 + rng.normal(0, 0.003, n)
+        P[k, :n] = cen[k] + np.stack([a * r * np.cos(t), b * r * np.sin(t)], 1)
+        mask[k, :n] = True
+    P[0, 10:30] += (P[0, 10:30] - cen[0]) * 0.1  # an occluder's sector, 10 % outside
+    P[1, rng.choice(77, 8, replace=False)] += rng.normal(0, 5, (8, 2))
+    cen_start = cen + rng.normal(0, 0.3, (K, 2))  # near the ellipses, as the edge fit's frame
+    keep = edges.lmeds_inliers(P, mask, cen_start, Q, {"outlier_min_px": 0.15})
+    np.testing.assert_array_equal(keep, _lmeds_reference(P, mask, cen_start, Q, 0.15))
+    assert not keep[0, 10:30].any() and keep[0, 40:].mean() > 0.9
