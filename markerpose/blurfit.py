@@ -396,6 +396,8 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     c = dict(default_conf)
     if conf:
         c.update(conf)
+    if c["grid_search"] not in ("axes", "full"):
+        raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
     prob = _Problem(gray, cqs, rho, noise, box=c["stride"])
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
@@ -412,13 +414,11 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
     if c["grid_search"] == "full":
         best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
-    elif c["grid_search"] == "axes":
+    else:
         # The direction shows at any length near the true one; the length then at that direction.
-        middle = lengths[len(lengths) // 2]
+        middle = sorted(lengths)[len(lengths) // 2]
         best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
         best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
-    else:
-        raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
     p0 = best[1]
     if np.exp(p0[-2]) < c["min_length"]:
         return None

@@ -75,7 +75,8 @@ def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
 
 
 def score_map(det_logits: np.ndarray) -> np.ndarray:
-    """(65, Hc, Wc) detector logits → (8 Hc, 8 Wc) probability that a pixel is a centre."""
+    """(65, Hc, Wc) detector logits → (8 Hc, 8 Wc) probability that a pixel is a centre
+    (float32)."""
     return score_maps(det_logits[None])[0]
 
 
@@ -131,7 +132,7 @@ def _refine(scores: np.ndarray, cand: np.ndarray) -> np.ndarray:
     h, w = scores.shape
     inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)  # outside the map weighs nothing
     s = np.where(inside, scores[ys.clip(0, h - 1), xs.clip(0, w - 1)], 0.0)
-    total = s.sum((1, 2))
+    total = s.sum((1, 2), dtype=np.float64)
     out = cand.copy()
     out[:, 0] = (s * xs).sum((1, 2)) / total
     out[:, 1] = (s * ys).sum((1, 2)) / total

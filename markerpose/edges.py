@@ -72,24 +72,6 @@ def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
         out[k] = b - d * (1 - t) if t >= 0.5 else a + d * t  # numpy's lerp
 
 
-# --- small batched linear algebra -----------------------------------------------------------------
-
-
-def _solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Batched ``solve(A, b)`` and which systems were solvable (singular ones get zeros)."""
-    try:
-        return np.linalg.solve(A, b), np.ones(len(A), bool)
-    except np.linalg.LinAlgError:
-        x = np.zeros(b.shape)
-        ok = np.ones(len(A), bool)
-        for k in range(len(A)):
-            try:
-                x[k] = np.linalg.solve(A[k], b[k])
-            except np.linalg.LinAlgError:
-                ok[k] = False
-        return x, ok
-
-
 # --- per-ray kernels (compiled) ------------------------------------------------------------------
 # A tracked frame samples tens of thousands of profile points; in numpy each step of the
 # profile analysis is a pass over all of them with its own temporaries, and the passes,
@@ -310,7 +292,7 @@ def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
                 for j in range(5):
                     A[r, j] = X[k, q, j]
                 b[r, 0] = off[k, q]
-            coef, det = _lu_solve_det(A, b)
+            coef, det, _ = _lu_solve_det(A, b)
             if not abs(det) > 1e-6:
                 continue
             below = 0
@@ -695,9 +677,9 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
 
 @compiled
 def _lu_solve_det(A, B):  # pragma: no cover - compiled
-    """(X with A X = B, det A) for a small square A by Gaussian elimination with partial
-    pivoting, as LAPACK's gesv and numpy's det; det is exactly 0 at a zero pivot (X then
-    unfinished)."""
+    """(X with A X = B, det A, whether A is regular) for a small square A by Gaussian
+    elimination with partial pivoting, as LAPACK's gesv and numpy's det; an exactly zero
+    pivot makes A singular (det 0, X unfinished)."""
     n = A.shape[0]
     A, X = A.copy(), B.copy()
     det = 1.0
@@ -707,7 +689,7 @@ def _lu_solve_det(A, B):  # pragma: no cover - compiled
             if abs(A[i, j]) > abs(A[p, j]):
                 p = i
         if A[p, j] == 0.0:
-            return X, 0.0
+            return X, 0.0, False
         if p != j:
             det = -det
             for c in range(n):
@@ -727,15 +709,15 @@ def _lu_solve_det(A, B):  # pragma: no cover - compiled
             for i in range(j + 1, n):
                 acc -= A[j, i] * X[i, c]
             X[j, c] = acc / A[j, j]
-    return X, det
+    return X, det, True
 
 
 @compiled
 def _lu_solve(A, B):  # pragma: no cover - compiled
     """X with A X = B for a small square A (:func:`_lu_solve_det`) and whether A was
     regular (an exactly zero pivot: not)."""
-    X, det = _lu_solve_det(A, B)
-    return X, det != 0.0
+    X, _, regular = _lu_solve_det(A, B)
+    return X, regular
 
 
 @compiled

@@ -135,14 +135,15 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
 _EPS = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
 
 
-# numpy's nanmedian / nanpercentile over the last axis, the same values from compiled
-# selection: numpy's NaN-aware statistics were most of the evidence's time.
+# numpy's nanmedian / nanpercentile over the last axis by compiled selection (numpy's
+# NaN-aware statistics were most of the evidence's time); computed in float64, so a
+# float32 percentile can differ from numpy's in its last bit.
 def _nanmedian(x: np.ndarray) -> np.ndarray:
-    return masked_median(x, np.isfinite(x), empty=np.nan).astype(x.dtype)
+    return masked_median(x, ~np.isnan(x), empty=np.nan).astype(x.dtype)
 
 
 def _nanpercentile(x: np.ndarray, q: float) -> np.ndarray:
-    return masked_percentile(x, np.isfinite(x), q, empty=np.nan).astype(x.dtype)
+    return masked_percentile(x, ~np.isnan(x), q, empty=np.nan).astype(x.dtype)
 
 
 def _sample(img: np.ndarray, q: np.ndarray) -> np.ndarray:

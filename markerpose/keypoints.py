@@ -92,7 +92,7 @@ def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]
     """
     w, h = size
     small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
-    if small.dtype == np.uint8:  # a table lookup: the same values as dividing, several times faster
+    if small.dtype == np.uint8:  # a table lookup: the same values as dividing, without the division
         return cv2.LUT(small, _UNIT), np.array([gray.shape[1] / w, gray.shape[0] / h])
     return small.astype(np.float32) / 255.0, np.array([gray.shape[1] / w, gray.shape[0] / h])
 

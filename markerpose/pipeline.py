@@ -34,13 +34,16 @@ MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask 
 
 
 class _SerialBlas:
-    """numpy's BLAS on one thread while any tracker handles a frame, as it was outside.
+    """numpy's BLAS on one thread while any tracker handles a frame.
 
     The pipeline's products are small (at most a few thousand pixels by a few dozen
     parameters) and gain nothing from more threads, while OpenBLAS's idle threads
     busy-wait for a while after each product and take the cores that the networks'
     runtime needs next. Counted across threads: the first frame in sets one thread, the
-    last one out puts back what was there."""
+    last one out puts back the limits found when the first came in. The limit is the
+    process's: while a frame is handled, other threads' numpy runs on one BLAS thread
+    too, and a limit they change meanwhile is overwritten at the end. The BLAS libraries
+    are those loaded at the first frame."""
 
     def __init__(self):
         self._lock = threading.Lock()

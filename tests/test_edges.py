@@ -239,3 +239,18 @@ def test_the_least_median_screen_matches_a_plain_numpy_one(seed):
     keep = edges.lmeds_inliers(P, mask, cen_start, Q, {"outlier_min_px": 0.15})
     np.testing.assert_array_equal(keep, _lmeds_reference(P, mask, cen_start, Q, 0.15))
     assert not keep[0, 10:30].any() and keep[0, 40:].mean() > 0.9
+
+
+def test_the_least_median_screen_matches_numpy_on_many_small_rings():
+    """Small rings of 12 to 15 points, odd and even counts, heavy outliers: where the
+    skipping rule could be off by one, the chosen subsets would differ from numpy's."""
+    rng = np.random.default_rng(7)
+    K, N = 200, 15
+    n = rng.integers(12, 16, K)
+    t = rng.uniform(0, 2 * np.pi, (K, N))
+    r = 30 * (1 + rng.normal(0, 0.01, (K, N))) + np.where(rng.random((K, N)) < 0.3, rng.normal(0, 3, (K, N)), 0)
+    P = np.stack([200 + r * np.cos(t), 150 + 0.6 * r * np.sin(t)], -1)
+    mask = np.arange(N)[None] < n[:, None]
+    cen, Q = np.tile([200.0, 150.0], (K, 1)), np.tile(np.diag([1 / 30**2, 1 / 18**2]), (K, 1, 1))
+    keep = edges.lmeds_inliers(P, mask, cen, Q, {"outlier_min_px": 0.15})
+    np.testing.assert_array_equal(keep, _lmeds_reference(P, mask, cen, Q, 0.15))

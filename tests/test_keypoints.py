@@ -208,7 +208,7 @@ def test_peaks_of_a_batch_are_each_images_candidates_at_their_3x3_centroids():
         for (x, y, sc), got in zip(peaks, cand):
             ys, xs = np.mgrid[max(int(y) - 1, 0): int(y) + 2, max(int(x) - 1, 0): int(x) + 2]
             ys, xs = ys[(ys < scores.shape[0]) & (xs < scores.shape[1])], xs[(ys < scores.shape[0]) & (xs < scores.shape[1])]
-            w = scores[ys, xs]
+            w = scores[ys, xs].astype(np.float64)
             np.testing.assert_allclose(got, [(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum(), sc], rtol=1e-12)
 
 

@@ -288,3 +288,19 @@ def test_serial_blas_is_counted_across_overlapping_calls():
         assert all(n == 1 for n in _blas_threads())  # the first one is still running
         outer.__exit__(None, None, None)
         assert all(n == 2 for n in _blas_threads())
+
+
+def test_serial_blas_puts_the_threads_back_when_a_call_raises(rig):
+    from threadpoolctl import threadpool_limits
+
+    if not _blas_threads():
+        pytest.skip("numpy's BLAS is not one threadpoolctl can see")
+    tracker = mp.MarkerPose(rig)
+    with threadpool_limits(limits=2, user_api="blas"):
+        with pytest.raises(ValueError):
+            tracker.estimate(np.zeros((10, 10), np.uint8), np.zeros((10, 10), np.uint8))  # not the rig's size
+        assert all(n == 2 for n in _blas_threads())
+        from markerpose.pipeline import serial_blas
+
+        assert serial_blas._inside == 0
+
