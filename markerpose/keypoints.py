@@ -91,10 +91,36 @@ def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]
         (image (H, W) float32 in [0, 1] at ``size``, scale (2,) = full / input, per axis).
     """
     w, h = size
-    small = cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)
+    return _unit(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)), input_scale(gray.shape, size)
+
+
+def input_scale(shape: tuple, size=INPUT_SIZE) -> np.ndarray:
+    """(2,) full / input per axis, for an image of ``shape`` (H, W) looked at in ``size`` (W, H)."""
+    return np.array([shape[1] / size[0], shape[0] / size[1]])
+
+
+def _unit(small: np.ndarray) -> np.ndarray:
     if small.dtype == np.uint8:  # a table lookup: the same values as dividing, without the division
-        return cv2.LUT(small, _UNIT), np.array([gray.shape[1] / w, gray.shape[0] / h])
-    return small.astype(np.float32) / 255.0, np.array([gray.shape[1] / w, gray.shape[0] / h])
+        return cv2.LUT(small, _UNIT)
+    return small.astype(np.float32) / 255.0
+
+
+def to_input_window(gray: np.ndarray, size, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+    """``to_input(gray, size)[0][y0:y0 + h, x0:x0 + w]``, resizing only the part of the
+    image the window needs.
+
+    The area resize maps every block of input pixels that spans a whole number of image
+    pixels (per axis: size / gcd(size, image size) input pixels) onto those image pixels
+    alone, so a crop of the image on block boundaries resizes to the same values as the
+    whole image gives there."""
+    W, H = size
+    Hs, Ws = gray.shape[:2]
+    bx, by = W // math.gcd(W, Ws), H // math.gcd(H, Hs)  # input px per block
+    X0, Y0 = x0 // bx * bx, y0 // by * by
+    X1, Y1 = min(-(-(x0 + w) // bx) * bx, W), min(-(-(y0 + h) // by) * by, H)
+    crop = gray[Y0 * Hs // H : Y1 * Hs // H, X0 * Ws // W : X1 * Ws // W]
+    small = _unit(cv2.resize(crop, (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_AREA))
+    return small[y0 - Y0 : y0 - Y0 + h, x0 - X0 : x0 - X0 + w]
 
 
 def to_full(points: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -230,6 +256,15 @@ class KeypointNet:
             self._looked.append((image, size, small, scale))
         return small, scale
 
+    def _window(self, image: np.ndarray, zoom: float, x0: int, y0: int, size: int) -> np.ndarray:
+        """The input of the look ``zoom`` in the window of ``size`` px at (x0, y0): from the
+        kept whole input if there is one, else from the window's part of the image."""
+        shape = look_size(zoom)
+        for im, sz, small, _ in self._looked or ():
+            if im is image and sz == shape:
+                return small[y0 : y0 + size, x0 : x0 + size]
+        return to_input_window(image, shape, x0, y0, size, size)
+
     def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
         """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
         looked at ``zoom`` times the paper's input size."""
@@ -257,16 +292,17 @@ class KeypointNet:
         return out
 
     def _candidates_near(self, images, threshold, k, zoom, r, near, window):
-        inputs, scales = zip(*(self._input(g, zoom) for g in images))
+        W, H = look_size(zoom)
+        scales = [input_scale(g.shape, (W, H)) for g in images]
         size = 2 * window
         crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
-        for j, (small, s, pts) in enumerate(zip(inputs, scales, near)):
-            if min(small.shape) < size:  # a small image: the whole of it
-                crops.append(small)
+        for j, (g, s, pts) in enumerate(zip(images, scales, near)):
+            if min(H, W) < size:  # a small input: the whole of it
+                crops.append(self._input(g, zoom)[0])
                 where.append((j, 0, 0))
                 continue
-            for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, small.shape, window):
-                crops.append(small[y0 : y0 + size, x0 : x0 + size])
+            for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, (H, W), window):
+                crops.append(self._window(g, zoom, x0, y0, size))
                 where.append((j, x0, y0))
         found = [[] for _ in images]
         shapes = sorted({c.shape for c in crops})
@@ -324,6 +360,8 @@ __all__ = [
     "look_conf",
     "look_size",
     "to_full",
+    "input_scale",
     "to_input",
+    "to_input_window",
     "tuned_key",
 ]

@@ -428,3 +428,34 @@ def test_look_inputs_are_kept_for_the_current_frames_only(rig):
     left[:], right[:] = 90, 90  # the same arrays, refilled with an empty scene
     assert tr.estimate(left, right) is None
     assert net.evidence(left, pts)[0] < 0.1
+
+
+@pytest.mark.parametrize("shape", [(1024, 1280), (1080, 1920), (977, 1301)])
+@pytest.mark.parametrize("size", [(320, 240), (640, 480)])
+def test_a_window_of_the_input_resizes_only_its_part_of_the_image_to_the_same_values(shape, size):
+    from markerpose.keypoints import to_input, to_input_window
+
+    rng = np.random.default_rng(shape[1])
+    gray = cv2.GaussianBlur((rng.random(shape) * 255).astype(np.uint8), (0, 0), 1.0)
+    full, _ = to_input(gray, size)
+    for w in (16, 128):
+        for x0, y0 in [(0, 0), (size[0] - w, size[1] - w), (int(rng.integers(0, size[0] - w)), int(rng.integers(0, size[1] - w)))]:
+            np.testing.assert_array_equal(to_input_window(gray, size, x0, y0, w, w), full[y0 : y0 + w, x0 : x0 + w])
+
+
+def test_windowed_looks_find_what_the_whole_input_gives(rig, tracker):
+    """Stage 1 looking only near points: the windows cut from the whole input (kept from
+    an earlier look) and those resized from their part of the image alone give the same
+    candidates."""
+    f = render_stereo(rig, look_at_pose([20, -15, 520], 30, 50, 70), imaging=Imaging(alpha=0.8), seed=31)
+    net = tracker.proposer.net
+    grays = [np.ascontiguousarray(im) for im in f.images]
+    near = [np.array([[640.0, 512.0], [300.0, 700.0]])] * 2
+    for zoom, window in ((1.0, 48), (2.0, 64)):
+        net.forget()  # nothing kept: each window from its part of the image
+        alone = net.candidates(grays, 0.01, 16, zoom, near=near, window=window)
+        net.forget()
+        for g in grays:
+            net._input(g, zoom)  # the whole inputs kept, as after a first look
+        cut = net.candidates(grays, 0.01, 16, zoom, near=near, window=window)
+        assert len(alone[0]) and all(np.array_equal(a, b) for a, b in zip(alone, cut))
