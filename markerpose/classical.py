@@ -57,6 +57,7 @@ from . import edges
 from .camera import Camera
 from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd
 from .images import as_gray
+from .jit import compiled
 from .marker import Marker
 from .results import Detection
 
@@ -235,6 +236,17 @@ def concentric_center(outer_cq, inner_cq) -> np.ndarray | None:
 
 
 # --- binarisation ----------------------------------------------------------------------------
+@compiled
+def _residual_histogram(g, k, hist):  # pragma: no cover - compiled
+    """hist[v] += how many pixels of the grid g[1:-1:k, 1:-1:k] have |4 I - (sum of the 4
+    neighbours)| = v (uint8 g)."""
+    H, W = g.shape
+    for y in range(1, H - 1, k):
+        for x in range(1, W - 1, k):
+            r = 4 * np.int32(g[y, x]) - (np.int32(g[y - 1, x]) + np.int32(g[y + 1, x]) + np.int32(g[y, x - 1]) + np.int32(g[y, x + 1]))
+            hist[abs(r)] += 1
+
+
 def noise_sigma(gray: np.ndarray) -> float:
     """Robust estimate of the per-pixel noise sigma (grey levels) of a grey image (float,
     or uint8 as it is).
@@ -246,13 +258,11 @@ def noise_sigma(gray: np.ndarray) -> float:
     k = max(1, int(np.sqrt(gray.size / 60_000)))
     g = gray
     if g.dtype == np.uint8:
-        # 4 x the residual is an integer: its exact median from a histogram, with no float
-        # copy of the image (equal to the float computation's).
-        def part(a):
-            return a.astype(np.int16)
-
-        r4 = 4 * part(g[1:-1:k, 1:-1:k]) - (part(g[:-2:k, 1:-1:k]) + part(g[2::k, 1:-1:k]) + part(g[1:-1:k, :-2:k]) + part(g[1:-1:k, 2::k]))
-        cum = np.cumsum(np.bincount(np.abs(r4).ravel()))
+        # 4 x the residual is an integer: its exact median from a histogram (equal to the
+        # float computation's), counted in one compiled pass over the grid.
+        hist = np.zeros(4 * 255 + 1, np.int64)
+        _residual_histogram(g, k, hist)
+        cum = np.cumsum(hist)
         n = cum[-1]
         mid = np.searchsorted(cum, [(n - 1) // 2 + 1, n // 2 + 1])  # the two middle order statistics
         med = np.float32(0.125 * (mid[0] + mid[1]))
@@ -261,6 +271,12 @@ def noise_sigma(gray: np.ndarray) -> float:
         med = np.median(np.abs(r))
     # var(r) = sigma^2 (1 + 4/16) for white noise; MAD → sigma for a Gaussian.
     return float(1.4826 * med / np.sqrt(1.25))
+
+
+def warm_up() -> None:
+    """Compile this module's loop (or load it from numba's cache) before a stream's first
+    frame needs it."""
+    noise_sigma(np.zeros((8, 8), np.uint8))
 
 
 def binarize(gray: np.ndarray, conf: dict | None = None, noise: float | None = None) -> list[np.ndarray]:

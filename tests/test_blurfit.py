@@ -372,9 +372,9 @@ def test_a_tracker_is_compiled_before_its_first_frame():
     code = """
 import numba
 import markerpose as mp
-from markerpose import blurfit, camera, edges
+from markerpose import blurfit, camera, classical, edges
 inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det")  # called only from other kernels, compiled into them
-kernels = [v for m in (edges, camera, blurfit) for name, v in vars(m).items()
+kernels = [v for m in (edges, camera, blurfit, classical) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)
 mp.MarkerPose(mp.StereoRig.default())
@@ -382,7 +382,7 @@ print(len(kernels), before, all(k.signatures for k in kernels))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
     n, before, after = out.split()
-    assert int(n) >= 9 and before == "False" and after == "True"
+    assert int(n) >= 10 and before == "False" and after == "True"
 
 
 def test_a_read_only_install_without_a_home_still_runs():

@@ -62,6 +62,7 @@ class Refiner:
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         edges.warm_up()
         camera.warm_up()
+        classical.warm_up()
         if conf["blur_fit"]:
             from .. import blurfit
 
