@@ -108,17 +108,13 @@ def stereo_triples(
     dist = np.linalg.norm(X[:, None] - X[None], axis=2)
     err = [np.abs(dist - L[k]) / L[k] for k in range(3)]  # relative error as side k
     logs = 0.5 * (np.log(np.maximum(cl[I, 2], 1e-12)) + np.log(np.maximum(cr[J, 2], 1e-12)))
-    trios = []  # (a, b, c) = (c0, c1, c2) with the marker's three side lengths, a-major
-    for a in range(len(X)):
-        bs = np.nonzero(err[0][a] <= shape_tol)[0]
-        cs = np.nonzero(err[1][a] <= shape_tol)[0]
-        if len(bs) and len(cs):
-            B, C = np.meshgrid(bs, cs, indexing="ij")
-            fit = err[2][B, C] <= shape_tol
-            trios.append(np.column_stack([np.full(fit.sum(), a), B[fit], C[fit]]))
-    if not trios:
+    # (a, b, c) = (c0, c1, c2) with the marker's three side lengths, in (a, b, c) order:
+    # the pairs (a, b) with side 0's length, then each one's c with sides 1 and 2.
+    A, B = np.nonzero(err[0] <= shape_tol)
+    n, C = np.nonzero((err[1][A] <= shape_tol) & (err[2][B] <= shape_tol))
+    if not len(n):
         return []
-    T = np.concatenate(trios)
+    T = np.column_stack([A[n], B[n], C])
     distinct = ((I[T[:, 0]] != I[T[:, 1]]) & (I[T[:, 0]] != I[T[:, 2]]) & (I[T[:, 1]] != I[T[:, 2]])
                 & (J[T[:, 0]] != J[T[:, 1]]) & (J[T[:, 0]] != J[T[:, 2]]) & (J[T[:, 1]] != J[T[:, 2]]))
     T = T[distinct]
