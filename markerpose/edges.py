@@ -305,8 +305,7 @@ def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
                     below += 1
             if found and below < (n + 1) // 2:  # the (n - 1) // 2-th smallest is >= best
                 continue
-            hi = _select(buf, n, n // 2)
-            med = 0.5 * (buf[: n // 2].max() + hi) if n % 2 == 0 else hi
+            med = _median(buf, n)
             if not found or med < best_med:
                 best_med = med
                 for j in range(5):

@@ -245,12 +245,19 @@ class KeypointNet:
         Without it, inputs are never kept."""
         self._looked = []
 
-    def _input(self, image: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`to_input` of an image at the look ``zoom`` (kept: see :meth:`forget`)."""
-        size = look_size(zoom)
+    def _kept(self, image: np.ndarray, size: tuple) -> tuple | None:
+        """(input, scale) of ``image`` at ``size`` if kept (see :meth:`forget`), else None."""
         for im, sz, small, scale in self._looked or ():
             if im is image and sz == size:
                 return small, scale
+        return None
+
+    def _input(self, image: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`to_input` of an image at the look ``zoom`` (kept: see :meth:`forget`)."""
+        size = look_size(zoom)
+        kept = self._kept(image, size)
+        if kept is not None:
+            return kept
         small, scale = to_input(image, size)
         if self._looked is not None:
             self._looked.append((image, size, small, scale))
@@ -260,9 +267,9 @@ class KeypointNet:
         """The input of the look ``zoom`` in the window of ``size`` px at (x0, y0): from the
         kept whole input if there is one, else from the window's part of the image."""
         shape = look_size(zoom)
-        for im, sz, small, _ in self._looked or ():
-            if im is image and sz == shape:
-                return small[y0 : y0 + size, x0 : x0 + size]
+        kept = self._kept(image, shape)
+        if kept is not None:
+            return kept[0][y0 : y0 + size, x0 : x0 + size]
         return to_input_window(image, shape, x0, y0, size, size)
 
     def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
@@ -356,11 +363,11 @@ __all__ = [
     "KeypointNet",
     "build_network",
     "check_second_look",
+    "input_scale",
     "layer_widths",
     "look_conf",
     "look_size",
     "to_full",
-    "input_scale",
     "to_input",
     "to_input_window",
     "tuned_key",

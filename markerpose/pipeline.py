@@ -277,11 +277,10 @@ class MarkerPose:
             if est is None:
                 self._noise = (None, 0)
                 if history:  # first a detection near where the prior put the marker
-                    self.why = None  # the prior's failure is not why the frame has no pose
                     est = self._near(grays, history[-1] if self._after_cold else track.predict(history))
                 history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
                 if est is None:
-                    self.why = None
+                    self.why = None  # neither the prior's nor the near look's failure is why the frame has no pose
                     est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*history, est.T][-3:] if est is not None else []
