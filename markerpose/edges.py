@@ -475,6 +475,87 @@ def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover -
             out[k, i] = c0 + c1 * (xy[k, i, 0] - center[k, 0]) + c2 * (xy[k, i, 1] - center[k, 1])
 
 
+@compiled
+def _ray_levels(v_in, v_out, xy, cen, pen, clean, n, level_tol, ok, planes):  # pragma: no cover - compiled
+    """The plateau levels of each ring with enough clean rays (``planes[k]``: at least
+    six, and a tenth of its rays) replaced, in place, by planes fitted on those rays
+    (:func:`plane_levels`; floor a tenth of the levels' difference); rays whose two ends
+    depart from the planes unequally are dropped from ``ok``."""
+    K, N = v_in.shape
+    med_in, med_out = np.empty(K), np.empty(K)
+    _row_stats(v_in, clean, -1.0, 0.0, med_in)
+    _row_stats(v_out, clean, -1.0, 0.0, med_out)
+    fl, fin, fout = np.empty(1), np.empty((1, N)), np.empty((1, N))
+    for k in range(K):
+        cnt = 0
+        for i in range(N):
+            cnt += clean[k, i]
+        planes[k] = cnt >= max(6.0, 0.1 * n[k])
+        if not planes[k]:
+            continue
+        fl[0] = 0.1 * abs(med_in[k] - med_out[k])
+        _plane_rows(xy[k : k + 1], v_in[k : k + 1], clean[k : k + 1], cen[k : k + 1], pen[k : k + 1], fl, fin)
+        _plane_rows(xy[k : k + 1], v_out[k : k + 1], clean[k : k + 1], cen[k : k + 1], pen[k : k + 1], fl, fout)
+        for i in range(N):
+            # Blur moves both ends of a profile toward the middle by about the same amount;
+            # something dark or bright next to the ring (an occluder, clutter, a neighbour)
+            # moves one end only. Such rays are dropped.
+            if abs((v_in[k, i] - fin[0, i]) + (v_out[k, i] - fout[0, i])) > level_tol * abs(fin[0, i] - fout[0, i]):
+                ok[k, i] = False
+            v_in[k, i], v_out[k, i] = fin[0, i], fout[0, i]
+
+
+@compiled
+def _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, aw1, weights, e, W, w1090, width):  # pragma: no cover - compiled
+    """Each ray's edge (lambda, into ``e``) from its profile normalised by the plateau
+    levels, its fit weight (``W``), its 10-90 % width (``w1090``) and each ring's 75th
+    percentile of those widths over the valid rays (``width``); rays without a clear
+    edge well inside the window are dropped from ``ok``."""
+    K, N, _ = v.shape
+    contrast, dd = np.empty((K, N)), np.empty((K, N))
+    for k in range(K):
+        for i in range(N):
+            diff = v_in[k, i] - v_out[k, i]
+            contrast[k, i] = -diff if dark else diff
+            dd[k, i] = diff if abs(diff) > 1e-9 else 1e-9  # the profiles normalised: 1 inside, 0 outside
+    med = np.empty(K)
+    _row_stats(contrast, ok, -1.0, 0.0, med)
+    for k in range(K):
+        lim = max(floor[k], 0.3 * med[k])
+        for i in range(N):
+            ok[k, i] = ok[k, i] and contrast[k, i] > lim
+    found = np.empty((K, N), np.bool_)
+    _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, w1090)
+    for k in range(K):
+        for i in range(N):
+            ok[k, i] = ok[k, i] and found[k, i]
+    if area:
+        # Integral of the normalised profile over [e - h, e + h] is the edge position minus
+        # (e - h) for any symmetric blur, and exact for area-sampled pixels. The window
+        # grows with the blur (a high quantile: motion blur widens one direction only).
+        _row_stats(w1090, ok, 75.0, 0.0, width)
+        xs, at = np.empty((2, K, N)), np.empty((2, K, N))
+        for k in range(K):
+            for i in range(N):
+                h = (aw0 * width[k] + aw1) / r[k, i]
+                xs[0, k, i] = min(e[k, i] + h, 1.0 + half)
+                xs[1, k, i] = max(e[k, i] - h, lam[k, 0])
+        _ray_integrals(v, v_out, dd, lam, dl, S, xs, at)
+        for k in range(K):
+            for i in range(N):
+                e[k, i] = xs[1, k, i] + at[0, k, i] - at[1, k, i]
+    # The edge must lie well inside the window.
+    lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half
+    for k in range(K):
+        for i in range(N):
+            ok[k, i] = ok[k, i] and e[k, i] > lo and e[k, i] < hi
+            # Edge position noise ~ noise x transition width / contrast: under motion blur
+            # the rays along the motion are smeared and uncertain, those across it sharp.
+            # (The ellipse fit does not depend on the weights' overall scale.)
+            W[k, i] = (abs(contrast[k, i]) / max(w1090[k, i], 1.0)) ** 2 if weights else 1.0
+    _row_stats(w1090, ok, 75.0, 0.0, width)
+
+
 def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
     ker = np.ones(k) / k
     return np.convolve(np.r_[v[-k:], v, v[:k]], ker, "same")[k:-k]
@@ -582,55 +663,20 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
     clean = sane & far & (w1090 < 1.2 * half * r)
-    planes = clean.sum(1) >= np.maximum(6, 0.1 * n)
-    if planes.any():
-        p = planes
-        xy = edge[p].transpose(0, 2, 1)
-        lv = masked_median(np.concatenate([v_in[p], v_out[p]]), np.concatenate([clean[p], clean[p]]))
-        kp = int(p.sum())
-        fl = 0.1 * np.abs(lv[:kp] - lv[kp:])
-        fit = plane_levels(np.concatenate([xy, xy]), np.concatenate([v_in[p], v_out[p]]), np.concatenate([clean[p], clean[p]]),
-                           np.concatenate([cen[p], cen[p]]), np.tile(np.sqrt(a * b)[p], 2), np.tile(fl, 2))
-        raw_in, raw_out = v_in[p], v_out[p]
-        fin, fout = fit[:kp], fit[kp:]
-        # Blur moves both ends of a profile toward the middle by about the same amount;
-        # something dark or bright next to the ring (an occluder, clutter, a neighbour)
-        # moves one end only. Such rays are dropped.
-        lopsided = np.abs((raw_in - fin) + (raw_out - fout)) > c["level_tol"] * np.abs(fin - fout)
-        v_in, v_out = v_in.copy(), v_out.copy()
-        v_in[p], v_out[p] = fin, fout
-        ok[p] &= ~lopsided
+    planes = np.empty(K, bool)
+    xy = np.ascontiguousarray(edge.transpose(0, 2, 1))
+    _ray_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, float(c["level_tol"]), ok, planes)
     for k in np.nonzero(~planes)[0]:
         # Too few: smooth the local levels along the ellipse (circularly) instead.
         w = max(1, round(c["level_smooth"] * n[k]))
         if w > 1:
             v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
-    diff = v_in - v_out
-    contrast = -diff if dark_inside else diff
-    med = masked_median(contrast, ok)
-    ok &= contrast > np.maximum(floor, 0.3 * med)[:, None]
-    dd = np.where(np.abs(diff) > 1e-9, diff, 1e-9)  # the profiles normalised: 1 inside, 0 outside
-    e, found, w1090 = crossings(v, v_out, dd, lam, dl, S, r)
-    ok &= found
-    if c["edge_method"] == "area":
-        # Integral of the normalised profile over [e - h, e + h] is the edge position minus
-        # (e - h) for any symmetric blur, and exact for area-sampled pixels. The window
-        # grows with the blur (a high quantile: motion blur widens one direction only).
-        width = masked_percentile(w1090, ok, 75)
-        h = (c["area_window"][0] * width[:, None] + c["area_window"][1]) / r
-        lo_, hi_ = np.maximum(e - h, lam[:, :1]), np.minimum(e + h, (1.0 + half))
-        at_hi, at_lo = integral(v, v_out, dd, lam, dl, S, (hi_, lo_))
-        e = lo_ + at_hi - at_lo
-    # The edge must lie well inside the window.
-    lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half
-    ok &= (e > lo) & (e < hi)
+    e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
+    aw = c["area_window"]
+    _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, np.asarray(floor, np.float64), bool(dark_inside), float(half),
+               c["edge_method"] == "area", float(aw[0]), float(aw[1]), bool(c["edge_weights"]), e, W, w1090, width)
     P = cen[:, None, :] + (u * e[:, None, :]).transpose(0, 2, 1)
-    # Edge position noise ~ noise x transition width / contrast: under motion blur the rays
-    # along the motion are smeared and uncertain, those across it sharp.
-    # (The ellipse fit does not depend on the weights' overall scale.)
-    W = (np.abs(contrast) / np.maximum(w1090, 1.0)) ** 2 if c["edge_weights"] else np.ones((K, N))
-    width = masked_percentile(w1090, ok, 75)
     order = np.argsort(~ok, axis=1, kind="stable")  # valid points first, in ray order
     P = np.take_along_axis(P, order[..., None], 1)
     W = np.take_along_axis(W, order, 1)
@@ -962,6 +1008,10 @@ def warm_up() -> None:
     _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
+    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, np.full(K, N), 0.25, b2.copy(),
+                np.empty(K, bool))
+    _ray_edges(v, f2, np.zeros((K, N)), lam, np.full(K, 1 / 3), np.full(K, Sm), f2, b2.copy(), np.ones(K), True, 0.5, True, 0.5,
+               0.5, True, np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K))
     _WARM = True
 
 
