@@ -851,12 +851,58 @@ def _subsets(n: int, count: int) -> np.ndarray:
 def _radial_offsets(P: np.ndarray, cen: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per point, its angle on the ellipse (cen, Q) seen as a unit circle, and its radial
     offset from the ellipse, px (K, N each)."""
-    d = P - cen[:, None, :]
-    R = sqrtm_spd(Q, 0.5)[:, None]  # to the unit-circle frame
-    dx, dy = d[..., 0], d[..., 1]
-    qx, qy = R[..., 0, 0] * dx + R[..., 0, 1] * dy, R[..., 1, 0] * dx + R[..., 1, 1] * dy
-    lam = np.hypot(qx, qy)
-    return np.arctan2(qy, qx), (lam - 1.0) * np.hypot(dx, dy) / np.maximum(lam, 1e-9)
+    K, N = P.shape[:2]
+    t, off = np.empty((K, N)), np.empty((K, N))
+    _offsets(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(cen, np.float64), np.ascontiguousarray(sqrtm_spd(Q, 0.5)), t, off)
+    return t, off
+
+
+@compiled
+def _offsets(P, cen, R, t, off):  # pragma: no cover - compiled
+    """:func:`_radial_offsets` with R = Q^(1/2), the map to the unit-circle frame."""
+    K, N, _ = P.shape
+    for k in range(K):
+        for i in range(N):
+            dx, dy = P[k, i, 0] - cen[k, 0], P[k, i, 1] - cen[k, 1]
+            qx, qy = R[k, 0, 0] * dx + R[k, 0, 1] * dy, R[k, 1, 0] * dx + R[k, 1, 1] * dy
+            lam = np.hypot(qx, qy)
+            t[k, i] = np.arctan2(qy, qx)
+            off[k, i] = (lam - 1.0) * np.hypot(dx, dy) / max(lam, 1e-9)
+
+
+@compiled
+def _reject(res, kl, mask, k_sigma, min_px, new, same):  # pragma: no cover - compiled
+    """Per row, the points of ``mask`` within max(k_sigma robust sigmas, min_px) of the
+    curve (radial residuals ``res``; the sigma from the median absolute deviation over
+    the current points ``kl``) into ``new``; ``same[k]``: whether that changed nothing."""
+    K, N = res.shape
+    med, sig = np.empty(K), np.empty(K)
+    dev = np.empty((K, N))
+    _row_stats(res, kl, -1.0, 0.0, med)
+    for k in range(K):
+        for i in range(N):
+            dev[k, i] = abs(res[k, i] - med[k])
+    _row_stats(dev, kl, -1.0, 0.0, sig)
+    for k in range(K):
+        lim = max(k_sigma * (1.4826 * sig[k]), min_px)
+        same[k] = True
+        for i in range(N):
+            new[k, i] = mask[k, i] and abs(res[k, i]) <= lim
+            same[k] = same[k] and new[k, i] == kl[k, i]
+
+
+@compiled
+def _harmonics(t, X):  # pragma: no cover - compiled
+    """X[k, i] = (1, cos t, sin t, cos 2t, sin 2t) of t[k, i]: the linearised model's terms."""
+    K, N = t.shape
+    for k in range(K):
+        for i in range(N):
+            a = t[k, i]
+            X[k, i, 0] = 1.0
+            X[k, i, 1] = np.cos(a)
+            X[k, i, 2] = np.sin(a)
+            X[k, i, 3] = np.cos(2 * a)
+            X[k, i, 4] = np.sin(2 * a)
 
 
 def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarray, c: dict, n_subsets: int = 40) -> np.ndarray:
@@ -871,7 +917,8 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     come first in each row (as :func:`edge_points` returns them).
     """
     t, off = _radial_offsets(P, cen, Q)
-    X = np.stack([np.ones_like(t), np.cos(t), np.sin(t), np.cos(2 * t), np.sin(2 * t)], axis=2)  # (K, N, 5)
+    X = np.empty((*t.shape, 5))
+    _harmonics(t, X)
     cnt = mask.sum(1)
     idx = np.stack([_subsets(int(n), n_subsets) for n in cnt])  # (K, S, 5)
     keep = np.empty(mask.shape, bool)
@@ -908,11 +955,10 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
         li, ci, Qi = li[ok], ci[ok], Qi[ok]
         cen[li], Q[li] = ci, Qi
         _, res = _radial_offsets(P[li], ci, Qi)  # radial residual, px
-        kl = keep[li]
-        sig = 1.4826 * masked_median(np.abs(res - masked_median(res, kl)[:, None]), kl)
-        new = mask[li] & (np.abs(res) <= np.maximum(c["outlier_k"] * sig, c["outlier_min_px"])[:, None])
+        new, same = np.empty(res.shape, bool), np.empty(len(li), bool)
+        _reject(res, keep[li], mask[li], float(c["outlier_k"]), float(c["outlier_min_px"]), new, same)
         keep[li] = new
-        live[li[(new == kl).all(1)]] = False
+        live[li[same]] = False
     return cen, Q, fitted, keep
 
 
@@ -1006,6 +1052,9 @@ def warm_up() -> None:
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
     fit_ellipses(np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None], b2)
     _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
+    _harmonics(f2, np.empty((K, N, 5)))
+    _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
+    _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
     _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, np.full(K, N), 0.25, b2.copy(),
