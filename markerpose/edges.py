@@ -476,6 +476,114 @@ def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover -
 
 
 @compiled
+def _ray_frame(L, cen, n, S, half, hw, u, r, lam, dl, xy, ok):  # pragma: no cover - compiled
+    """The rays of K ellipses (L = Q^(-1/2)): ray i of n[k] from the centre at angle
+    2 pi i / n[k] on the unit circle, u[k, :, i] its edge point at lambda 1 relative to
+    the centre, r its length (px per unit lambda), xy the edge point itself; the window's
+    lambda = 1 + linspace(-half, half, S[k]) (as numpy computes it: window tests compare
+    run lengths times this step against fractions of the window), its padding repeating
+    the last sample, and its step dl; ``ok``: a real ray whose window (a segment) lies in
+    its image (height, width ``hw[k]``)."""
+    K, N = r.shape
+    Sm = lam.shape[1]
+    for k in range(K):
+        step = (2 * half) / (S[k] - 1)
+        for s in range(Sm):
+            lam[k, s] = 1.0 + (half if s >= S[k] - 1 else min(s, S[k] - 1) * step + (-half))
+        dl[k] = lam[k, 1] - lam[k, 0]
+        lo, hi = lam[k, 0], lam[k, Sm - 1]
+        for i in range(N):
+            ray = i < n[k]
+            t = 2 * np.pi * i / n[k] if ray else 0.0
+            ct, st = np.cos(t), np.sin(t)
+            ux = L[k, 0, 0] * ct + L[k, 0, 1] * st
+            uy = L[k, 1, 0] * ct + L[k, 1, 1] * st
+            u[k, 0, i], u[k, 1, i] = ux, uy
+            r[k, i] = np.hypot(ux, uy)
+            xy[k, i, 0], xy[k, i, 1] = cen[k, 0] + ux, cen[k, 1] + uy
+            x0, x1 = cen[k, 0] + ux * lo, cen[k, 0] + ux * hi
+            y0, y1 = cen[k, 1] + uy * lo, cen[k, 1] + uy * hi
+            ok[k, i] = ray and min(x0, x1) >= 0 and min(y0, y1) >= 0 and max(x0, x1) <= hw[k, 1] - 1 and max(y0, y1) <= hw[k, 0] - 1
+
+
+@compiled
+def _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, w1090, sane, width):  # pragma: no cover - compiled
+    """The profiles normalised by their own ends: each ray's 10-90 % width, whether it is
+    sane (a crossing, contrast above the floor) and each ring's 75th percentile of the
+    sane rays' widths."""
+    K, N, _ = v.shape
+    contrast, dd = np.empty((K, N)), np.empty((K, N))
+    for k in range(K):
+        for i in range(N):
+            diff = v_in[k, i] - v_out[k, i]  # > 0 when the inner side is brighter
+            contrast[k, i] = -diff if dark else diff
+            dd[k, i] = diff if abs(diff) > 1e-9 else 1e-9
+    e, found = np.empty((K, N)), np.empty((K, N), np.bool_)
+    _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, w1090)
+    for k in range(K):
+        for i in range(N):
+            sane[k, i] = ok[k, i] and found[k, i] and contrast[k, i] > floor[k]
+    _row_stats(w1090, sane, 75.0, 0.0, width)
+
+
+@compiled
+def _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, min_free, ok, far, n_use):  # pragma: no cover - compiled
+    """Rays whose window a blurred neighbour (outer ellipse co[p], Qo[p] of ring kk[p])
+    may reach, and their opposite rays, out of ``far``; where enough rays stay
+    (``min_free`` of them), only those count (``ok``, ``n_use``)."""
+    K, N = r.shape
+    for p in range(len(kk)):
+        k = kk[p]
+        for i in range(N):
+            # A blurred neighbour darkens this profile's outer plateau when its edge is
+            # closer than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
+            reach = half * r[k, i] + 0.65 * width[k] + 1.0
+            dx, dy = xy[k, i, 0] - co[p, 0], xy[k, i, 1] - co[p, 1]
+            lam_o = np.sqrt(dx * (Qo[p, 0, 0] * dx + Qo[p, 0, 1] * dy) + dy * (Qo[p, 1, 0] * dx + Qo[p, 1, 1] * dy))
+            if not (lam_o - 1.0) * b_o[p] > reach:  # lower bound on the distance to its edge, px
+                far[k, i] = False
+    has = np.zeros(K, np.bool_)
+    for p in range(len(kk)):
+        has[kk[p]] = True
+    row = np.empty(N, np.bool_)
+    for k in range(K):
+        # Drop the opposite rays too: the blurred edge is centrally symmetric about the
+        # centre (not an ellipse under motion blur), so a symmetric point set keeps the
+        # fitted centre unbiased where a one-sided gap would not.
+        nk = n[k]
+        row[:] = far[k]
+        n_far = 0
+        for i in range(N):
+            opp = (i - nk // 2) % nk if i < nk else 0
+            far[k, i] = row[i] and row[opp]
+            n_far += far[k, i] and i < nk
+        if has[k] and n_far >= min_free * nk:
+            n_use[k] = n_far
+            for i in range(N):
+                ok[k, i] = ok[k, i] and far[k, i]
+        else:
+            far[k] = True  # better contaminated rays than none
+
+
+@compiled
+def _compact(cen, u, e, W, ok, P, Wc, cnt):  # pragma: no cover - compiled
+    """Edge points cen + u e and their weights, the valid ones first (in ray order), then
+    the others; cnt[k] valid in row k."""
+    K, N = e.shape
+    for k in range(K):
+        j = 0
+        for rnd in range(2):
+            for i in range(N):
+                if ok[k, i] == (rnd == 0):
+                    P[k, j, 0] = cen[k, 0] + u[k, 0, i] * e[k, i]
+                    P[k, j, 1] = cen[k, 1] + u[k, 1, i] * e[k, i]
+                    Wc[k, j] = W[k, i]
+                    j += 1
+            if rnd == 0:
+                cnt[k] = j
+
+
+@compiled
 def _ray_levels(v_in, v_out, xy, cen, pen, clean, n, level_tol, ok, planes):  # pragma: no cover - compiled
     """The plateau levels of each ring with enough clean rays (``planes[k]``: at least
     six, and a tenth of its rays) replaced, in place, by planes fitted on those rays
@@ -595,76 +703,38 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     eig = np.linalg.eigvalsh(Q)
     a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
     perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
-    n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(int)  # even
-    S = np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200).astype(int) + 1
+    n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(np.int64)  # even
+    S = np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200).astype(np.int64) + 1
     N, Sm = int(n.max()), int(S.max())
-    ray = np.arange(N)[None, :] < n[:, None]  # real rays (K, N)
-    t = np.where(ray, 2 * np.pi * np.arange(N)[None, :] / n[:, None], 0.0)
-    u = np.einsum("kij,kjn->kin", L, np.stack([np.cos(t), np.sin(t)], axis=1))  # (K, 2, N): edge at lambda 1
-    r = np.hypot(u[:, 0], u[:, 1])  # px per unit lambda along each ray
-    # lambda = 1 + linspace(-half, half, S[k]) (computed as numpy does: window tests
-    # compare run lengths times this step against fractions of the window), padding
-    # repeating the last sample.
-    idx = np.arange(Sm)
-    base = np.minimum(idx[None, :], (S - 1)[:, None]) * ((2 * half) / (S - 1))[:, None] + (-half)
-    base[idx[None, :] >= (S - 1)[:, None]] = half
-    lam = 1.0 + base
-    dl = lam[:, 1] - lam[:, 0]
-    # A ray is a segment (its padding repeats its end): its samples lie in the image when
-    # both ends do.
-    first, last = cen[:, :, None] + u * lam[:, None, :1], cen[:, :, None] + u * lam[:, None, -1:]  # (K, 2, N)
-    lo_xy, hi_xy = np.minimum(first, last), np.maximum(first, last)
     m = np.maximum(2, np.round(c["level_samples"] * S)).astype(np.intp)  # samples per plateau level
+    hw = np.array([grays[g].shape for g in range(len(grays))], np.float64)[view]
+    cen = np.ascontiguousarray(cen, np.float64)
+    u, r, xy = np.empty((K, 2, N)), np.empty((K, N)), np.empty((K, N, 2))
+    lam, dl, ok = np.empty((K, Sm)), np.empty(K), np.empty((K, N), bool)
+    _ray_frame(np.ascontiguousarray(L), cen, n, S, float(half), hw, u, r, lam, dl, xy, ok)
     v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
-    ok = ray.copy()
     ux, uy = np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1])
     cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
     for g in np.unique(view):
-        sel = view == g
-        h, w = grays[g].shape
-        ok[sel] &= (lo_xy[sel] >= 0).all(1) & (hi_xy[sel, 0] <= w - 1) & (hi_xy[sel, 1] <= h - 1)
-        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(sel)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
-    edge = cen[:, :, None] + u  # (K, 2, N) current edge points
+        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(view == g)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
 
     # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
-    diff = v_in - v_out  # > 0 when the inner side is brighter
-    dd = np.where(np.abs(diff) > 1e-9, diff, 1e-9)
-    e, found, w1090 = crossings(v, v_out, dd, lam, dl, S, r)
-    contrast = -diff if dark_inside else diff
-    sane = ok & found & (contrast > floor[:, None])
-    width = masked_percentile(w1090, sane, 75)
+    floor = np.asarray(floor, np.float64)
+    w1090, sane, width = np.empty((K, N)), np.empty((K, N), bool), np.empty(K)
+    _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), w1090, sane, width)
     far = np.ones((K, N), bool)
     n_use = n.copy()
     pairs = [(k, co, Qo) for k, oth in enumerate(others) for co, Qo in oth]
     if pairs:
-        # A blurred neighbour darkens this profile's outer plateau when its edge is closer
-        # than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
-        reach = half * r + 0.65 * width[:, None] + 1.0
-        kk = np.array([p[0] for p in pairs])
+        kk = np.array([p[0] for p in pairs], np.int64)
         co = np.array([p[1] for p in pairs], np.float64)
         Qo = np.array([p[2] for p in pairs], np.float64)
-        d = edge[kk] - co[:, :, None]
-        lam_o = np.sqrt(np.einsum("pin,pij,pjn->pn", d, Qo, d))
         b_o = 1 / np.sqrt(np.linalg.eigvalsh(Qo)[:, 1])
-        clear = (lam_o - 1.0) * b_o[:, None] > reach[kk]  # lower bound on the distance to its edge, px
-        np.logical_and.at(far, kk, clear)
-        # Drop the opposite rays too: the blurred edge is centrally symmetric about the
-        # centre (not an ellipse under motion blur), so a symmetric point set keeps the
-        # fitted centre unbiased where a one-sided gap would not.
-        opp = np.where(ray, (np.arange(N)[None, :] - n[:, None] // 2) % n[:, None], 0)
-        far &= np.take_along_axis(far, opp, 1)
-        has = np.zeros(K, bool)
-        has[kk] = True
-        n_far = (far & ray).sum(1)
-        enough = n_far >= c["min_free_frac"] * n
-        n_use = np.where(has & enough, n_far, n)
-        ok &= np.where((has & enough)[:, None], far, True)
-        far[~(has & enough)] = True  # better contaminated rays than none
+        _neighbours(xy, r, width, float(half), kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
     clean = sane & far & (w1090 < 1.2 * half * r)
     planes = np.empty(K, bool)
-    xy = np.ascontiguousarray(edge.transpose(0, 2, 1))
     _ray_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, float(c["level_tol"]), ok, planes)
     for k in np.nonzero(~planes)[0]:
         # Too few: smooth the local levels along the ellipse (circularly) instead.
@@ -674,13 +744,12 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
     e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
     aw = c["area_window"]
-    _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, np.asarray(floor, np.float64), bool(dark_inside), float(half),
+    _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), float(half),
                c["edge_method"] == "area", float(aw[0]), float(aw[1]), bool(c["edge_weights"]), e, W, w1090, width)
-    P = cen[:, None, :] + (u * e[:, None, :]).transpose(0, 2, 1)
-    order = np.argsort(~ok, axis=1, kind="stable")  # valid points first, in ray order
-    P = np.take_along_axis(P, order[..., None], 1)
-    W = np.take_along_axis(W, order, 1)
-    mask = np.arange(N)[None, :] < ok.sum(1)[:, None]
+    P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
+    _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
+    mask = np.arange(N)[None, :] < cnt[:, None]
+    W = Wc
     return P, mask, n_use, W, width
 
 
@@ -1055,6 +1124,14 @@ def warm_up() -> None:
     _harmonics(f2, np.empty((K, N, 5)))
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
+    n, S1 = np.full(K, N), np.full(K, Sm)
+    u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
+    _ray_frame(np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)),
+               np.empty(K), xy, ok)
+    _first_look(v, f2, f2, lam, np.full(K, 1 / 3), S1, f2, b2, np.ones(K), True, f2.copy(), ok, np.empty(K))
+    _neighbours(xy, f2, np.ones(K), 0.5, np.zeros(1, np.int64), np.zeros((1, 2)), np.tile(np.eye(2), (1, 1, 1)), np.ones(1), n, 0.25,
+                b2.copy(), b2.copy(), n.copy())
+    _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
     _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, np.full(K, N), 0.25, b2.copy(),
