@@ -87,28 +87,33 @@ def _sample_rays(img, rows, cx, cy, ux, uy, lam, S, m, v, v_in, v_out):  # pragm
     last m[k] real samples (v_in, v_out) as numpy's cumulative sums give them."""
     h, w = img.shape
     xmax, ymax = w - 1.000001, h - 1.000001
+    Sm = v.shape[2]
+    xs, ys = np.empty(Sm), np.empty(Sm)
     for k in rows:
         Sk, mk = S[k], m[k]
         for i in range(v.shape[1]):
-            acc = 0.0
-            at_m = at_sm = 0.0
-            for s in range(v.shape[2]):
-                x = min(max(cx[k] + ux[k, i] * lam[k, s], 0.0), xmax)
-                y = min(max(cy[k] + uy[k, i] * lam[k, s], 0.0), ymax)
+            # Coordinates first (a loop the compiler vectorises), then the gathers.
+            ax, ay, bx, by = cx[k], cy[k], ux[k, i], uy[k, i]
+            for s in range(Sm):
+                xs[s] = min(max(ax + bx * lam[k, s], 0.0), xmax)
+                ys[s] = min(max(ay + by * lam[k, s], 0.0), ymax)
+            for s in range(Sm):
+                x, y = xs[s], ys[s]
                 x0, y0 = int(x), int(y)
                 fx, fy = x - x0, y - y0
                 v00, v01 = float(img[y0, x0]), float(img[y0, x0 + 1])
                 v10, v11 = float(img[y0 + 1, x0]), float(img[y0 + 1, x0 + 1])
                 top = v00 + fx * (v01 - v00)
                 bot = v10 + fx * (v11 - v10)
-                val = top + fy * (bot - top)
-                v[k, i, s] = val
+                v[k, i, s] = top + fy * (bot - top)
+            acc = 0.0
+            at_m = at_sm = 0.0
+            for s in range(Sk):
                 if s == mk:
                     at_m = acc
                 if s == Sk - mk:
                     at_sm = acc
-                if s < Sk:
-                    acc += val
+                acc += v[k, i, s]
             v_in[k, i] = at_m / mk
             v_out[k, i] = (acc - at_sm) / mk
 
@@ -119,22 +124,21 @@ def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no 
     outside): the 50 % crossing nearest the window centre (lambda, into ``e``), whether
     there is one, and the 10-90 % width of the transition around it (px)."""
     K, N, Sm = v.shape
+    f = np.empty(Sm)
     for k in range(K):
         Sk = S[k]
         mid = (Sk - 1) / 2
         for i in range(N):
             vo, d = v_out[k, i], dd[k, i]
+            for s in range(Sk):  # the normalised profile, once (a loop the compiler vectorises)
+                f[s] = (v[k, i, s] - vo) / d
             # The crossing nearest the middle: a sample >= 0.5 followed by one below.
             j, best = 0, np.inf
-            prev = (v[k, i, 0] - vo) / d
             for s in range(Sk - 1):
-                nxt = (v[k, i, s + 1] - vo) / d
-                if prev >= 0.5 and not nxt >= 0.5 and abs(s - mid) < best:
+                if f[s] >= 0.5 and not f[s + 1] >= 0.5 and abs(s - mid) < best:
                     j, best = s, abs(s - mid)
-                prev = nxt
             found[k, i] = best < np.inf
-            f0 = (v[k, i, j] - vo) / d
-            f1 = (v[k, i, j + 1] - vo) / d
+            f0, f1 = f[j], f[j + 1]
             den = f0 - f1
             e[k, i] = lam[k, j] + dl[k] * (f0 - 0.5) / (den if den != 0 else 1.0)
             # Only the run of in-between samples around the crossing counts: in dark
@@ -142,17 +146,12 @@ def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no 
             # count as plateau, which ends a run at a ring's last sample.
             before = -1
             for s in range(j, -1, -1):
-                fs = (v[k, i, s] - vo) / d
-                if fs <= 0.1 or fs >= 0.9:
+                if f[s] <= 0.1 or f[s] >= 0.9:
                     before = s
                     break
             after = Sm
             for s in range(j + 1, Sm):
-                if s >= Sk:
-                    after = s
-                    break
-                fs = (v[k, i, s] - vo) / d
-                if fs <= 0.1 or fs >= 0.9:
+                if s >= Sk or f[s] <= 0.1 or f[s] >= 0.9:
                     after = s
                     break
             span_j = (j if before == j else after) - before
@@ -165,24 +164,24 @@ def _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, width):  # pragma: no 
 def _ray_integrals(v, v_out, dd, lam, dl, S, xs, out):  # pragma: no cover - compiled
     """Per ray, the integral from lam[k, 0] to each x of xs[q] (lambda) of the
     piecewise-linear normalised profile f = (v - v_out) / dd, into out[q]."""
-    K, N, _ = v.shape
+    K, N, Sm = v.shape
+    f = np.empty(Sm)
     for k in range(K):
         Sk, l0, step = S[k], lam[k, 0], dl[k]
         for i in range(N):
             vo, d = v_out[k, i], dd[k, i]
+            for s in range(Sk):
+                f[s] = (v[k, i, s] - vo) / d
             for q in range(xs.shape[0]):
                 x = xs[q, k, i]
                 pos = min(max((x - l0) / step, 0.0), Sk - 1 - 1e-9)
                 j = int(pos)
                 t = pos - j
                 acc = 0.0  # the integral from lam[k, 0] to lam[k, j]
-                fprev = (v[k, i, 0] - vo) / d
                 for s in range(j):
-                    fn = (v[k, i, s + 1] - vo) / d
-                    acc += 0.5 * (fn + fprev) * step
-                    fprev = fn
-                f0 = fprev
-                f1 = (v[k, i, min(j + 1, Sk - 1)] - vo) / d
+                    acc += 0.5 * (f[s + 1] + f[s]) * step
+                f0 = f[j]
+                f1 = f[min(j + 1, Sk - 1)]
                 out[q, k, i] = acc + step * (t * f0 + 0.5 * t * t * (f1 - f0))
 
 
