@@ -884,6 +884,7 @@ def refine_points(
     conf: dict | None = None,
     camera: Camera | None = None,
     with_blur: bool = False,
+    noise: float | None = None,
 ) -> tuple:
     """Classical sub-pixel centres of the rings near given rough points (e.g. stage 1's).
 
@@ -896,6 +897,7 @@ def refine_points(
         points: (3, 2) rough centres c0, c1, c2, px.
         marker, subpixel, conf, camera: as in :func:`detect`.
         with_blur: also return the motion blur (as :func:`refine_ellipses_views` does).
+        noise: the image's noise sigma if known (else :func:`noise_sigma`).
     Returns:
         (centers (3, 2), found (3,) bool, ellipses): where no ring is found near a point,
         its centre is the input point, ``found`` is False and its ellipse None; with
@@ -909,7 +911,7 @@ def refine_points(
         raise ValueError(f"points must be finite, got {pts.tolist()}")
     r_est = max(ring_diameter(pts, marker) / 2, 4.0)
     half = int(np.ceil(2.2 * r_est)) + 4
-    noise = noise_sigma(gray)
+    noise = noise_sigma(gray) if noise is None else float(noise)
     rings: list[Ring | None] = []
     for p in pts:
         x0, y0 = max(int(p[0]) - half, 0), max(int(p[1]) - half, 0)

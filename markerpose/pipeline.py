@@ -133,9 +133,14 @@ class MarkerPose:
         self.timings, self.why = {}, None
         self._fits_left = None  # no work budget until a cold detection sets one (_budget)
         self.refiner.budget(None)
+        self.refiner.frame(True)
         if self.proposer is not None:
             self.proposer.forget()
         return time.perf_counter()
+
+    def _end(self, t0: float) -> None:
+        self.timings["total"] = time.perf_counter() - t0
+        self.refiner.frame(False)
 
     def _budget(self) -> None:
         """Start a cold detection's work budget: ``match.max_fits`` refined hypotheses,
@@ -190,7 +195,7 @@ class MarkerPose:
                     self._failed(reason)
             return None
         finally:
-            self.timings["total"] = time.perf_counter() - t0
+            self._end(t0)
 
     def _view_triples(self, gray: np.ndarray, cand: np.ndarray, zoom: float) -> list:
         """One view's layout triples to refine, best first: by score x ring evidence,
@@ -236,7 +241,7 @@ class MarkerPose:
             self.why = None if est is not None else (self.why or "no marker found")
             return est
         finally:
-            self.timings["total"] = time.perf_counter() - t0
+            self._end(t0)
 
     @_blas_serial
     def track(self, left, right) -> Estimate | None:
@@ -292,7 +297,7 @@ class MarkerPose:
                 self._lost = (now or [track.blocks(g, c["lost_block"]) for g in grays], 0)
             return est
         finally:
-            self.timings["total"] = time.perf_counter() - t0
+            self._end(t0)
 
     def reset(self) -> None:
         """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
@@ -312,7 +317,7 @@ class MarkerPose:
             predicted.append(ellipses)
         noises, age = self._noise
         if noises is None or age >= c["noise_every"]:
-            noises, age = [classical.noise_sigma(g) for g in grays], 0
+            noises, age = self.refiner.noises(grays), 0
         self._noise = (noises, age + 1)
         found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False,
                             c["one_pass_move"], noises)

@@ -304,3 +304,22 @@ def test_serial_blas_puts_the_threads_back_when_a_call_raises(rig):
 
         assert serial_blas._inside == 0
 
+
+
+def test_each_view_noise_is_estimated_once_a_frame(rig, frame, monkeypatch):
+    """However many hypotheses a cold detection refines, each image's noise estimate (the
+    edge fit's contrast floor) is computed once per call, and again in the next call (a
+    new frame, even in the same buffers)."""
+    from markerpose import classical
+
+    tracker = mp.MarkerPose(rig)
+    expected = tracker.estimate(*frame.images)
+    seen = []
+    real = classical.noise_sigma
+    monkeypatch.setattr(classical, "noise_sigma", lambda g: seen.append(id(g)) or real(g))
+    for _ in range(2):
+        seen.clear()
+        est = tracker.estimate(*frame.images)
+        assert len(seen) == len(set(seen)) == 2
+        np.testing.assert_array_equal(est.T, expected.T)
+    assert tracker.refiner.noises([frame.images[0]]) == [real(frame.images[0])]  # outside a call: computed

@@ -58,6 +58,7 @@ class Refiner:
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
+        self._noise = None  # this frame's noise estimates by image (frame); None: outside a frame
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         edges.warm_up()
@@ -76,6 +77,24 @@ class Refiner:
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
         # Whether refined detections carry the rings' ellipses (what the plate check needs).
         self.gives_ellipses = self.edge_refit or conf["method"] == "classical"
+
+    def frame(self, start: bool) -> None:
+        """Start (True) or end (False) one frame's work: within it, each image's noise
+        estimate is computed once (:meth:`noises`), however many hypotheses refine it."""
+        self._noise = {} if start else None
+
+    def noises(self, grays: list) -> list:
+        """Per image, its noise sigma (:func:`classical.noise_sigma`), once per frame."""
+        memo = self._noise
+        if memo is None:
+            return [classical.noise_sigma(g) for g in grays]
+        out = []
+        for g in grays:
+            hit = memo.get(id(g))
+            if hit is None or hit[0] is not g:  # the memo holds the image: its id is not reused
+                hit = memo[id(g)] = (g, classical.noise_sigma(g))
+            out.append(hit[1])
+        return out
 
     def budget(self, fits: int | None) -> None:
         """Allow ``fits`` blurred-ring model fits from now on (None: no limit)."""
@@ -102,7 +121,7 @@ class Refiner:
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
             centers, ok, ellipses, blur = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf,
-                                                                  camera=cam, with_blur=True)
+                                                                  camera=cam, with_blur=True, noise=self.noises([gray])[0])
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur))
         return out
 
@@ -128,7 +147,7 @@ class Refiner:
             if views:
                 fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
                                                        {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views],
-                                                       with_blur=True)
+                                                       self.noises([grays[k] for k in views]), with_blur=True)
                 for k, (centers, ok, ellipses, blur) in zip(views, fits):
                     if ok.all():
                         out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
@@ -140,14 +159,15 @@ class Refiner:
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
             fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, conf,
-                                                   [cameras[k] for k in seen], with_blur=True)
+                                                   [cameras[k] for k in seen], self.noises([grays[k] for k in seen]), with_blur=True)
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
             ellipses, blur = None, 0.0
             if fit is not None:
                 c2, ok2, ellipses, blur = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                    c3, ok3, e3, b3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k], with_blur=True)
+                    c3, ok3, e3, b3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k], with_blur=True,
+                                                              noise=self.noises([grays[k]])[0])
                     c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
                     ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                     ok2 = ok2 | ok3
@@ -171,7 +191,7 @@ class Refiner:
             conf = {**conf, "blur_fit_gate": blur_gate}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
-        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises, with_blur=True)
+        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises or self.noises(grays), with_blur=True)
         return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
 
     def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
