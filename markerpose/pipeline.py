@@ -20,7 +20,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from . import classical, presets
+from . import presets
 from .camera import StereoRig
 from .geometry import ring_diameter, ring_ellipses
 from .images import as_gray, check_size
