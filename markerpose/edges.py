@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .geometry import sqrtm_spd
 from .jit import compiled
 
 # --- masked statistics (numpy's median / linear percentile over the masked-in entries) ----------
@@ -698,8 +697,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         widths of the valid points in px (K,)).
     """
     K = len(cen)
-    L = sqrtm_spd(Q, -0.5)
-    eig = np.linalg.eigvalsh(Q)
+    L, eig = _spd2(Q, -0.5)
     a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
     perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
     n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(np.int64)  # even
@@ -728,7 +726,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
         kk = np.array([p[0] for p in pairs], np.int64)
         co = np.array([p[1] for p in pairs], np.float64)
         Qo = np.array([p[2] for p in pairs], np.float64)
-        b_o = 1 / np.sqrt(np.linalg.eigvalsh(Qo)[:, 1])
+        b_o = 1 / np.sqrt(_spd2(Qo, 0.5)[1][:, 1])
         _neighbours(xy, r, width, float(half), kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
@@ -921,7 +919,7 @@ def _radial_offsets(P: np.ndarray, cen: np.ndarray, Q: np.ndarray) -> tuple[np.n
     offset from the ellipse, px (K, N each)."""
     K, N = P.shape[:2]
     t, off = np.empty((K, N)), np.empty((K, N))
-    _offsets(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(cen, np.float64), np.ascontiguousarray(sqrtm_spd(Q, 0.5)), t, off)
+    _offsets(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(cen, np.float64), _spd2(Q, 0.5)[0], t, off)
     return t, off
 
 
@@ -1031,7 +1029,34 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
 
 
 def _semi_axes(Q: np.ndarray) -> np.ndarray:
-    return np.sqrt(1 / np.linalg.eigvalsh(Q))
+    return np.sqrt(1 / _spd2(Q, 0.5)[1])
+
+
+def _spd2(Q: np.ndarray, power: float) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric positive definite 2 x 2 matrices Q (K, 2, 2): Q^power (power 0.5 or
+    -0.5) and the eigenvalues, ascending (K, 2), in closed form."""
+    Q = np.ascontiguousarray(Q, np.float64).reshape(-1, 2, 2)
+    out, eig = np.empty(Q.shape), np.empty((len(Q), 2))
+    _spd2_rows(Q, power < 0, out, eig)
+    return out, eig
+
+
+@compiled
+def _spd2_rows(Q, inverse, out, eig):  # pragma: no cover - compiled
+    """:func:`_spd2` per row: sqrt(Q) = (Q + sqrt(det Q) I) / sqrt(tr Q + 2 sqrt(det Q)),
+    inverted for the power -0.5; the smaller eigenvalue as det / the larger (no
+    cancellation)."""
+    for k in range(Q.shape[0]):
+        a, b, c = Q[k, 0, 0], 0.5 * (Q[k, 0, 1] + Q[k, 1, 0]), Q[k, 1, 1]
+        det = a * c - b * b
+        hi = 0.5 * (a + c) + np.hypot(0.5 * (a - c), b)
+        eig[k, 0], eig[k, 1] = det / hi, hi
+        s = np.sqrt(det)
+        t = np.sqrt(a + c + 2 * s)
+        r00, r01, r11 = (a + s) / t, b / t, (c + s) / t
+        if inverse:  # the inverse of a 2 x 2 matrix whose determinant is sqrt(det Q)
+            r00, r01, r11 = r11 / s, -r01 / s, r00 / s
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = r00, r01, r01, r11
 
 
 def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict,
@@ -1121,6 +1146,7 @@ def warm_up() -> None:
     fit_ellipses(np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None], b2)
     _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
     _harmonics(f2, np.empty((K, N, 5)))
+    _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
     n, S1 = np.full(K, N), np.full(K, Sm)

@@ -254,3 +254,17 @@ def test_the_least_median_screen_matches_numpy_on_many_small_rings():
     cen, Q = np.tile([200.0, 150.0], (K, 1)), np.tile(np.diag([1 / 30**2, 1 / 18**2]), (K, 1, 1))
     keep = edges.lmeds_inliers(P, mask, cen, Q, {"outlier_min_px": 0.15})
     np.testing.assert_array_equal(keep, _lmeds_reference(P, mask, cen, Q, 0.15))
+
+
+def test_spd2_closed_forms_agree_with_numpy():
+    """The 2 x 2 closed forms the edge fit uses (square root, its inverse, eigenvalues)
+    equal numpy's eigendecomposition on well- and ill-conditioned matrices."""
+    from markerpose.geometry import sqrtm_spd
+
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(500, 2, 2))
+    Q = A @ A.transpose(0, 2, 1) + np.logspace(-6, 0, 500)[:, None, None] * np.eye(2)
+    for power in (0.5, -0.5):
+        M, eig = edges._spd2(Q, power)
+        np.testing.assert_allclose(M, sqrtm_spd(Q, power), rtol=1e-9, atol=1e-12 * np.abs(M).max())
+        np.testing.assert_allclose(eig, np.linalg.eigvalsh(Q), rtol=1e-9)
