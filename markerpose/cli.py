@@ -212,7 +212,8 @@ def cmd_bench(args):
     if args.sequence:
         from .experiments import sequence
 
-        conf = {"frames": args.frames, "threads": args.threads, "seed": args.seed, "block": args.block, "preset": args.preset}
+        conf = {"frames": args.frames, "threads": args.threads, "seed": args.seed, "passes": args.passes, "pace": not args.no_pace,
+                "preset": args.preset}
         res = sequence.main(conf, args.out, progress=not args.quiet)
         print(sequence.report(res))
         print(f"Wrote {args.out}/: report.md, results.json, sequence.png")
@@ -737,8 +738,10 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
     b.add_argument("--seed", type=int, default=0, help="--sequence: seed of the noise and the background")
     b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
-    b.add_argument("--block", type=int, default=10,
-                   help="--sequence: frames each method runs in a row before the next takes them (default 10; 1: every frame in turn)")
+    b.add_argument("--passes", type=int, default=2,
+                   help="--sequence: passes over the sequence per method, in alternating order (default 2; latency: the mean)")
+    b.add_argument("--no-pace", action="store_true",
+                   help="--sequence: hand the frames over back to back instead of at the stream's 60 frames/s")
     b.add_argument("--out", default="markerpose-sequence", help="--sequence: output folder (default markerpose-sequence)")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)

@@ -995,10 +995,97 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
 def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = None, weights: np.ndarray | None = None):
     """Ellipse fits with iterative rejection of points far from the fitted curve (after a
     least-median-of-squares screen around ``frame`` = (cen (K, 2), Q (K, 2, 2)) for fits of
-    at least 12 points); ``weights`` (K, N) weigh the points in the fit.
+    at least 12 points); ``weights`` (K, N) weigh the points in the fit. ``P``'s valid
+    points come first in each row (as :func:`edge_points` returns them).
 
     Returns (centres (K, 2), Q (K, 2, 2), fitted (K,), keep (K, N)).
+
+    Each ring in one compiled pass (:func:`_robust_rows`); a ring whose reduced scatter
+    matrix has complex eigenvalues (numba's eig refuses those) is fitted by the same steps
+    in numpy (:func:`_fit_robust_numpy`), which takes the real parts as before.
     """
+    K, N = mask.shape
+    P = np.ascontiguousarray(P, np.float64)
+    mask = np.ascontiguousarray(mask, bool)
+    W = np.ones((K, N)) if weights is None else np.ascontiguousarray(weights, np.float64)
+    cnt = mask.sum(1)
+    screen = np.zeros(K, bool) if frame is None else cnt >= 12
+    n_sub = 40
+    idx = np.zeros((K, n_sub, 5), np.int64)
+    for k in np.nonzero(screen)[0]:
+        idx[k] = _subsets(int(cnt[k]), n_sub)
+    fcen = np.zeros((K, 2)) if frame is None else np.ascontiguousarray(frame[0], np.float64)
+    fR = np.tile(np.eye(2), (K, 1, 1)) if frame is None else _spd2(frame[1], 0.5)[0]
+    cen, Q, fitted, keep, fallback = np.empty((K, 2)), np.empty((K, 2, 2)), np.empty(K, bool), np.empty((K, N), bool), np.empty(K, bool)
+    _robust_rows(P, mask, W, screen, fcen, fR, idx, float(c["outlier_k"]), float(c["outlier_min_px"]), _S1, _S2, _S3,
+                 cen, Q, fitted, keep, fallback)
+    if fallback.any():
+        f = np.nonzero(fallback)[0]
+        sub = None if frame is None else (frame[0][f], frame[1][f])
+        cen[f], Q[f], fitted[f], keep[f] = _fit_robust_numpy(P[f], mask[f], c, sub, W[f])
+    return cen, Q, fitted, keep
+
+
+@compiled
+def _robust_rows(P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S3i, cen, Q, fitted, keep, fallback):  # pragma: no cover - compiled
+    """:func:`fit_robust` ring by ring: the least-median screen where ``screen[k]`` (radial
+    offsets from the frame ellipse fcen[k], fR[k] = Q^(1/2)), then up to three weighted
+    direct fits, each followed by the outlier rejection, stopping when the points kept do
+    not change. ``fallback[k]``: the eigenproblem was refused (complex eigenvalues)."""
+    K, N, _ = P.shape
+    t, off, X = np.empty((1, N)), np.empty((1, N)), np.empty((1, N, 5))
+    m, s, mu = np.empty((1, 2)), np.empty(1), np.empty((1, 15))
+    M, T, V = np.empty((1, 3, 3)), np.empty((1, 3, 3)), np.empty((1, 3, 3))
+    valid = np.empty(1, np.bool_)
+    ci, Qi, R, eig = np.empty((1, 2)), np.empty((1, 2, 2)), np.empty((1, 2, 2)), np.empty((1, 2))
+    new, same, cnt = np.empty((1, N), np.bool_), np.empty(1, np.bool_), np.empty(1, np.int64)
+    for k in range(K):
+        fallback[k] = False
+        fitted[k] = False
+        cen[k] = 0.0
+        Q[k, 0, 0], Q[k, 0, 1], Q[k, 1, 0], Q[k, 1, 1] = 1.0, 0.0, 0.0, 1.0
+        for i in range(N):
+            keep[k, i] = mask[k, i]
+        if screen[k]:
+            n = 0
+            for i in range(N):
+                n += mask[k, i]
+            cnt[0] = n
+            _offsets(P[k : k + 1], fcen[k : k + 1], fR[k : k + 1], t, off)
+            _harmonics(t, X)
+            _lmeds(X, off, mask[k : k + 1], cnt, idx[k : k + 1], min_px, keep[k : k + 1])
+        for _ in range(3):
+            n = 0
+            for i in range(N):
+                n += keep[k, i]
+            if n < 6:
+                fitted[k] = False
+                break
+            _scatter(P[k : k + 1], W[k : k + 1], keep[k : k + 1], m, s, mu)
+            valid[0] = s[0] > 0
+            _reduced_scatter(mu, S1i, S2i, S3i, valid, M, T)
+            try:
+                _, Vk = np.linalg.eig(M[0])
+            except Exception:  # noqa: BLE001 - numba catches no narrower class; complex eigenvalues: numpy's path takes their real parts
+                fallback[k] = True
+                break
+            V[0] = Vk
+            _ellipse_from_conic(V, T, m, s, valid, ci, Qi)
+            fitted[k] = valid[0]
+            if not valid[0]:
+                break
+            cen[k], Q[k] = ci[0], Qi[0]
+            _spd2_rows(Qi, False, R, eig)
+            _offsets(P[k : k + 1], ci, R, t, off)  # off: the radial residuals, px
+            _reject(off, keep[k : k + 1], mask[k : k + 1], k_sigma, min_px, new, same)
+            for i in range(N):
+                keep[k, i] = new[0, i]
+            if same[0]:
+                break
+
+
+def _fit_robust_numpy(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = None, weights: np.ndarray | None = None):
+    """:func:`fit_robust` in numpy, batched (the fallback for rings numba's eig refuses)."""
     K = len(mask)
     keep = mask.copy()
     if frame is not None:
@@ -1143,7 +1230,9 @@ def warm_up() -> None:
     crossings(v, f2, f2, lam, np.full(K, 1 / 3), S, f2)
     integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
-    fit_ellipses(np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None], b2)
+    ring = np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None]
+    fit_ellipses(ring, b2)
+    fit_robust(ring, b2, {"outlier_k": 3.0, "outlier_min_px": 0.15}, (np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))), f2)
     _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
     _harmonics(f2, np.empty((K, N, 5)))
     _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)

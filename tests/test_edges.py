@@ -268,3 +268,36 @@ def test_spd2_closed_forms_agree_with_numpy():
         M, eig = edges._spd2(Q, power)
         np.testing.assert_allclose(M, sqrtm_spd(Q, power), rtol=1e-9, atol=1e-12 * np.abs(M).max())
         np.testing.assert_allclose(eig, np.linalg.eigvalsh(Q), rtol=1e-9)
+
+
+def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues():
+    """fit_robust (compiled, ring by ring) gives numpy's batched result exactly, with and
+    without the least-median screen, also for point sets whose reduced scatter matrix has
+    complex eigenvalues (nearly a parabola or a line): numba's eig refuses those and they
+    take numpy's path."""
+    rng = np.random.default_rng(1)
+    K, N = 12, 40
+    P, mask = np.zeros((K, N, 2)), np.zeros((K, N), bool)
+    t = np.linspace(0, 2 * np.pi, N, endpoint=False)
+    for k in range(K):
+        n = int(rng.integers(8, N))
+        if k % 3 == 2:  # nearly a line or a parabola
+            x = rng.normal(size=n) * 20
+            P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
+        else:  # a ring with noise and a few outliers
+            a, b = rng.uniform(15, 40), rng.uniform(10, 15)
+            P[k, :n] = np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+            P[k, : n // 8] += rng.normal(scale=3, size=(n // 8, 2))
+        mask[k, :n] = True
+    W = rng.uniform(0.5, 2, (K, N))
+    c = {"outlier_k": 3.0, "outlier_min_px": 0.15}
+    frame = (P[:, :8].mean(1), np.tile(np.eye(2) / 400, (K, 1, 1)))
+    fallback = np.empty(K, bool)
+    cnt = mask.sum(1)
+    idx = np.stack([edges._subsets(int(n), 40) for n in cnt])
+    edges._robust_rows(P, mask, W, cnt >= 12, frame[0], edges._spd2(frame[1], 0.5)[0], idx, 3.0, 0.15, edges._S1, edges._S2, edges._S3,
+                       np.empty((K, 2)), np.empty((K, 2, 2)), np.empty(K, bool), np.empty((K, N), bool), fallback)
+    assert fallback.any() and not fallback.all()
+    for fr in (None, frame):
+        for got, want in zip(edges.fit_robust(P, mask, c, fr, W), edges._fit_robust_numpy(P, mask, c, fr, W)):
+            np.testing.assert_array_equal(got, want)

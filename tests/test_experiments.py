@@ -1,6 +1,7 @@
 """The benchmark and the end-to-end evaluation run and report what they measured."""
 
 import itertools
+import time
 
 import numpy as np
 import pytest
@@ -270,33 +271,38 @@ def test_sequence_segments_and_summary():
     assert "frames to re-acquire" in sq.report({"conf": sq.default_conf, "summary": {m: s for m in sq.METHODS}, "frames": rows})
 
 
-def test_sequence_methods_take_turns_in_blocks(monkeypatch):
-    """``block``: each method runs a block of consecutive frames in a row, every frame gets
-    all three methods once, in order; ``preset`` picks track's and estimate's; a bad block
-    size or preset is a clear error."""
+def test_sequence_methods_run_as_paced_streams_in_alternating_passes(monkeypatch):
+    """Each method runs the whole sequence in a row, frames handed over at the stream's
+    rate, in ``passes`` passes of alternating order (latency: the mean of the passes);
+    ``preset`` picks track's and estimate's; a bad pass count or preset is a clear error."""
     from markerpose import synth
     from markerpose.experiments import sequence as sq
 
     rig = mp.StereoRig.default()
     frame = synth.render_stereo(rig, synth.look_at_pose([0, 0, 560], 30, 45, 0), seed=1)
     monkeypatch.setattr(sq, "render", lambda c, rig, marker, progress: ((frame, "static", 0.0) for _ in range(c["frames"])))
-    order = []  # which tracker each estimate() call was made on
+    order, starts = [], []  # which tracker each estimate() call was made on, and when
     real = mp.MarkerPose.estimate
 
     def logged(self, left, right):
         order.append(id(self))
+        starts.append(time.perf_counter())
         return real(self, left, right)
 
     monkeypatch.setattr(mp.MarkerPose, "estimate", logged)
-    res = sq.main({"frames": 40, "block": 16, "preset": "default-no-second-look"}, out_dir=None, progress=False)
+    res = sq.main({"frames": 40, "passes": 2, "fps": 20.0, "preset": "default-no-second-look"}, out_dir=None, progress=False)
     assert '`MarkerPose(rig, preset="default-no-second-look").track`' in sq.report(res)
     assert [r["frame"] for r in res["frames"]] == list(range(40))
-    assert all(r[m]["found"] for r in res["frames"] for m in sq.METHODS)
-    # After the two warm-up calls, `estimate` and `paper` take turns in runs of 16, 16, 8 frames.
+    assert all(r[m]["found"] and len(r[m]["ms_passes"]) == 2 for r in res["frames"] for m in sq.METHODS)
+    assert all(r[m]["ms"] == pytest.approx(np.mean(r[m]["ms_passes"])) for r in res["frames"] for m in sq.METHODS)
+    # After the two warm-up calls: estimate's 40 frames then paper's, then paper's and estimate's.
     runs = [len(list(g)) for _, g in itertools.groupby(order[2:])]
-    assert runs == [16, 16, 16, 16, 8, 8], runs
-    with pytest.raises(ValueError, match="block"):
-        sq.main({"frames": 40, "block": 0}, out_dir=None, progress=False)
+    assert runs == [40, 80, 40], runs
+    # Paced at 20 frames/s: a stream of 40 frames spans about two seconds.
+    first = starts[2:42]
+    assert first[-1] - first[0] >= 39 / 20.0 - 0.01
+    with pytest.raises(ValueError, match="passes"):
+        sq.main({"frames": 40, "passes": 0}, out_dir=None, progress=False)
     with pytest.raises(ValueError, match="unknown preset"):
         sq.main({"frames": 40, "preset": "no-such"}, out_dir=None, progress=False)
 
