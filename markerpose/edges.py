@@ -267,15 +267,15 @@ def _select(a, n, kth):  # pragma: no cover - compiled
 
 @compiled
 def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
-    """:func:`lmeds_inliers` per ring k: each 5-point subset idx[k, s] of its first
-    cnt[k] points fitted exactly (skipped when |det| <= 1e-6), the subset with the
-    smallest median absolute residual kept (the first of equals), and keep[k] set to the
-    points within max(2.5 robust sigmas, min_px) of its model; keep[k] = mask[k] when no
-    subset is regular.
+    """:func:`lmeds_inliers` per ring k (X[k]: the model's five terms (5, N), one row per
+    term): each 5-point subset idx[k, s] of its first cnt[k] points fitted exactly (skipped
+    when |det| <= 1e-6), the subset with the smallest median absolute residual kept (the
+    first of equals), and keep[k] set to the points within max(2.5 robust sigmas, min_px)
+    of its model; keep[k] = mask[k] when no subset is regular.
 
     A subset's median is only computed when it can beat the best so far: while fewer
     than half the residuals lie below the best median, its median cannot be smaller."""
-    K, N = off.shape
+    K, _, N = X.shape
     S = idx.shape[1]
     A, b = np.empty((5, 5)), np.empty((5, 1))
     best = np.empty(5)
@@ -288,19 +288,17 @@ def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
             for r in range(5):
                 q = idx[k, s, r]
                 for j in range(5):
-                    A[r, j] = X[k, q, j]
+                    A[r, j] = X[k, j, q]
                 b[r, 0] = off[k, q]
             coef, det, _ = _lu_solve_det(A, b)
             if not abs(det) > 1e-6:
                 continue
+            c0, c1, c2, c3, c4 = coef[0, 0], coef[1, 0], coef[2, 0], coef[3, 0], coef[4, 0]
+            for i in range(n):  # the residuals (a loop over contiguous rows: vectorised)
+                buf[i] = abs(off[k, i] - ((((c0 * X[k, 0, i] + c1 * X[k, 1, i]) + c2 * X[k, 2, i]) + c3 * X[k, 3, i]) + c4 * X[k, 4, i]))
             below = 0
             for i in range(n):
-                pred = 0.0
-                for j in range(5):
-                    pred += coef[j, 0] * X[k, i, j]
-                buf[i] = abs(off[k, i] - pred)
-                if buf[i] < best_med:
-                    below += 1
+                below += buf[i] < best_med
             if found and below < (n + 1) // 2:  # the (n - 1) // 2-th smallest is >= best
                 continue
             med = _median(buf, n)
@@ -316,9 +314,7 @@ def _lmeds(X, off, mask, cnt, idx, min_px, keep):  # pragma: no cover - compiled
         sigma = 1.4826 * (1 + 5.0 / max(n - 5, 1)) * best_med
         thr = max(2.5 * sigma, min_px)
         for i in range(N):
-            pred = 0.0
-            for j in range(5):
-                pred += best[j] * X[k, i, j]
+            pred = (((best[0] * X[k, 0, i] + best[1] * X[k, 1, i]) + best[2] * X[k, 2, i]) + best[3] * X[k, 3, i]) + best[4] * X[k, 4, i]
             keep[k, i] = mask[k, i] and abs(off[k, i] - pred) <= thr
 
 
@@ -959,16 +955,16 @@ def _reject(res, kl, mask, k_sigma, min_px, new, same):  # pragma: no cover - co
 
 @compiled
 def _harmonics(t, X):  # pragma: no cover - compiled
-    """X[k, i] = (1, cos t, sin t, cos 2t, sin 2t) of t[k, i]: the linearised model's terms."""
+    """X[k, :, i] = (1, cos t, sin t, cos 2t, sin 2t) of t[k, i]: the linearised model's terms."""
     K, N = t.shape
     for k in range(K):
         for i in range(N):
             a = t[k, i]
-            X[k, i, 0] = 1.0
-            X[k, i, 1] = np.cos(a)
-            X[k, i, 2] = np.sin(a)
-            X[k, i, 3] = np.cos(2 * a)
-            X[k, i, 4] = np.sin(2 * a)
+            X[k, 0, i] = 1.0
+            X[k, 1, i] = np.cos(a)
+            X[k, 2, i] = np.sin(a)
+            X[k, 3, i] = np.cos(2 * a)
+            X[k, 4, i] = np.sin(2 * a)
 
 
 def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarray, c: dict, n_subsets: int = 40) -> np.ndarray:
@@ -983,7 +979,7 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     come first in each row (as :func:`edge_points` returns them).
     """
     t, off = _radial_offsets(P, cen, Q)
-    X = np.empty((*t.shape, 5))
+    X = np.empty((len(t), 5, t.shape[1]))
     _harmonics(t, X)
     cnt = mask.sum(1)
     idx = np.stack([_subsets(int(n), n_subsets) for n in cnt])  # (K, S, 5)
@@ -1033,7 +1029,7 @@ def _robust_rows(P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S
     direct fits, each followed by the outlier rejection, stopping when the points kept do
     not change. ``fallback[k]``: the eigenproblem was refused (complex eigenvalues)."""
     K, N, _ = P.shape
-    t, off, X = np.empty((1, N)), np.empty((1, N)), np.empty((1, N, 5))
+    t, off, X = np.empty((1, N)), np.empty((1, N)), np.empty((1, 5, N))
     m, s, mu = np.empty((1, 2)), np.empty(1), np.empty((1, 15))
     M, T, V = np.empty((1, 3, 3)), np.empty((1, 3, 3)), np.empty((1, 3, 3))
     valid = np.empty(1, np.bool_)
@@ -1233,8 +1229,8 @@ def warm_up() -> None:
     ring = np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None]
     fit_ellipses(ring, b2)
     fit_robust(ring, b2, {"outlier_k": 3.0, "outlier_min_px": 0.15}, (np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))), f2)
-    _lmeds(np.ones((K, N, 5)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
-    _harmonics(f2, np.empty((K, N, 5)))
+    _lmeds(np.ones((K, 5, N)), f2, b2, np.full(K, N, np.intp), np.zeros((K, 2, 5), np.intp), 0.15, b2.copy())
+    _harmonics(f2, np.empty((K, 5, N)))
     _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))

@@ -7,7 +7,9 @@ No I/O here. Units: mm and radians. Frames: the left camera is the world;
 
 from __future__ import annotations
 
+import functools
 import itertools
+import math
 
 import cv2
 import numpy as np
@@ -234,9 +236,11 @@ def rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
     (x - c)^T Q (x - c) = 1."""
     (cx, cy), (w, h), ang = rect
     a, b = max(w, 1e-6) / 2.0, max(h, 1e-6) / 2.0
-    t = np.deg2rad(ang)
-    R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
-    return np.array([cx, cy], float), R @ np.diag([1 / a**2, 1 / b**2]) @ R.T
+    t = math.radians(ang)
+    c, s = math.cos(t), math.sin(t)
+    ia, ib = 1 / a**2, 1 / b**2  # R diag(ia, ib) R^T, R the rotation by the angle
+    q01 = c * s * (ia - ib)
+    return np.array([cx, cy], float), np.array([[c * c * ia + s * s * ib, q01], [q01, s * s * ia + c * c * ib]])
 
 
 def cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
@@ -357,16 +361,25 @@ def ring_edges(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: floa
     """(3, n, 2) distorted pixels of ``n`` points on each ring's outer circle in a view
     where the marker has pose ``T_cam_marker`` (``model``: the ring centres, mm); for a
     stack of P poses (P, 4, 4), (P, 3, n, 2)."""
-    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
     T = np.asarray(T_cam_marker, np.float64)
     model = np.asarray(model, np.float64)
-    pts = (model[:, None, :] + circle[None]).reshape(-1, 3)
+    pts = _circle_points(model.tobytes(), len(model), float(radius), int(n))
     cam = np.einsum("...ij,mj->...mi", T[..., :3, :3], pts) + T[..., None, :3, 3]
     return camera.project(cam.reshape(-1, 3)).reshape(T.shape[:-2] + (len(model), n, 2))
+
+
+@functools.lru_cache(maxsize=16)
+def _circle_points(model: bytes, count: int, radius: float, n: int) -> np.ndarray:
+    """(count * n, 3) points of the rings' circles (centres ``model``, (count, 3) float64
+    as bytes) in the marker frame, read-only (computed once per marker)."""
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    circle = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)]) * radius
+    pts = (np.frombuffer(model).reshape(count, 3)[:, None, :] + circle[None]).reshape(-1, 3)
+    pts.flags.writeable = False
+    return pts
 
 
 def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: float) -> list:
     """The rings' outer ellipses (OpenCV RotatedRects) in a view where the marker has pose
     ``T_cam_marker``: ellipses fitted to the projected circles (lens distortion included)."""
-    return [cv2.fitEllipse(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]
+    return [cv2.fitEllipseDirect(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]
