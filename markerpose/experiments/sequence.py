@@ -120,25 +120,26 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
     passes = int(c["passes"])
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {c['passes']}")
-    frames = list(render(c, rig, marker, progress))
-    rows = [{"frame": k, "segment": sg, "visible": all(v.in_image.all() for v in f.views), "blur_px": b}
-            for k, (f, sg, b) in enumerate(frames)]
+    # The images and the truth only (a rendered frame also holds its ring masks).
+    frames, rows = [], []
+    for k, (f, sg, b) in enumerate(render(c, rig, marker, progress)):
+        frames.append((f.images, f.T_left_marker))
+        rows.append({"frame": k, "segment": sg, "visible": all(v.in_image.all() for v in f.views), "blur_px": b})
     for m in ("estimate", "paper"):  # warm-up: lazy initialisation and caches, not timed
-        calls[m](*frames[0][0].images)
+        calls[m](*frames[0][0])
     period = 1.0 / float(c["fps"]) if c["pace"] else 0.0
     for p in tqdm(range(passes), desc="passes", unit="pass", disable=not progress):
         for m in METHODS if p % 2 == 0 else METHODS[::-1]:
             runners[m].reset()  # a new stream (track's prior; the others keep none)
             start = time.perf_counter()
-            for k, (f, _, _) in enumerate(frames):
+            for k, (images, T) in enumerate(frames):
                 wait = start + k * period - time.perf_counter()
                 if wait > 0:
                     time.sleep(wait)
                 t0 = time.perf_counter()
-                est = calls[m](*f.images)
+                est = calls[m](*images)
                 dt = 1000 * (time.perf_counter() - t0)
                 if p == 0:
-                    T = f.T_left_marker
                     rows[k][m] = {"ms": 0.0, "ms_passes": [], "found": est is not None, "source": None if est is None else est.source,
                                   "t_mm": None if est is None else float(np.linalg.norm(est.t - T[:3, 3])),
                                   "r_deg": None if est is None else float(np.degrees(rotation_angle(nearest_rotation(est.R), T[:3, :3]))),
