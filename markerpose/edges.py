@@ -623,7 +623,7 @@ def _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, 
     med = np.empty(K)
     _row_stats(contrast, ok, -1.0, 0.0, med)
     for k in range(K):
-        lim = max(floor[k], 0.3 * med[k])
+        lim = max(0.3 * med[k], floor[k])  # NaN first: a NaN median drops the ring's rays, as numpy's maximum did
         for i in range(N):
             ok[k, i] = ok[k, i] and contrast[k, i] > lim
     found = np.empty((K, N), np.bool_)
@@ -998,7 +998,8 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
 
     Each ring in one compiled pass (:func:`_robust_rows`); a ring whose reduced scatter
     matrix has complex eigenvalues (numba's eig refuses those) is fitted by the same steps
-    in numpy (:func:`_fit_robust_numpy`), which takes the real parts as before.
+    in numpy (:func:`_fit_robust_numpy`), whose batched eig returns them and whose fit
+    takes their eigenvectors' real parts.
     """
     K, N = mask.shape
     P = np.ascontiguousarray(P, np.float64)
@@ -1234,7 +1235,7 @@ def warm_up() -> None:
     _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
-    n, S1 = np.full(K, N), np.full(K, Sm)
+    n, S1 = np.full(K, N, np.int64), np.full(K, Sm, np.int64)
     u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
     _ray_frame(np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)),
                np.empty(K), xy, ok)

@@ -133,9 +133,9 @@ class MarkerPose:
         self.timings, self.why = {}, None
         self._fits_left = None  # no work budget until a cold detection sets one (_budget)
         self.refiner.budget(None)
-        self.refiner.frame(True)
         if self.proposer is not None:
             self.proposer.forget()
+        self.refiner.frame(True)  # last: the call's finally (_end) ends the frame
         return time.perf_counter()
 
     def _end(self, t0: float) -> None:

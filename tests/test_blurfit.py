@@ -377,12 +377,23 @@ inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det")  # calle
 kernels = [v for m in (edges, camera, blurfit, classical) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)
-mp.MarkerPose(mp.StereoRig.default())
-print(len(kernels), before, all(k.signatures for k in kernels))
+rig = mp.StereoRig.default()
+tracker = mp.MarkerPose(rig)
+built = [len(k.signatures) for k in kernels]
+from markerpose.synth import Imaging, look_at_pose, render_stereo
+T = look_at_pose([0, 0, 560], 30, 45, 10)
+for blur in (0.0, 20.0):
+    images = render_stereo(rig, T, imaging=Imaging(motion_blur=blur), seed=1).images
+    tracker.estimate(*images)
+    tracker.track(*images)
+    tracker.track(*images)
+added = [k.py_func.__name__ for k, n in zip(kernels, built) if len(k.signatures) != n]
+print(len(kernels), before, all(built), ",".join(added) or "-")
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout
-    n, before, after = out.split()
+    n, before, after, added = out.split()
     assert int(n) >= 10 and before == "False" and after == "True"
+    assert added == "-", f"compiled only at a frame, not when the pipeline was built: {added}"
 
 
 def test_a_read_only_install_without_a_home_still_runs():

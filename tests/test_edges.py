@@ -300,4 +300,7 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
     assert fallback.any() and not fallback.all()
     for fr in (None, frame):
         for got, want in zip(edges.fit_robust(P, mask, c, fr, W), edges._fit_robust_numpy(P, mask, c, fr, W)):
-            np.testing.assert_array_equal(got, want)
+            if got.dtype == bool:
+                np.testing.assert_array_equal(got, want)
+            else:  # numba's eig and numpy's may come from different LAPACK builds
+                np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)

@@ -191,7 +191,7 @@ class Refiner:
             conf = {**conf, "blur_fit_gate": blur_gate}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
-        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, noises or self.noises(grays), with_blur=True)
+        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, self.noises(grays) if noises is None else noises, with_blur=True)
         return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
 
     def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
