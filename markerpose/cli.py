@@ -739,7 +739,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seed", type=int, default=0, help="--sequence: seed of the noise and the background")
     b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
     b.add_argument("--passes", type=int, default=2,
-                   help="--sequence: passes over the sequence per method, in alternating order (default 2; latency: the mean)")
+                   help="--sequence: passes over the sequence per method, in alternating order (default 2; the statistics pool them)")
     b.add_argument("--no-pace", action="store_true",
                    help="--sequence: hand the frames over back to back instead of at the stream's 60 frames/s")
     b.add_argument("--out", default="markerpose-sequence", help="--sequence: output folder (default markerpose-sequence)")

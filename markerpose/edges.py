@@ -501,17 +501,27 @@ def _ray_frame(L, cen, n, S, half, hw, u, r, lam, dl, xy, ok):  # pragma: no cov
 
 
 @compiled
-def _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, w1090, sane, width):  # pragma: no cover - compiled
-    """The profiles normalised by their own ends: each ray's 10-90 % width, whether it is
-    sane (a crossing, contrast above the floor) and each ring's 75th percentile of the
-    sane rays' widths."""
-    K, N, _ = v.shape
+def _normalisers(v_in, v_out, dark):  # pragma: no cover - compiled
+    """Per ray, the contrast of its levels (positive for the expected polarity: the inner
+    side darker when ``dark``) and the divisor that normalises its profile to 1 inside,
+    0 outside (the levels' difference, kept away from zero)."""
+    K, N = v_in.shape
     contrast, dd = np.empty((K, N)), np.empty((K, N))
     for k in range(K):
         for i in range(N):
             diff = v_in[k, i] - v_out[k, i]  # > 0 when the inner side is brighter
             contrast[k, i] = -diff if dark else diff
             dd[k, i] = diff if abs(diff) > 1e-9 else 1e-9
+    return contrast, dd
+
+
+@compiled
+def _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, w1090, sane, width):  # pragma: no cover - compiled
+    """The profiles normalised by their own ends: each ray's 10-90 % width, whether it is
+    sane (a crossing, contrast above the floor) and each ring's 75th percentile of the
+    sane rays' widths."""
+    K, N, _ = v.shape
+    contrast, dd = _normalisers(v_in, v_out, dark)
     e, found = np.empty((K, N)), np.empty((K, N), np.bool_)
     _ray_crossings(v, v_out, dd, lam, dl, S, r, e, found, w1090)
     for k in range(K):
@@ -614,12 +624,7 @@ def _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, 
     percentile of those widths over the valid rays (``width``); rays without a clear
     edge well inside the window are dropped from ``ok``."""
     K, N, _ = v.shape
-    contrast, dd = np.empty((K, N)), np.empty((K, N))
-    for k in range(K):
-        for i in range(N):
-            diff = v_in[k, i] - v_out[k, i]
-            contrast[k, i] = -diff if dark else diff
-            dd[k, i] = diff if abs(diff) > 1e-9 else 1e-9  # the profiles normalised: 1 inside, 0 outside
+    contrast, dd = _normalisers(v_in, v_out, dark)
     med = np.empty(K)
     _row_stats(contrast, ok, -1.0, 0.0, med)
     for k in range(K):
@@ -742,8 +747,7 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
-    W = Wc
-    return P, mask, n_use, W, width
+    return P, mask, n_use, Wc, width
 
 
 # --- ellipse fits ---------------------------------------------------------------------------------
@@ -1239,15 +1243,16 @@ def warm_up() -> None:
     u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
     _ray_frame(np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)),
                np.empty(K), xy, ok)
+    _normalisers(f2, f2, True)
     _first_look(v, f2, f2, lam, np.full(K, 1 / 3), S1, f2, b2, np.ones(K), True, f2.copy(), ok, np.empty(K))
     _neighbours(xy, f2, np.ones(K), 0.5, np.zeros(1, np.int64), np.zeros((1, 2)), np.tile(np.eye(2), (1, 1, 1)), np.ones(1), n, 0.25,
                 b2.copy(), b2.copy(), n.copy())
     _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
-    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, np.full(K, N), 0.25, b2.copy(),
+    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, n, 0.25, b2.copy(),
                 np.empty(K, bool))
-    _ray_edges(v, f2, np.zeros((K, N)), lam, np.full(K, 1 / 3), np.full(K, Sm), f2, b2.copy(), np.ones(K), True, 0.5, True, 0.5,
+    _ray_edges(v, f2, np.zeros((K, N)), lam, np.full(K, 1 / 3), S1, f2, b2.copy(), np.ones(K), True, 0.5, True, 0.5,
                0.5, True, np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K))
     _WARM = True
 

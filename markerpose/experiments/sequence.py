@@ -43,7 +43,7 @@ default_conf = {
     "exposure": 0.5,  # fraction of the frame interval the shutter is open (the motion blur)
     "seed": 0,
     "threads": None,  # the networks' inference threads (None: every core)
-    "passes": 2,  # passes over the sequence per method, in alternating order (latency: the mean)
+    "passes": 2,  # passes over the sequence per method, in alternating order (the statistics pool them)
     "pace": True,  # hand each method the frames at the stream's rate (False: back to back)
     "preset": "default",  # the preset of track and estimate (the paper's configuration is the reference)
 }

@@ -88,13 +88,10 @@ class Refiner:
         memo = self._noise
         if memo is None:
             return [classical.noise_sigma(g) for g in grays]
-        out = []
         for g in grays:
-            hit = memo.get(id(g))
-            if hit is None or hit[0] is not g:  # the memo holds the image: its id is not reused
-                hit = memo[id(g)] = (g, classical.noise_sigma(g))
-            out.append(hit[1])
-        return out
+            if id(g) not in memo:  # the memo holds the image, so its id is not reused within the frame
+                memo[id(g)] = (g, classical.noise_sigma(g))
+        return [memo[id(g)][1] for g in grays]
 
     def budget(self, fits: int | None) -> None:
         """Allow ``fits`` blurred-ring model fits from now on (None: no limit)."""
