@@ -249,10 +249,12 @@ class MarkerPose:
 
         Uses the previous frames as the prior (:mod:`markerpose.stages.track`): the rings
         predicted from the last poses are refitted on the image's edges in both views and
-        verified; where that fails (the marker lost, moved too fast), the pair is
-        detected cold: first with stage 1 looking only near the predicted marker, then
-        in the whole images, as :meth:`estimate` does. ``Estimate.source`` says which
-        ("tracked" or "detected"). While the marker is lost, a pair that has not changed
+        verified; where that fails (the marker lost, moved too fast, put down elsewhere),
+        the marker is sought near the prediction by its appearance and, found there,
+        fitted the same way; failing that, the pair is detected cold: first with stage 1
+        looking only near the predicted marker, then in the whole images, as
+        :meth:`estimate` does. ``Estimate.source`` says which ("tracked": from the prior,
+        without stage 1; "detected"). While the marker is lost, a pair that has not changed
         since the last one detected without it returns None at once (``track``:
         ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
         :meth:`reset` between sequences.
@@ -269,6 +271,11 @@ class MarkerPose:
                     self._lost = (before, skipped + 1)
                     self.why = "lost, and the pair has not changed since the last one detected without the marker"
                     return None
+            noises, age = self._noise
+            if noises is not None and age < c["noise_every"]:
+                # The cameras' noise as the stream last estimated it: this pair's fits take it,
+                # those of a detection after a failed prior too.
+                self.refiner.noises(grays, known=noises)
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
             if est is None and self._after_cold:
                 # The last pose was detected cold after the prior failed: the step into it may
@@ -280,15 +287,19 @@ class MarkerPose:
             history = self._history
             after_cold = est is None and bool(history)
             if est is None:
-                self._noise = (None, 0)
-                if history:  # first a detection near where the prior put the marker
-                    est = self._near(grays, history[-1] if self._after_cold else track.predict(history))
+                if history:  # first the marker sought near where the prior put it, then detected there
+                    T_near = history[-1] if self._after_cold else track.predict(history)
+                    est = self._shifted(grays, T_near)
+                    if est is None:
+                        est = self._near(grays, T_near)
                 history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
                 if est is None:
                     self.why = None  # neither the prior's nor the near look's failure is why the frame has no pose
                     est = self._cold(grays)
                 self.why = None if est is not None else (self.why or "no marker found")
             self._history = [*history, est.T][-3:] if est is not None else []
+            if est is None:
+                self._noise = (None, 0)  # lost: estimated afresh once the marker is found again
             self._after_cold = after_cold and est is not None
             # Lost: this pair is what the next ones must differ from to be detected again.
             if est is not None or not c["lost_change"]:
@@ -315,15 +326,43 @@ class MarkerPose:
             if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
                 return None
             predicted.append(ellipses)
+        return self._fitted(grays, predicted, c["one_pass_move"])
+
+    def _shifted(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
+        """After the prior failed: the marker sought in each view around where the prior
+        (pose ``T_pred``) put it, by the correlation of its drawn appearance
+        (:func:`~markerpose.stages.track.shift`), and the prior's rings, moved by what the
+        search found, fitted and verified as a tracked frame's (to convergence). None
+        where a view's search finds nothing like the marker or the fit fails."""
+        mk, c = self.marker, self.conf["track"]
+        if not c["shift_margin"]:
+            return None
+        moved = []
+        for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            rings = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            found = self._timed("propose", track.shift, gray, cam, T, mk, c["shift_margin"], rings)
+            if found is None or found[1] < c["shift_min_score"]:
+                return None
+            (dx, dy), _ = found
+            ellipses = [((x + dx, y + dy), axes, angle) for (x, y), axes, angle in rings]
+            if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
+                return None
+            moved.append(ellipses)
+        return self._fitted(grays, moved, 0.0)
+
+    def _fitted(self, grays: list, predicted: list, first_tol: float) -> Estimate | None:
+        """Per view, the rings' edges fitted from ``predicted`` ellipses, verified, solved,
+        gated on the reprojection error: the tracked estimate, or None."""
+        c = self.conf["track"]
         noises, age = self._noise
         if noises is None or age >= c["noise_every"]:
             noises, age = self.refiner.noises(grays), 0
         self._noise = (noises, age + 1)
         found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False,
-                            c["one_pass_move"], noises)
+                            first_tol, noises)
         if any(det is None for det in found):
             return None
-        reason = self._timed("verify", verify.rejection, self.rig, found, mk, self.conf["verify"], True)
+        reason = self._timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], True)
         if reason is not None:
             return None
         est = self._solved(found, "tracked")

@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose.geometry import ring_ellipses
 from markerpose.nets import default_weights
-from markerpose.stages.track import blocks, changed, inside, predict
+from markerpose.stages.track import (
+    blocks,
+    changed,
+    default_conf,
+    inside,
+    predict,
+    shift,
+)
 from markerpose.synth import Imaging, clutter_background, look_at_pose, render_stereo
 
 needs_nets = pytest.mark.skipif(not default_weights("keypoints").is_file(), reason="no shipped weights")
@@ -99,17 +107,66 @@ def test_track_with_the_classical_detector(rig, sequence):
 @needs_nets
 def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
     # The marker put down 15 mm away between two frames, then held still: the frame of the
-    # jump is detected cold; the next one is tracked (standing still at the found pose, not
-    # moving on by the jump), and so are those after it.
+    # jump is detected cold (no search by appearance here); the next one is tracked
+    # (standing still at the found pose, not moving on by the jump), and so are those after it.
     frames, _ = sequence
     T = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
     still = [render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=20 + k) for k in range(3)]
-    tracker = mp.MarkerPose(rig)
+    tracker = mp.MarkerPose(rig, track={"shift_margin": 0})
     for f in frames[:4]:
         tracker.track(*f.images)
     found = [tracker.track(*f.images) for f in still]
     assert [e.source for e in found] == ["detected", "tracked", "tracked"]
     assert all(np.linalg.norm(e.t - T[:3, 3]) < 0.02 for e in found)
+
+
+def _view_shift(rig, T_from, T_to, view):
+    """Mean image displacement (px) of the rings' ellipse centres from pose T_from to T_to."""
+    cam, to_view, mk = rig.cameras[view], (np.eye(4), rig.T_right_left)[view], mp.Marker()
+    c = [np.mean([e[0] for e in ring_ellipses(cam, to_view @ T, mk.points3d, mk.outer_radius)], axis=0) for T in (T_from, T_to)]
+    return c[1] - c[0]
+
+
+def test_shift_finds_the_marker_where_the_prior_missed_it(rig):
+    # The prior puts the marker 15 mm and 5° from where it is (~80 px), sharp and under
+    # 15 px of motion blur: the correlation of its drawn appearance finds the rings'
+    # displacement to a few px (what the edge fit captures) in both views. No marker: a low correlation. A
+    # predicted plate outside the image: no search.
+    mk = mp.Marker()
+    T_true = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
+    T_prior = look_at_pose([-5.0, 2.0, 560.0], 30, 45, 10)
+    rng = np.random.default_rng(3)
+    bgs = tuple(clutter_background(c.image_size, rng, ring_distractors=4, ring_ratio=0.4) for c in rig.cameras)
+    for blur in (0.0, 15.0):
+        f = render_stereo(rig, T_true, imaging=Imaging(alpha=0.8, motion_blur=blur, motion_angle=20.0), background=bgs, seed=7)
+        for view, gray in enumerate(f.images):
+            gray = cv2.cvtColor(gray, cv2.COLOR_BGR2GRAY) if gray.ndim == 3 else gray
+            T = (np.eye(4), rig.T_right_left)[view] @ T_prior
+            d, score = shift(gray, rig.cameras[view], T, mk, 0.5)
+            truth = _view_shift(rig, T_prior, T_true, view)
+            assert np.linalg.norm(truth) > 50 and np.linalg.norm(d - truth) < 3 and score > default_conf["shift_min_score"] + 0.1
+    empty = (bgs[0] * 200).astype(np.uint8)
+    assert shift(empty, rig.cameras[0], T_prior, mk, 0.5)[1] < default_conf["shift_min_score"] - 0.1
+    off = look_at_pose([400.0, 0.0, 560.0], 30, 45, 10)
+    assert shift(empty, rig.cameras[0], off, mk, 0.5) is None
+
+
+@needs_nets
+def test_a_jump_near_the_prior_is_tracked_without_stage_1(rig, sequence):
+    # The marker put down 15 mm away: the prior's edge fit misses it, the search by its
+    # appearance finds it, and the frame is tracked (as accurately), without stage 1.
+    frames, _ = sequence
+    T = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
+    f = render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=30)
+    tracker = mp.MarkerPose(rig)
+    for g in frames[:4]:
+        tracker.track(*g.images)
+    seen = _spy_looks(tracker.proposer)
+    est = tracker.track(*f.images)
+    assert seen == [] and est is not None and est.source == "tracked"
+    assert np.linalg.norm(est.t - T[:3, 3]) < 0.02
+    ref = mp.MarkerPose(rig).estimate(*f.images)
+    assert np.linalg.norm(est.t - ref.t) < 0.005
 
 
 def test_changed_sees_a_ring_coming_into_view_not_the_noise():
@@ -170,9 +227,13 @@ def test_while_lost_an_unchanged_pair_is_not_detected_again(rig):
 
 
 def test_track_conf_is_checked(rig):
-    for bad in ({"near_margin": -1}, {"lost_change": -1}, {"lost_block": 0}, {"lost_refresh": 0}):
+    for bad in ({"near_margin": -1}, {"shift_margin": -0.5}, {"shift_min_score": 1.5}, {"lost_change": -1}, {"lost_block": 0},
+                {"lost_refresh": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             mp.MarkerPose(rig, detector="classical", track=bad)
+
+
+NO_SEARCH = {"shift_margin": 0}  # track() straight from a failed prior to stage 1
 
 
 def _spy_looks(proposer) -> list:
@@ -186,7 +247,7 @@ def _spy_looks(proposer) -> list:
 
 @needs_nets
 def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, sequence):
-    # The marker put down ~15 mm from its last pose: stage 1 looks only in a
+    # Without the search by appearance: the marker put down ~15 mm from its last pose: stage 1 looks only in a
     # window around the prediction (a fraction of the image) and finds it there. Put down
     # ~180 mm away, outside that window: found by the whole-image detection after it.
     frames, _ = sequence
@@ -194,7 +255,7 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
     far_pose = look_at_pose([-150.0, 60.0, 640.0], 25, 45, 0)
     for T, looks in ((near_pose, ["near"]), (far_pose, ["near", "whole"])):
         f = render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=30)
-        tracker = mp.MarkerPose(rig)
+        tracker = mp.MarkerPose(rig, track=NO_SEARCH)
         for g in frames[:4]:
             tracker.track(*g.images)
         seen = _spy_looks(tracker.proposer)
@@ -203,7 +264,7 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
         assert seen[: len(looks)] == looks and (len(looks) == 2 or "whole" not in seen)
     # A pair no marker pose explains (the left view twice) while tracking: the near look and
     # the whole-image detection share one frame's work budget, as estimate() has it.
-    tracker = mp.MarkerPose(rig)
+    tracker = mp.MarkerPose(rig, track=NO_SEARCH)
     for g in frames[:4]:
         tracker.track(*g.images)
     runs, fit = [], tracker._fit
@@ -213,14 +274,14 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
     assert sum(runs) <= tracker.conf["match"]["max_fits"]
     # A marker close to the cameras fills most of stage 1's input: no window, the whole images.
     close = [render_stereo(rig, look_at_pose([0.0, 0.0, 360.0 - k], 20, 45, 10), imaging=Imaging(alpha=0.8), seed=60 + k) for k in range(3)]
-    tracker = mp.MarkerPose(rig)
+    tracker = mp.MarkerPose(rig, track=NO_SEARCH)
     for g in close[:2]:
         assert tracker.track(*g.images) is not None
     seen = _spy_looks(tracker.proposer)
     jumped = render_stereo(rig, look_at_pose([15.0, 5.0, 360.0], 20, 45, 10), imaging=Imaging(alpha=0.8), seed=63)
     assert tracker.track(*jumped.images).source == "detected" and seen[0] == "whole"
     # near_margin 0: the whole images at once.
-    tracker = mp.MarkerPose(rig, track={"near_margin": 0})
+    tracker = mp.MarkerPose(rig, track={**NO_SEARCH, "near_margin": 0})
     for g in frames[:4]:
         tracker.track(*g.images)
     tracker.proposer.near = lambda *a: pytest.fail("no near look with near_margin 0")

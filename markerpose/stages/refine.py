@@ -83,9 +83,15 @@ class Refiner:
         estimate is computed once (:meth:`noises`), however many hypotheses refine it."""
         self._noise = {} if start else None
 
-    def noises(self, grays: list) -> list:
-        """Per image, its noise sigma (:func:`classical.noise_sigma`), once per frame."""
+    def noises(self, grays: list, known: list | None = None) -> list:
+        """Per image, its noise sigma (:func:`classical.noise_sigma`), once per frame.
+        ``known``: the images' sigmas as already estimated (a video stream's cameras, from
+        an earlier frame): this frame's later calls take them instead of estimating."""
         memo = self._noise
+        if known is not None:
+            if memo is not None:
+                memo.update((id(g), (g, float(n))) for g, n in zip(grays, known))
+            return [float(n) for n in known]
         if memo is None:
             return [classical.noise_sigma(g) for g in grays]
         for g in grays:

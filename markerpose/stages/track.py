@@ -5,9 +5,11 @@ new frame (:func:`predict`); the rings' outer ellipses under that pose
 (:func:`~markerpose.geometry.ring_ellipses`) seed the sub-pixel edge fit in both views
 directly — no stage 1, no EllipSegNet. The result passes the usual verification
 (every centre edge-fitted, epipolar distances, plate check, the marker's shape) and a
-quality gate on the reprojection error; otherwise the frame is detected cold, first with
-stage 1 looking only around where the marker was predicted (``near_margin``), then in the
-whole images.
+quality gate on the reprojection error. Otherwise the marker is first sought around the
+prediction by the correlation of its drawn appearance (:func:`shift`, ``shift_margin``),
+and the predicted rings, moved to where that puts them, are fitted and gated as above;
+failing that, the frame is detected cold, first with stage 1 looking only around where
+the marker was predicted (``near_margin``), then in the whole images.
 
 While the marker is lost, a pair that has not changed since the last cold detection that
 found nothing (:func:`changed`: no block of either view moved beyond its noise) is not
@@ -20,6 +22,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ..geometry import ring_ellipses
+
 default_conf = {
     "max_residual_px": 0.5,  # quality gate: RMS reprojection error of the six centres, px
     "margin_px": 2.0,  # predicted rings must lie this far inside both images
@@ -29,6 +33,11 @@ default_conf = {
     #                         convergence as a cold detection's does
     "noise_every": 30,  # tracked frames between estimates of the images' noise (the edge
     #                     fit's contrast floor); a cold detection also renews it
+    "shift_margin": 0.5,  # when the prior fails: the marker's drawn appearance is first sought
+    #                       by correlation this many predicted plate extents around the
+    #                       prediction in each view (:func:`shift`), and the prior's rings,
+    #                       moved there, fitted as a tracked frame's are (0: no search)
+    "shift_min_score": 0.4,  # ... the least normalised correlation that counts as found
     "near_margin": 0.5,  # when the prior fails: stage 1 first looks only this many predicted
     #                      marker extents beyond the predicted marker in each view (0: the
     #                      whole images at once), then in the whole images
@@ -53,6 +62,68 @@ def predict(history: list) -> np.ndarray:
     if len(history) >= 3:
         step = (step @ np.linalg.inv(history[-2] @ np.linalg.inv(history[-3]))) @ step
     return step @ last
+
+
+def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, rings: list | None = None) -> np.ndarray:
+    """The marker at pose ``T`` (camera frame) as the view would see it, drawn at 1/``scale``
+    of its pixels from ``origin`` (x, y, full-resolution px): the plate white (1), the
+    rings' black bands (0), the plate's bounding box around it at the plate's mean (so
+    that what lies outside the plate does not count in a correlation). ``rings``: the
+    rings' outer ellipses under ``T`` if known (:func:`~markerpose.geometry.ring_ellipses`)."""
+    def px(points3d):
+        cam = points3d @ T[:3, :3].T + T[:3, 3]
+        return (camera.project(cam) - origin) / scale
+
+    corners = px(marker.plate_corners3d)
+    size = np.ceil(corners.max(0)).astype(int) + 1
+    plate = np.zeros((size[1], size[0]), np.uint8)
+    cv2.fillConvexPoly(plate, np.round(corners * 16).astype(np.int32), 1, cv2.LINE_8, 4)
+    ink = np.zeros_like(plate)
+    for radius, value in ((marker.outer_radius, 1), (marker.inner_radius, 0)):  # the band: outer disk minus the hole
+        ellipses = rings if rings is not None and radius == marker.outer_radius else ring_ellipses(camera, T, marker.points3d, radius)
+        for (cx, cy), axes, angle in ellipses:
+            centre = (round((cx - origin[0]) / scale * 16), round((cy - origin[1]) / scale * 16))
+            half = (max(1, round(axes[0] / scale * 8)), max(1, round(axes[1] / scale * 8)))
+            cv2.ellipse(ink, centre, half, angle, 0, 360, value, -1, cv2.LINE_8, 4)
+    out = (plate & (1 - ink)).astype(np.float32)
+    on = plate.astype(bool)
+    out[~on] = out[on].mean() if on.any() else 0.5
+    return out
+
+
+def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings: list | None = None, cell_px: float = 8.0) -> tuple | None:
+    """Where the marker that the prior puts at pose ``T`` (camera frame) lies in ``gray``:
+    its drawn appearance (:func:`appearance`) correlated with the image around the
+    prediction, both at a whole-pixel scale where a ring spans ~``cell_px`` pixels, within
+    ``margin`` of the predicted plate's extent beyond it on each side. Returns ((dx, dy) px
+    from the prediction to the best match, its normalised correlation in [-1, 1]), or None
+    where the predicted plate leaves the image or the window leaves no room to search.
+    ``rings``: as in :func:`appearance`."""
+    rings = ring_ellipses(camera, T, marker.points3d, marker.outer_radius) if rings is None else rings
+    s = max(1, round(min(min(axes) for _, axes, _ in rings) / cell_px))
+    corners = camera.project(marker.plate_corners3d @ T[:3, :3].T + T[:3, 3])
+    lo, hi = corners.min(0), corners.max(0)
+    H, W = gray.shape
+    if lo[0] < 0 or lo[1] < 0 or hi[0] > W - 1 or hi[1] > H - 1:
+        return None
+    grow = margin * float((hi - lo).max())
+    x0, y0 = (np.maximum(lo - grow, 0) // s).astype(int) * s
+    nx, ny = (np.minimum(hi + grow, (W - 1, H - 1)) + 1 - (x0, y0)).astype(int) // s
+    # Pixel i of the window averages image pixels i*s ... i*s + s - 1: its centre is there.
+    origin = np.array([x0, y0], np.float64) + (s - 1) / 2
+    template = appearance(camera, T, marker, s, origin, rings)
+    tx, ty = np.maximum(np.floor((lo - origin) / s), 0).astype(int)
+    tmpl = template[ty:, tx:]
+    if nx <= tmpl.shape[1] + 2 or ny <= tmpl.shape[0] + 2:
+        return None
+    window = cv2.resize(gray[y0 : y0 + ny * s, x0 : x0 + nx * s], (nx, ny), interpolation=cv2.INTER_AREA).astype(np.float32)
+    corr = cv2.matchTemplate(window, tmpl, cv2.TM_CCOEFF_NORMED)
+    _, best, _, (bx, by) = cv2.minMaxLoc(corr)
+    peak = []
+    for c, line in ((bx, corr[by, :]), (by, corr[:, bx])):  # a parabola through the peak and its neighbours
+        den = line[c - 1] - 2 * line[c] + line[c + 1] if 0 < c < len(line) - 1 else 0.0
+        peak.append(c + (0.5 * (line[c - 1] - line[c + 1]) / den if den < 0 else 0.0))
+    return (np.array(peak) - (tx, ty)) * s, float(best)
 
 
 def inside(ellipses: list, size: tuple, margin: float) -> bool:
@@ -91,6 +162,10 @@ def changed(before: np.ndarray, after: np.ndarray, k: float, level: float = 1.0,
 
 def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
+    if float(conf["shift_margin"]) < 0:
+        raise ValueError(f"shift_margin must be >= 0 (0: no search), got {conf['shift_margin']!r}")
+    if not -1 <= float(conf["shift_min_score"]) <= 1:
+        raise ValueError(f"shift_min_score is a correlation in [-1, 1], got {conf['shift_min_score']!r}")
     if float(conf["near_margin"]) < 0:
         raise ValueError(f"near_margin must be >= 0 (0: no near look), got {conf['near_margin']!r}")
     if float(conf["lost_change"]) < 0:
@@ -102,4 +177,4 @@ def check_conf(conf: dict) -> dict:
     return conf
 
 
-__all__ = ["blocks", "changed", "check_conf", "default_conf", "inside", "predict"]
+__all__ = ["appearance", "blocks", "changed", "check_conf", "default_conf", "inside", "predict", "shift"]
