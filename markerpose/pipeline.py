@@ -116,7 +116,7 @@ class MarkerPose:
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
         self._history: list = []  # the last poses track() found, oldest first
         self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
-        self._after_cold = False  # track(): the last pose was detected cold after the prior failed
+        self._after_miss = False  # track(): the last pose was found after the prior failed
         self._lost: tuple | None = None  # track(), lost: (block means of the last pair detected cold, pairs skipped since)
         self._fits_left: int | None = None  # work budget of the cold detection under way
         self.why: str | None = None  # after a call that found nothing: the first reason met
@@ -277,18 +277,14 @@ class MarkerPose:
                 # those of a detection after a failed prior too.
                 self.refiner.noises(grays, known=noises)
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
-            if est is None and self._after_cold:
-                # The last pose was detected cold after the prior failed: the step into it may
-                # be a jump (the marker moved or was put down out of sight of the prior), not
-                # a velocity; the marker standing still there is the other prior.
-                est = self._tracked(grays, self._history[-1])
-                if est is not None:
-                    self._history = self._history[-1:]  # and the motion starts from there
             history = self._history
-            after_cold = est is None and bool(history)
+            after_miss = est is None and bool(history)
             if est is None:
                 if history:  # first the marker sought near where the prior put it, then detected there
-                    T_near = history[-1] if self._after_cold else track.predict(history)
+                    # After a frame whose prior failed, the step into its pose may be a jump (the
+                    # marker moved or was put down out of sight of the prior), not a velocity:
+                    # the search starts from that pose, the marker standing still there.
+                    T_near = history[-1] if self._after_miss else track.predict(history)
                     est = self._shifted(grays, T_near)
                     if est is None:
                         est = self._near(grays, T_near)
@@ -300,7 +296,7 @@ class MarkerPose:
             self._history = [*history, est.T][-3:] if est is not None else []
             if est is None:
                 self._noise = (None, 0)  # lost: estimated afresh once the marker is found again
-            self._after_cold = after_cold and est is not None
+            self._after_miss = after_miss and est is not None
             # Lost: this pair is what the next ones must differ from to be detected again.
             if est is not None or not c["lost_change"]:
                 self._lost = None
@@ -314,7 +310,7 @@ class MarkerPose:
         """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
         self._history = []
         self._noise = (None, 0)
-        self._after_cold = False
+        self._after_miss = False
         self._lost = None
 
     def _tracked(self, grays: list, T_pred: np.ndarray) -> Estimate | None:
@@ -343,8 +339,7 @@ class MarkerPose:
             found = self._timed("propose", track.shift, gray, cam, T, mk, c["shift_margin"], rings)
             if found is None or found[1] < c["shift_min_score"]:
                 return None
-            (dx, dy), _ = found
-            ellipses = [((x + dx, y + dy), axes, angle) for (x, y), axes, angle in rings]
+            ellipses = [((x + dx, y + dy), axes, angle) for ((x, y), axes, angle), (dx, dy) in zip(rings, found[0])]
             if not track.inside(ellipses, gray.shape[::-1], c["margin_px"]):
                 return None
             moved.append(ellipses)

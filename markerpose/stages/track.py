@@ -91,14 +91,39 @@ def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, 
     return out
 
 
-def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings: list | None = None, cell_px: float = 8.0) -> tuple | None:
-    """Where the marker that the prior puts at pose ``T`` (camera frame) lies in ``gray``:
-    its drawn appearance (:func:`appearance`) correlated with the image around the
-    prediction, both at a whole-pixel scale where a ring spans ~``cell_px`` pixels, within
-    ``margin`` of the predicted plate's extent beyond it on each side. Returns ((dx, dy) px
-    from the prediction to the best match, its normalised correlation in [-1, 1]), or None
-    where the predicted plate leaves the image or the window leaves no room to search.
-    ``rings``: as in :func:`appearance`."""
+def _peak(corr: np.ndarray) -> tuple[np.ndarray, float]:
+    """The best place (x, y) of a correlation map, sub-pixel by a parabola through the peak
+    and its neighbours along each axis, and its value."""
+    _, best, _, (bx, by) = cv2.minMaxLoc(corr)
+    peak = []
+    for c, line in ((bx, corr[by, :]), (by, corr[:, bx])):
+        den = line[c - 1] - 2 * line[c] + line[c + 1] if 0 < c < len(line) - 1 else 0.0
+        peak.append(c + (0.5 * (line[c - 1] - line[c + 1]) / den if den < 0 else 0.0))
+    return np.array(peak), float(best)
+
+
+def _ring(axes: tuple, angle: float, rho: float, scale: float, pad: float) -> np.ndarray:
+    """One ring (outer ellipse ``axes`` full-resolution px, ``angle``; hole ``rho`` of it) drawn
+    black on white at 1/``scale``, centred in a square ``pad`` times its outer radius across."""
+    half = int(np.ceil(max(axes) / 2 / scale * pad))
+    out = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
+    for f, value in ((1.0, 0), (rho, 1)):
+        cv2.ellipse(out, (half * 16, half * 16), (max(1, round(axes[0] * f / scale * 8)), max(1, round(axes[1] * f / scale * 8))),
+                    angle, 0, 360, value, -1, cv2.LINE_8, 4)
+    return out.astype(np.float32)
+
+
+def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings: list | None = None, cell_px: float = 8.0,
+          ring_cells: int = 3) -> tuple | None:
+    """Where the rings of the marker that the prior puts at pose ``T`` (camera frame) lie in
+    ``gray``. The marker's drawn appearance (:func:`appearance`) is correlated with the
+    image around the prediction, both at a whole-pixel scale where a ring spans
+    ~``cell_px`` pixels, within ``margin`` of the predicted plate's extent beyond it on
+    each side; then each ring alone within ``ring_cells`` of where that puts it (the
+    marker turned since the prior moves the rings apart). Returns ((3, 2) displacements
+    px from the predicted ring centres, the marker's normalised correlation in [-1, 1]),
+    or None where the predicted plate leaves the image or the window leaves no room to
+    search. ``rings``: as in :func:`appearance`."""
     rings = ring_ellipses(camera, T, marker.points3d, marker.outer_radius) if rings is None else rings
     s = max(1, round(min(min(axes) for _, axes, _ in rings) / cell_px))
     corners = camera.project(marker.plate_corners3d @ T[:3, :3].T + T[:3, 3])
@@ -117,13 +142,21 @@ def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings:
     if nx <= tmpl.shape[1] + 2 or ny <= tmpl.shape[0] + 2:
         return None
     window = cv2.resize(gray[y0 : y0 + ny * s, x0 : x0 + nx * s], (nx, ny), interpolation=cv2.INTER_AREA).astype(np.float32)
-    corr = cv2.matchTemplate(window, tmpl, cv2.TM_CCOEFF_NORMED)
-    _, best, _, (bx, by) = cv2.minMaxLoc(corr)
-    peak = []
-    for c, line in ((bx, corr[by, :]), (by, corr[:, bx])):  # a parabola through the peak and its neighbours
-        den = line[c - 1] - 2 * line[c] + line[c + 1] if 0 < c < len(line) - 1 else 0.0
-        peak.append(c + (0.5 * (line[c - 1] - line[c + 1]) / den if den < 0 else 0.0))
-    return (np.array(peak) - (tx, ty)) * s, float(best)
+    peak, best = _peak(cv2.matchTemplate(window, tmpl, cv2.TM_CCOEFF_NORMED))
+    d = peak - (tx, ty)  # the marker's move, window px
+    moves = np.tile(d * s, (len(rings), 1))
+    rho = marker.inner_radius / marker.outer_radius
+    for k, ((cx, cy), axes, angle) in enumerate(rings):
+        ring = _ring(axes, angle, rho, s, 1.25)
+        h = ring.shape[0] // 2
+        at = np.round((np.array([cx, cy]) - origin) / s + d).astype(int)  # the ring's centre after the marker's move
+        lo_k, hi_k = at - h - ring_cells, at + h + ring_cells + 1
+        if lo_k.min() < 0 or hi_k[0] > nx or hi_k[1] > ny:
+            continue  # too near the window's edge to search: the marker's move
+        local, score = _peak(cv2.matchTemplate(window[lo_k[1] : hi_k[1], lo_k[0] : hi_k[0]], ring, cv2.TM_CCOEFF_NORMED))
+        if score > 0:
+            moves[k] = (local + lo_k + h - (np.array([cx, cy]) - origin) / s) * s
+    return moves, best
 
 
 def inside(ellipses: list, size: tuple, margin: float) -> bool:
