@@ -271,11 +271,16 @@ class MarkerPose:
                     self._lost = (before, skipped + 1)
                     self.why = "lost, and the pair has not changed since the last one detected without the marker"
                     return None
-            noises, age = self._noise
-            if noises is not None and age < c["noise_every"]:
-                # The cameras' noise as the stream last estimated it: this pair's fits take it,
-                # those of a detection after a failed prior too.
-                self.refiner.noises(grays, known=noises)
+            if self._history:
+                # The cameras' noise as the stream estimated it (renewed every noise_every
+                # frames): this pair's fits take it, those of a search or a detection after a
+                # failed prior too.
+                noises, age = self._noise
+                if noises is None or age >= c["noise_every"]:
+                    noises, age = self.refiner.noises(grays), 0
+                else:
+                    self.refiner.noises(grays, known=noises)
+                self._noise = (noises, age + 1)
             est = self._tracked(grays, track.predict(self._history)) if self._history else None
             history = self._history
             after_miss = est is None and bool(history)
@@ -286,6 +291,8 @@ class MarkerPose:
                     # the search starts from that pose, the marker standing still there.
                     T_near = history[-1] if self._after_miss else track.predict(history)
                     est = self._shifted(grays, T_near)
+                    if est is None and self._after_miss:  # where the search could not look: standing still
+                        est = self._tracked(grays, T_near)
                     if est is None:
                         est = self._near(grays, T_near)
                 history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
@@ -336,7 +343,7 @@ class MarkerPose:
         moved = []
         for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
             rings = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
-            found = self._timed("propose", track.shift, gray, cam, T, mk, c["shift_margin"], rings)
+            found = self._timed("search", track.shift, gray, cam, T, mk, c["shift_margin"], rings)
             if found is None or found[1] < c["shift_min_score"]:
                 return None
             ellipses = [((x + dx, y + dy), axes, angle) for ((x, y), axes, angle), (dx, dy) in zip(rings, found[0])]
@@ -349,12 +356,8 @@ class MarkerPose:
         """Per view, the rings' edges fitted from ``predicted`` ellipses, verified, solved,
         gated on the reprojection error: the tracked estimate, or None."""
         c = self.conf["track"]
-        noises, age = self._noise
-        if noises is None or age >= c["noise_every"]:
-            noises, age = self.refiner.noises(grays), 0
-        self._noise = (noises, age + 1)
         found = self._timed("refine", self.refiner.from_ellipses, grays, list(self.rig.cameras), predicted, 1.0, False,
-                            first_tol, noises)
+                            first_tol, self._noise[0])
         if any(det is None for det in found):
             return None
         reason = self._timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], True)

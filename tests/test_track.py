@@ -91,8 +91,10 @@ def test_a_wrong_prior_falls_back_to_detection(rig, sequence):
     tracker = mp.MarkerPose(rig)
     tracker.track(*frames[0].images)
     tracker._history = [look_at_pose([60.0, 40.0, 600.0], 10, 0, 90)]  # a prior 70 mm and 80° off
+    searched, shifted = [], tracker._shifted
+    tracker._shifted = lambda *a: searched.append(shifted(*a)) or searched[-1]
     est = tracker.track(*frames[1].images)
-    assert est is not None and est.source == "detected"
+    assert searched == [None] and est is not None and est.source == "detected"  # the search found nothing like it
     assert np.linalg.norm(est.t - frames[1].T_left_marker[:3, 3]) < 0.02
 
 
@@ -110,11 +112,12 @@ def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
     # jump: the prior fails, the search by appearance finds the marker. The next one: the
     # velocity the jump implies fails too, and the search starts from the found pose
     # (standing still there, not moving on by the jump); the one after is tracked from the
-    # prior again. Without the search, stage 1's window finds the jump.
+    # prior again. Without the search, stage 1's window finds the jump, and the prior is
+    # tried standing still at the found pose.
     frames, _ = sequence
     T = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
     still = [render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=20 + k) for k in range(3)]
-    for conf, sources in (({}, ["tracked"] * 3), (NO_SEARCH, ["detected", "detected", "tracked"])):
+    for conf, sources in (({}, ["tracked"] * 3), (NO_SEARCH, ["detected", "tracked", "tracked"])):
         tracker = mp.MarkerPose(rig, track=conf)
         for f in frames[:4]:
             tracker.track(*f.images)
@@ -132,6 +135,22 @@ def _view_shift(rig, T_from, T_to, view):
     cam, to_view, mk = rig.cameras[view], (np.eye(4), rig.T_right_left)[view], mp.Marker()
     c = [np.array([e[0] for e in ring_ellipses(cam, to_view @ T, mk.points3d, mk.outer_radius)]) for T in (T_from, T_to)]
     return c[1] - c[0]
+
+
+def test_known_noises_are_used_for_the_frame(rig, monkeypatch):
+    from markerpose import classical
+    from markerpose.stages.refine import Refiner, default_conf
+
+    refiner = Refiner(default_conf, mp.Marker(), neural=False)
+    grays = [np.zeros((64, 64), np.uint8), np.ones((64, 64), np.uint8)]
+    calls = []
+    monkeypatch.setattr(classical, "noise_sigma", lambda g: calls.append(1) or 9.0)
+    refiner.frame(True)
+    assert refiner.noises(grays, known=[1.5, 2.5]) == [1.5, 2.5]
+    assert refiner.noises(grays) == [1.5, 2.5] and refiner.noises(grays[1:]) == [2.5] and not calls
+    refiner.frame(False)
+    refiner.frame(True)  # a new frame: estimated
+    assert refiner.noises(grays) == [9.0, 9.0] and len(calls) == 2
 
 
 def test_shift_finds_the_marker_where_the_prior_missed_it(rig):

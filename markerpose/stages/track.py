@@ -31,8 +31,9 @@ default_conf = {
     #                         one pass when that pass moved it less than this (a still or
     #                         slow marker: the prediction was close), else it iterates to
     #                         convergence as a cold detection's does
-    "noise_every": 30,  # tracked frames between estimates of the images' noise (the edge
-    #                     fit's contrast floor); a cold detection also renews it
+    "noise_every": 30,  # frames between estimates of the images' noise (the edge fit's
+    #                     contrast floor) while there is a prior; renewed too when the
+    #                     marker is found again after it was lost
     "shift_margin": 0.5,  # when the prior fails: the marker's drawn appearance is first sought
     #                       by correlation this many predicted plate extents around the
     #                       prediction in each view (:func:`shift`), and the prior's rings,
@@ -114,13 +115,17 @@ def _ring(axes: tuple, angle: float, rho: float, scale: float, pad: float) -> np
 
 
 def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings: list | None = None, cell_px: float = 8.0,
-          ring_cells: int = 3) -> tuple | None:
+          ring_cells: int = 3, min_ring: float = 0.3) -> tuple | None:
     """Where the rings of the marker that the prior puts at pose ``T`` (camera frame) lie in
     ``gray``. The marker's drawn appearance (:func:`appearance`) is correlated with the
     image around the prediction, both at a whole-pixel scale where a ring spans
     ~``cell_px`` pixels, within ``margin`` of the predicted plate's extent beyond it on
     each side; then each ring alone within ``ring_cells`` of where that puts it (the
-    marker turned since the prior moves the rings apart). Returns ((3, 2) displacements
+    marker turned since the prior moves the rings apart; a ring whose own correlation
+    stays under ``min_ring``, or peaks on the edge of that range, keeps the marker's
+    move). The peaks are sub-pixel by a parabola: within about a third of a search pixel
+    (a few image pixels), which the edge fit then captures. The whole predicted plate must
+    lie in the image (else stage 1 looks there). Returns ((3, 2) displacements
     px from the predicted ring centres, the marker's normalised correlation in [-1, 1]),
     or None where the predicted plate leaves the image or the window leaves no room to
     search. ``rings``: as in :func:`appearance`."""
@@ -154,7 +159,8 @@ def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings:
         if lo_k.min() < 0 or hi_k[0] > nx or hi_k[1] > ny:
             continue  # too near the window's edge to search: the marker's move
         local, score = _peak(cv2.matchTemplate(window[lo_k[1] : hi_k[1], lo_k[0] : hi_k[0]], ring, cv2.TM_CCOEFF_NORMED))
-        if score > 0:
+        # A weak peak, or one on the search's edge (the ring may lie beyond): the marker's move.
+        if score >= min_ring and np.all((local >= 0.5) & (local <= 2 * ring_cells - 0.5)):
             moves[k] = (local + lo_k + h - (np.array([cx, cy]) - origin) / s) * s
     return moves, best
 
