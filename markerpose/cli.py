@@ -209,14 +209,25 @@ def cmd_track(args):
 
 
 def cmd_bench(args):
+    if args.sequence and args.jumps:
+        raise SystemExit("markerpose bench: --sequence and --jumps are two runs: choose one")
+    seed = {} if args.seed is None else {"seed": args.seed}
     if args.sequence:
         from .experiments import sequence
 
-        conf = {"frames": args.frames, "threads": args.threads, "seed": args.seed, "passes": args.passes, "pace": not args.no_pace,
-                "preset": args.preset}
-        res = sequence.main(conf, args.out, progress=not args.quiet)
+        out = args.out or "markerpose-sequence"
+        conf = {"frames": args.frames, "threads": args.threads, "passes": args.passes, "pace": not args.no_pace, "preset": args.preset, **seed}
+        res = sequence.main(conf, out, progress=not args.quiet)
         print(sequence.report(res))
-        print(f"Wrote {args.out}/: report.md, results.json, sequence.png")
+        print(f"Wrote {out}/: report.md, results.json, sequence.png")
+        return
+    if args.jumps:
+        from .experiments import jumps
+
+        out = args.out or "markerpose-jumps"
+        res = jumps.main({"trials": args.trials, "threads": args.threads, **seed}, out, progress=not args.quiet)
+        print(jumps.report(res))
+        print(f"Wrote {out}/: report.md, results.json")
         return
     from .experiments import bench
 
@@ -736,13 +747,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--json", help="also write the figures as JSON")
     b.add_argument("--sequence", action="store_true", help="instead: a rendered 60 frames/s stereo video (still, by hand, fast, gone, dark), tracked and detected")
     b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
-    b.add_argument("--seed", type=int, default=0, help="--sequence: seed of the noise and the background")
+    b.add_argument("--jumps", action="store_true",
+                   help="instead: the marker put down elsewhere between two frames, tracked with and without the search near the prediction")
+    b.add_argument("--trials", type=int, default=120, help="--jumps: trials (default 120)")
+    b.add_argument("--seed", type=int, help="--sequence / --jumps: seed of the rendering (default 0 / 11)")
     b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
     b.add_argument("--passes", type=int, default=2,
                    help="--sequence: passes over the sequence per method, in alternating order (default 2; the statistics pool them)")
     b.add_argument("--no-pace", action="store_true",
                    help="--sequence: hand the frames over back to back instead of at the stream's 60 frames/s")
-    b.add_argument("--out", default="markerpose-sequence", help="--sequence: output folder (default markerpose-sequence)")
+    b.add_argument("--out", help="--sequence / --jumps: output folder (default markerpose-sequence / markerpose-jumps)")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)
 
