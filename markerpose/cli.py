@@ -210,7 +210,7 @@ def cmd_track(args):
 
 def cmd_bench(args):
     if args.sequence and args.jumps:
-        raise SystemExit("markerpose bench: --sequence and --jumps are two runs: choose one")
+        raise ValueError("--sequence and --jumps are two runs: choose one")
     seed = {} if args.seed is None else {"seed": args.seed}
     if args.sequence:
         from .experiments import sequence
@@ -749,7 +749,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
     b.add_argument("--jumps", action="store_true",
                    help="instead: the marker put down elsewhere between two frames, tracked with and without the search near the prediction")
-    b.add_argument("--trials", type=int, default=120, help="--jumps: trials (default 120)")
+    b.add_argument("--trials", type=int, default=120, help="--jumps: trials (default 120; --threads, --seed and --out apply too)")
     b.add_argument("--seed", type=int, help="--sequence / --jumps: seed of the rendering (default 0 / 11)")
     b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
     b.add_argument("--passes", type=int, default=2,
