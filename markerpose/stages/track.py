@@ -65,12 +65,13 @@ def predict(history: list) -> np.ndarray:
     return step @ last
 
 
-def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, rings: list | None = None) -> np.ndarray:
+def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, rings: list | None = None) -> tuple:
     """The marker at pose ``T`` (camera frame) as the view would see it, drawn at 1/``scale``
-    of its pixels from ``origin`` (x, y, full-resolution px): the plate white (1), the
-    rings' black bands (0), the plate's bounding box around it at the plate's mean (so
-    that what lies outside the plate does not count in a correlation). ``rings``: the
-    rings' outer ellipses under ``T`` if known (:func:`~markerpose.geometry.ring_ellipses`)."""
+    of its pixels from ``origin`` (x, y, full-resolution px): (image, mask), float32 over
+    the plate's bounding box; the plate white (1), the rings' black bands (0), the rest of
+    the box at the plate's mean, and the mask 1 on the plate, 0 off it (what lies there
+    is not the marker's). ``rings``: the rings' outer ellipses under ``T`` if known
+    (:func:`~markerpose.geometry.ring_ellipses`)."""
     def px(points3d):
         cam = points3d @ T[:3, :3].T + T[:3, 3]
         return (camera.project(cam) - origin) / scale
@@ -89,7 +90,7 @@ def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, 
     out = (plate & (1 - ink)).astype(np.float32)
     on = plate.astype(bool)
     out[~on] = out[on].mean() if on.any() else 0.5
-    return out
+    return out, plate.astype(np.float32)
 
 
 def _peak(corr: np.ndarray) -> tuple[np.ndarray, float]:
@@ -141,13 +142,15 @@ def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings:
     nx, ny = (np.minimum(hi + grow, (W - 1, H - 1)) + 1 - (x0, y0)).astype(int) // s
     # Pixel i of the window averages image pixels i*s ... i*s + s - 1: its centre is there.
     origin = np.array([x0, y0], np.float64) + (s - 1) / 2
-    template = appearance(camera, T, marker, s, origin, rings)
+    template, plate = appearance(camera, T, marker, s, origin, rings)
     tx, ty = np.maximum(np.floor((lo - origin) / s), 0).astype(int)
-    tmpl = template[ty:, tx:]
+    tmpl, mask = template[ty:, tx:], plate[ty:, tx:]
     if nx <= tmpl.shape[1] + 2 or ny <= tmpl.shape[0] + 2:
         return None
     window = cv2.resize(gray[y0 : y0 + ny * s, x0 : x0 + nx * s], (nx, ny), interpolation=cv2.INTER_AREA).astype(np.float32)
-    peak, best = _peak(cv2.matchTemplate(window, tmpl, cv2.TM_CCOEFF_NORMED))
+    # Only the plate's pixels count, on both sides (a flat patch under it has no correlation).
+    corr = cv2.matchTemplate(window, tmpl, cv2.TM_CCOEFF_NORMED, mask=mask)
+    peak, best = _peak(np.nan_to_num(corr, nan=-1.0, posinf=-1.0, neginf=-1.0))
     d = peak - (tx, ty)  # the marker's move, window px
     moves = np.tile(d * s, (len(rings), 1))
     rho = marker.inner_radius / marker.outer_radius
