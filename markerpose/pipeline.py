@@ -115,7 +115,7 @@ class MarkerPose:
         self.proposer = propose.NeuralProposer(c["propose"], self.marker, self.ids, c["threads"], c["backend"]) if neural else None
         self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
         self._history: list = []  # the last poses track() found, oldest first
-        self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, tracked frames since
+        self._noise: tuple = (None, 0)  # track(): both views' noise sigmas, frames with a prior since
         self._after_miss = False  # track(): the last pose was found after the prior failed
         self._lost: tuple | None = None  # track(), lost: (block means of the last pair detected cold, pairs skipped since)
         self._fits_left: int | None = None  # work budget of the cold detection under way

@@ -1,4 +1,5 @@
-"""The presets the experiments compare (:mod:`markerpose.presets`), those that can run here."""
+"""The presets the experiments compare (:mod:`markerpose.presets`), those that can run here,
+and an experiment's own settings over its defaults."""
 
 from __future__ import annotations
 
@@ -32,4 +33,13 @@ def available(names=None, require: bool = False) -> list[str]:
     return out
 
 
-__all__ = ["DEFAULT", "available"]
+def settings(conf: dict | None, defaults: dict, what: str) -> dict:
+    """``defaults`` with ``conf`` over them; ``ValueError`` naming any key ``defaults`` lacks
+    (``what``: the experiment, for the message)."""
+    unknown = set(conf or {}) - set(defaults)
+    if unknown:
+        raise ValueError(f"unknown {what} settings {sorted(unknown)}; known: {sorted(defaults)}")
+    return {**defaults, **(conf or {})}
+
+
+__all__ = ["DEFAULT", "available", "settings"]

@@ -29,6 +29,7 @@ from ..geometry import rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
+from .configs import settings
 
 default_conf = {
     "trials": 120,
@@ -77,10 +78,7 @@ def trials(conf: dict, rig: StereoRig, marker: Marker, progress: bool = True):
 
 def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-jumps", progress: bool = True) -> dict:
     """Run every trial with and without the search, report."""
-    unknown = set(conf or {}) - set(default_conf)
-    if unknown:
-        raise ValueError(f"unknown jump settings {sorted(unknown)}; known: {sorted(default_conf)}")
-    c = {**default_conf, **(conf or {})}
+    c = settings(conf, default_conf, "jump")
     if int(c["trials"]) < 1:
         raise ValueError(f"trials must be >= 1, got {c['trials']}")
     rig, marker = StereoRig.default(), Marker()

@@ -36,6 +36,7 @@ from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
+from .configs import settings
 
 default_conf = {
     "frames": 240,  # at 60 frames/s
@@ -109,10 +110,7 @@ def render(conf: dict, rig: StereoRig, marker: Marker, progress: bool = True):
 
 def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequence", progress: bool = True) -> dict:
     """Render the sequence, run the three methods on every frame, report."""
-    unknown = set(conf or {}) - set(default_conf)
-    if unknown:
-        raise ValueError(f"unknown sequence settings {sorted(unknown)}; known: {sorted(default_conf)}")
-    c = {**default_conf, **(conf or {})}
+    c = settings(conf, default_conf, "sequence")
     if int(c["frames"]) < 40:
         raise ValueError(f"frames must be >= 40 (five segments), got {c['frames']}")
     passes = int(c["passes"])

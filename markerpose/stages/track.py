@@ -65,12 +65,19 @@ def predict(history: list) -> np.ndarray:
     return step @ last
 
 
+def _fill_ellipse(img: np.ndarray, centre, axes, angle: float, scale: float, value: int) -> None:
+    """Fill an ellipse (``centre`` and full ``axes`` in full-resolution px, ``angle``) into
+    ``img`` drawn at 1/``scale``, to 1/16 px (OpenCV's fixed point)."""
+    cv2.ellipse(img, (round(centre[0] / scale * 16), round(centre[1] / scale * 16)),
+                (max(1, round(axes[0] / scale * 8)), max(1, round(axes[1] / scale * 8))), angle, 0, 360, value, -1, cv2.LINE_8, 4)
+
+
 def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, rings: list | None = None) -> tuple:
     """The marker at pose ``T`` (camera frame) as the view would see it, drawn at 1/``scale``
     of its pixels from ``origin`` (x, y, full-resolution px): (image, mask), float32 over
-    the plate's bounding box; the plate white (1), the rings' black bands (0), the rest of
-    the box at the plate's mean, and the mask 1 on the plate, 0 off it (what lies there
-    is not the marker's). ``rings``: the rings' outer ellipses under ``T`` if known
+    the plate's bounding box; the plate white (1), the rings' black bands (0), and the
+    mask 1 on the plate, 0 off it (what lies there is not the marker's: a masked
+    correlation ignores it). ``rings``: the rings' outer ellipses under ``T`` if known
     (:func:`~markerpose.geometry.ring_ellipses`)."""
     def px(points3d):
         cam = points3d @ T[:3, :3].T + T[:3, 3]
@@ -83,14 +90,9 @@ def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, 
     ink = np.zeros_like(plate)
     for radius, value in ((marker.outer_radius, 1), (marker.inner_radius, 0)):  # the band: outer disk minus the hole
         ellipses = rings if rings is not None and radius == marker.outer_radius else ring_ellipses(camera, T, marker.points3d, radius)
-        for (cx, cy), axes, angle in ellipses:
-            centre = (round((cx - origin[0]) / scale * 16), round((cy - origin[1]) / scale * 16))
-            half = (max(1, round(axes[0] / scale * 8)), max(1, round(axes[1] / scale * 8)))
-            cv2.ellipse(ink, centre, half, angle, 0, 360, value, -1, cv2.LINE_8, 4)
-    out = (plate & (1 - ink)).astype(np.float32)
-    on = plate.astype(bool)
-    out[~on] = out[on].mean() if on.any() else 0.5
-    return out, plate.astype(np.float32)
+        for centre, axes, angle in ellipses:
+            _fill_ellipse(ink, np.subtract(centre, origin), axes, angle, scale, value)
+    return (plate & (1 - ink)).astype(np.float32), plate.astype(np.float32)
 
 
 def _peak(corr: np.ndarray) -> tuple[np.ndarray, float]:
@@ -110,8 +112,7 @@ def _ring(axes: tuple, angle: float, rho: float, scale: float, pad: float) -> np
     half = int(np.ceil(max(axes) / 2 / scale * pad))
     out = np.ones((2 * half + 1, 2 * half + 1), np.uint8)
     for f, value in ((1.0, 0), (rho, 1)):
-        cv2.ellipse(out, (half * 16, half * 16), (max(1, round(axes[0] * f / scale * 8)), max(1, round(axes[1] * f / scale * 8))),
-                    angle, 0, 360, value, -1, cv2.LINE_8, 4)
+        _fill_ellipse(out, (half * scale, half * scale), (axes[0] * f, axes[1] * f), angle, scale, value)
     return out.astype(np.float32)
 
 
@@ -154,17 +155,18 @@ def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings:
     d = peak - (tx, ty)  # the marker's move, window px
     moves = np.tile(d * s, (len(rings), 1))
     rho = marker.inner_radius / marker.outer_radius
-    for k, ((cx, cy), axes, angle) in enumerate(rings):
+    for k, (centre, axes, angle) in enumerate(rings):
         ring = _ring(axes, angle, rho, s, 1.25)
         h = ring.shape[0] // 2
-        at = np.round((np.array([cx, cy]) - origin) / s + d).astype(int)  # the ring's centre after the marker's move
+        c = (np.asarray(centre) - origin) / s  # the predicted centre, window px
+        at = np.round(c + d).astype(int)  # ... after the marker's move
         lo_k, hi_k = at - h - ring_cells, at + h + ring_cells + 1
         if lo_k.min() < 0 or hi_k[0] > nx or hi_k[1] > ny:
             continue  # too near the window's edge to search: the marker's move
         local, score = _peak(cv2.matchTemplate(window[lo_k[1] : hi_k[1], lo_k[0] : hi_k[0]], ring, cv2.TM_CCOEFF_NORMED))
         # A weak peak, or one on the search's edge (the ring may lie beyond): the marker's move.
         if score >= min_ring and np.all((local >= 0.5) & (local <= 2 * ring_cells - 0.5)):
-            moves[k] = (local + lo_k + h - (np.array([cx, cy]) - origin) / s) * s
+            moves[k] = (local + lo_k + h - c) * s
     return moves, best
 
 
