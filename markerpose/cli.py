@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
+from .jit import CompileError
 from .formats import dumps, write_json
 from .presets import ORDER
 
@@ -827,7 +828,7 @@ def main(argv=None) -> int:
     try:
         rc = args.func(args)
         sys.stdout.flush()
-    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError, CompileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except BrokenPipeError:  # e.g. `markerpose estimate ... | head -3`: the reader has gone

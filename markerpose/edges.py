@@ -1028,6 +1028,25 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
 
 
 @compiled
+def _real_eigvecs(M, V):  # pragma: no cover - compiled
+    """V <- the eigenvectors (columns) of the real square matrix M; False, V untouched,
+    when an eigenvalue is complex or the eigenproblem fails. Typed the same whatever eig
+    returns: numba's eig raises on complex eigenvalues of a real matrix under numpy < 2.5
+    and returns complex arrays for every real matrix under numpy >= 2.5 (as numpy does);
+    np.imag / np.real take either."""
+    try:
+        w, Vk = np.linalg.eig(M)
+    except Exception:  # noqa: BLE001 - numba catches no narrower class
+        return False
+    wi = np.imag(w)
+    for i in range(wi.shape[0]):
+        if wi[i] != 0.0:
+            return False
+    V[:, :] = np.real(Vk)
+    return True
+
+
+@compiled
 def _robust_rows(P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S3i, cen, Q, fitted, keep, fallback):  # pragma: no cover - compiled
     """:func:`fit_robust` ring by ring: the least-median screen where ``screen[k]`` (radial
     offsets from the frame ellipse fcen[k], fR[k] = Q^(1/2)), then up to three weighted
@@ -1065,12 +1084,9 @@ def _robust_rows(P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S
             _scatter(P[k : k + 1], W[k : k + 1], keep[k : k + 1], m, s, mu)
             valid[0] = s[0] > 0
             _reduced_scatter(mu, S1i, S2i, S3i, valid, M, T)
-            try:
-                _, Vk = np.linalg.eig(M[0])
-            except Exception:  # noqa: BLE001 - numba catches no narrower class; complex eigenvalues: numpy's path takes their real parts
+            if not _real_eigvecs(M[0], V[0]):  # complex eigenvalues: numpy's path takes their real parts
                 fallback[k] = True
                 break
-            V[0] = Vk
             _ellipse_from_conic(V, T, m, s, valid, ci, Qi)
             fitted[k] = valid[0]
             if not valid[0]:

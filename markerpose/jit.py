@@ -8,7 +8,10 @@ import; there the loops are compiled once per process instead.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numba
+import numpy as np
 
 
 def compiled(fn):
@@ -20,4 +23,25 @@ def compiled(fn):
         return numba.njit(nogil=True)(fn)
 
 
-__all__ = ["compiled"]
+class CompileError(RuntimeError):
+    """The compiled loops could not be built with the installed numpy / numba."""
+
+
+def warm_up(*steps: Callable[[], None]) -> None:
+    """Run each module's warm-up (which compiles its loops, or loads them from the cache);
+    a typing failure, which a numpy or numba outside the tested ranges can cause, becomes
+    one :class:`CompileError` that names the versions and the fix instead of numba's
+    page-long trace at the first frame."""
+    try:
+        for step in steps:
+            step()
+    except numba.core.errors.NumbaError as exc:
+        first = next((line for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
+        raise CompileError(
+            f"markerpose's compiled loops do not build with numpy {np.__version__} and numba {numba.__version__} "
+            f"({first.strip()}); install the versions markerpose declares and tests, e.g. "
+            f"pip install 'numpy>=1.23,<2.5' 'numba>=0.60,<0.69', and report the versions that failed"
+        ) from exc
+
+
+__all__ = ["CompileError", "compiled", "warm_up"]

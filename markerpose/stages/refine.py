@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import camera, classical, edges
+from .. import camera, classical, edges, jit
 from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
@@ -61,13 +61,12 @@ class Refiner:
         self._noise = None  # this frame's noise estimates by image (frame); None: outside a frame
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
-        edges.warm_up()
-        camera.warm_up()
-        classical.warm_up()
+        steps = [edges.warm_up, camera.warm_up, classical.warm_up]
         if conf["blur_fit"]:
             from .. import blurfit
 
-            blurfit.warm_up()
+            steps.append(blurfit.warm_up)
+        jit.warm_up(*steps)
         self.net = None
         if neural and conf["method"] == "ellipsegnet":
             from ..ellipses import EllipseNet
