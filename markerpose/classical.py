@@ -48,6 +48,7 @@ All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -104,11 +105,6 @@ default_conf: dict = {
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
-    "blur_fit_budget": None,  # ... and while this FitBudget (shared by one detection's
-    #                            refinements) has fits left; None: no limit
-    "blur_fit_gate": None,  # ... and when this test (gray, centres (3, 2)) -> bool passes
-    #                          (e.g. ring evidence: a decoy's is low); None: no test. Where
-    #                          either stops a fit that is due, no ring of the view is refined
     "refine_iters": 10,  # at most this many resample-and-fit passes ...
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
@@ -143,6 +139,23 @@ class FitBudget:
             return False
         self.left -= 1
         return True
+
+
+@dataclass(frozen=True)
+class BlurLimits:
+    """What may stop a blurred-ring fit that is due, for one call (never settings: they
+    live in the caller's frame). Where either stops a fit that is due, no ring of the
+    view is refined (:func:`refine_blurred`).
+
+    Attributes:
+        budget: the fits one detection may still run, shared by its refinements (None:
+            no limit).
+        gate: a test ``(gray, centres (3, 2)) -> bool`` the rings must pass first, e.g.
+            ring evidence, which a decoy's lack (None: no test).
+    """
+
+    budget: FitBudget | None = None
+    gate: Callable | None = None
 
 
 @dataclass
@@ -662,7 +675,8 @@ def _unrefined(rings: list) -> list:
     return [replace(r, refined=False, _rejected=True) for r in rings]
 
 
-def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None) -> list:
+def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None,
+                   limits: BlurLimits | None = None) -> list:
     """The marker's edge-refined rings, fitted again together under a motion-blur model
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
 
@@ -678,8 +692,8 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     much blur the edge fit itself can be that far off, and a pose from it would be wrong.
     When only a ring the edge fit gave up on moves that far, the edge fit is kept. Where
     the fit is due (edge-fitted rings with edges that wide) but may not run — the
-    ring-evidence gate (conf["blur_fit_gate"]) refuses the three rings or the detection's
-    budget of fits (conf["blur_fit_budget"]) is spent — no ring is refined either.
+    ring-evidence gate (``limits.gate``) refuses the three rings or the detection's
+    budget of fits (``limits.budget``) is spent — no ring is refined either.
     Three rings whose sizes do not fit their spacing (not the marker) are left alone. With a camera the
     edge fit's distortion correction (the shift from the distorted-image ellipse's
     centre to the undistorted one's) carries over.
@@ -699,9 +713,10 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     # Wide edges the model may not check (the ring-evidence gate refuses them, or the
     # detection's budget of fits is spent) are not trusted either: under that much blur the
     # edge fit alone can be pixels off and still pass every check of the pose.
-    if c["blur_fit_gate"] is not None and not c["blur_fit_gate"](gray, np.array([r.center for r in rings], np.float64)):
+    limits = limits or BlurLimits()
+    if limits.gate is not None and not limits.gate(gray, np.array([r.center for r in rings], np.float64)):
         return _unrefined(rings)
-    if c["blur_fit_budget"] is not None and not c["blur_fit_budget"].take():
+    if limits.budget is not None and not limits.budget.take():
         return _unrefined(rings)
     from . import blurfit
 
@@ -822,14 +837,14 @@ def view_triples(image: np.ndarray, marker: Marker = Marker(), conf: dict | None
     return gray, noise, rings, find_triples(rings, marker, c)
 
 
-def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera) -> Detection:
+def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera, limits: BlurLimits | None = None) -> Detection:
     """The Detection of the triple ``tri`` of ``rings``: sub-pixel edges (and the blurred-ring
-    fit) with ``subpixel``, else the contour ellipses' centres (the paper)."""
+    fit, within ``limits``) with ``subpixel``, else the contour ellipses' centres (the paper)."""
     c = _merge_conf(conf)
     chosen = [rings[k] for k in tri]
     if subpixel:
         chosen = refine_views([gray], [chosen], marker, c, [noise], [camera])[0]
-        chosen = refine_blurred(gray, chosen, marker, c, noise)
+        chosen = refine_blurred(gray, chosen, marker, c, noise, limits)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)),
                      refined=np.array([not r._rejected for r in chosen]), blur_px=_blur_length(chosen))
@@ -885,6 +900,7 @@ def refine_points(
     camera: Camera | None = None,
     with_blur: bool = False,
     noise: float | None = None,
+    limits: BlurLimits | None = None,
 ) -> tuple:
     """Classical sub-pixel centres of the rings near given rough points (e.g. stage 1's).
 
@@ -898,6 +914,7 @@ def refine_points(
         marker, subpixel, conf, camera: as in :func:`detect`.
         with_blur: also return the motion blur (as :func:`refine_ellipses_views` does).
         noise: the image's noise sigma if known (else :func:`noise_sigma`).
+        limits: what may stop the blurred-ring fit (:class:`BlurLimits`; None: nothing).
     Returns:
         (centers (3, 2), found (3,) bool, ellipses): where no ring is found near a point,
         its centre is the input point, ``found`` is False and its ellipse None; with
@@ -931,7 +948,7 @@ def refine_points(
     found = np.array([r is not None for r in rings])
     if subpixel:
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
-        rings = refine_blurred(gray, rings, marker, c, noise)
+        rings = refine_blurred(gray, rings, marker, c, noise, limits)
         rings = [None if r is not None and r._rejected else r for r in rings]  # not trusted (refine_blurred)
         found = np.array([r is not None for r in rings])
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
@@ -945,6 +962,7 @@ def refine_ellipses(
     marker: Marker = Marker(),
     conf: dict | None = None,
     camera: Camera | None = None,
+    limits: BlurLimits | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Sub-pixel outer ellipses of rings whose approximate outer ellipses are known (e.g.
     fitted to EllipSegNet's masks): the image's edges are sampled along rays of each
@@ -955,12 +973,13 @@ def refine_ellipses(
         image: uint8 gray (H, W) or BGR.
         ellipses: per ring, an approximate outer ellipse (RotatedRect) or None.
         marker, conf, camera: as in :func:`detect`.
+        limits: what may stop the blurred-ring fit (:class:`BlurLimits`; None: nothing).
     Returns:
         (centers (N, 2), refined (N,) bool, ellipses): where the edges could not be fitted
         (None given, too few edge points) the given ellipse's centre is kept (NaN for
         None) and ``refined`` is False.
     """
-    return refine_ellipses_views([image], [ellipses], marker, conf, [camera])[0]
+    return refine_ellipses_views([image], [ellipses], marker, conf, [camera], limits=limits)[0]
 
 
 def refine_ellipses_views(
@@ -971,6 +990,7 @@ def refine_ellipses_views(
     cameras: list | None = None,
     noises: list | None = None,
     with_blur: bool = False,
+    limits: BlurLimits | None = None,
 ) -> list:
     """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
     fits in one batch.
@@ -981,6 +1001,7 @@ def refine_ellipses_views(
         cameras: per view, a Camera or None.
         noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
         with_blur: also return each view's motion blur.
+        limits: what may stop the blurred-ring fits (:class:`BlurLimits`; None: nothing).
     Returns:
         per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them;
         with ``with_blur`` (centers, refined, ellipses, blur): ``blur`` is the motion blur
@@ -1003,7 +1024,7 @@ def refine_ellipses_views(
         views.append(rings)
     out = []
     for gray, noise, rings in zip(grays, noises, refine_views(grays, views, marker, c, noises, cameras)):
-        rings = refine_blurred(gray, rings, marker, c, noise)
+        rings = refine_blurred(gray, rings, marker, c, noise, limits)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])
@@ -1012,6 +1033,8 @@ def refine_ellipses_views(
 
 
 __all__ = [
+    "BlurLimits",
+    "FitBudget",
     "Ring",
     "default_conf",
     "to_gray",

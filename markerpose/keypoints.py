@@ -214,7 +214,6 @@ class KeypointNet:
         self.conf["width"] = float(meta["width"])
         self.conf["stem_width"] = meta.get("stem_width")
         self.marker = marker or _MARKER
-        self._looked: list | None = None  # (image, size, input, scale) of the current frames; None: kept for none
 
     def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
         """Decoding settings: the defaults, the thresholds tuned at export for the ID mode
@@ -238,48 +237,44 @@ class KeypointNet:
         det, ids = self.runner(np.asarray(batch, np.float32)[:, None])
         return det, ids
 
-    def forget(self) -> None:
-        """New frames: from now on each image's input at each look is made once (the
-        evidence tests look again where the looks did) and kept until the next call. Call
-        it before every new set of frames: a video source may refill the same arrays.
-        Without it, inputs are never kept."""
-        self._looked = []
-
-    def _kept(self, image: np.ndarray, size: tuple) -> tuple | None:
-        """(input, scale) of ``image`` at ``size`` if kept (see :meth:`forget`), else None."""
-        for im, sz, small, scale in self._looked or ():
+    @staticmethod
+    def _kept(image: np.ndarray, size: tuple, kept: list | None) -> tuple | None:
+        """(input, scale) of ``image`` at ``size`` if in ``kept``, else None."""
+        for im, sz, small, scale in kept or ():
             if im is image and sz == size:
                 return small, scale
         return None
 
-    def _input(self, image: np.ndarray, zoom: float) -> tuple[np.ndarray, np.ndarray]:
-        """:func:`to_input` of an image at the look ``zoom`` (kept: see :meth:`forget`)."""
+    def _input(self, image: np.ndarray, zoom: float, kept: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`to_input` of an image at the look ``zoom``. ``kept``: one call's inputs,
+        (image, size, input, scale), which it reuses and adds to (None: none kept)."""
         size = look_size(zoom)
-        kept = self._kept(image, size)
-        if kept is not None:
-            return kept
+        found = self._kept(image, size, kept)
+        if found is not None:
+            return found
         small, scale = to_input(image, size)
-        if self._looked is not None:
-            self._looked.append((image, size, small, scale))
+        if kept is not None:
+            kept.append((image, size, small, scale))
         return small, scale
 
-    def _window(self, image: np.ndarray, zoom: float, x0: int, y0: int, size: int) -> np.ndarray:
+    def _window(self, image: np.ndarray, zoom: float, x0: int, y0: int, size: int, kept: list | None = None) -> np.ndarray:
         """The input of the look ``zoom`` in the window of ``size`` px at (x0, y0): from the
         kept whole input if there is one, else from the window's part of the image."""
         shape = look_size(zoom)
-        kept = self._kept(image, shape)
-        if kept is not None:
-            return kept[0][y0 : y0 + size, x0 : x0 + size]
+        found = self._kept(image, shape, kept)
+        if found is not None:
+            return found[0][y0 : y0 + size, x0 : x0 + size]
         return to_input_window(image, shape, x0, y0, size, size)
 
-    def _forward(self, images: list[np.ndarray], zoom: float = 1.0):
+    def _forward(self, images: list[np.ndarray], zoom: float = 1.0, kept: list | None = None):
         """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
         looked at ``zoom`` times the paper's input size."""
-        inputs, scales = zip(*(self._input(g, zoom) for g in images))
+        inputs, scales = zip(*(self._input(g, zoom, kept) for g in images))
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
     def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
-                   nms_radius: int | None = None, near: list | None = None, window: int = 64) -> list[np.ndarray]:
+                   nms_radius: int | None = None, near: list | None = None, window: int = 64,
+                   kept: list | None = None) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
         ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
         image, (N, 3) rows (x, y, score) in full-resolution pixels, best first.
@@ -287,29 +282,33 @@ class KeypointNet:
         With ``near`` (per image, (M, 2) full-resolution points): the network sees only
         windows of 2 ``window`` x 2 ``window`` input px around those points (all windows
         of all images in one batch), not the whole input.
+
+        ``kept``: the inputs one caller's frame has made so far (a list it owns; see
+        :meth:`_input`): each image's input at each look is made once per frame (the
+        evidence tests look again where the looks did). None: nothing kept.
         """
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
-            return self._candidates_near(images, threshold, k, zoom, r, near, window)
-        det, _, scales, _ = self._forward(images, zoom)
+            return self._candidates_near(images, threshold, k, zoom, r, near, window, kept)
+        det, _, scales, _ = self._forward(images, zoom, kept)
         out = []
         for cand, s in zip(peaks(det, threshold, k, r), scales):
             cand[:, :2] = to_full(cand[:, :2], s)
             out.append(cand)
         return out
 
-    def _candidates_near(self, images, threshold, k, zoom, r, near, window):
+    def _candidates_near(self, images, threshold, k, zoom, r, near, window, kept=None):
         W, H = look_size(zoom)
         scales = [input_scale(g.shape, (W, H)) for g in images]
         size = 2 * window
         crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
         for j, (g, s, pts) in enumerate(zip(images, scales, near)):
             if min(H, W) < size:  # a small input: the whole of it
-                crops.append(self._input(g, zoom)[0])
+                crops.append(self._input(g, zoom, kept)[0])
                 where.append((j, 0, 0))
                 continue
             for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, (H, W), window):
-                crops.append(self._window(g, zoom, x0, y0, size))
+                crops.append(self._window(g, zoom, x0, y0, size, kept))
                 where.append((j, x0, y0))
         found = [[] for _ in images]
         shapes = sorted({c.shape for c in crops})
@@ -327,13 +326,14 @@ class KeypointNet:
             out.append(cand)
         return out
 
-    def evidence(self, image: np.ndarray, triples: np.ndarray, zoom: float = 1.0) -> np.ndarray:
+    def evidence(self, image: np.ndarray, triples: np.ndarray, zoom: float = 1.0, kept: list | None = None) -> np.ndarray:
         """:func:`ring_evidence` of (T, 3, 2) triples in a full-resolution uint8 gray image's
-        pixels, looked at in the network's input of the look that found them: (T,)."""
-        small, scale = self._input(image, zoom)
+        pixels, looked at in the network's input of the look that found them: (T,).
+        ``kept``: as in :meth:`candidates`."""
+        small, scale = self._input(image, zoom, kept)
         return ring_evidence(small, (np.asarray(triples, np.float64) + 0.5) / scale - 0.5, self.marker)
 
-    def __call__(self, images: list[np.ndarray]) -> list[tuple[np.ndarray, float] | None]:
+    def __call__(self, images: list[np.ndarray], kept: list | None = None) -> list[tuple[np.ndarray, float] | None]:
         """Centres in full-resolution pixels for a batch of uint8 gray images (one forward pass).
 
         Returns:
@@ -341,7 +341,7 @@ class KeypointNet:
             :func:`markerpose.decode.decode`; with ``second_look`` > 1 the images where
             nothing is found are decoded again from a larger input).
         """
-        det, ids, scales, inputs = self._forward(images)
+        det, ids, scales, inputs = self._forward(images, 1.0, kept)
         out = []
         for k, s in enumerate(scales):
             found = decode(det[k], ids[k], self.conf, self.marker, inputs[k])
@@ -350,7 +350,7 @@ class KeypointNet:
         again = [k for k, o in enumerate(out) if o is None]
         if zoom > 1 and again:
             # The second look resizes the full-resolution image, so it sees finer detail.
-            det, ids, scales, inputs = self._forward([images[k] for k in again], zoom)
+            det, ids, scales, inputs = self._forward([images[k] for k in again], zoom, kept)
             conf = look_conf(self.conf)
             for j, k in enumerate(again):
                 found = decode(det[j], ids[j], conf, self.marker, inputs[j])

@@ -271,11 +271,11 @@ def test_wide_edges_the_blur_fit_may_not_check_refine_no_ring(blurred_view):
     # not trusted under that much blur, so no ring counts as refined.
     rig, img, truth = blurred_view
     rects = _truth_rects(truth)
-    for conf in ({"blur_fit_budget": C.FitBudget(0)}, {"blur_fit_gate": lambda gray, centres: False}):
-        _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf=conf)
-        assert not ok.any(), conf
+    for limits in (C.BlurLimits(budget=C.FitBudget(0)), C.BlurLimits(gate=lambda gray, centres: False)):
+        _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, limits=limits)
+        assert not ok.any(), limits
     budget = C.FitBudget(1)  # one fit left: it runs, and refines the rings
-    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_budget": budget})
+    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, limits=C.BlurLimits(budget=budget))
     assert ok.all() and budget.left == 0
 
 
@@ -319,7 +319,7 @@ def test_sharp_images_keep_the_edge_fit():
     b, _, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit": False})
     np.testing.assert_array_equal(a, b)
     # Nor does a spent budget of fits matter there: the edge fit stands.
-    c, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_budget": C.FitBudget(0)})
+    c, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, limits=C.BlurLimits(budget=C.FitBudget(0)))
     assert ok.all()
     np.testing.assert_array_equal(a, c)
 
@@ -373,7 +373,7 @@ def test_a_tracker_is_compiled_before_its_first_frame():
 import numba
 import markerpose as mp
 from markerpose import blurfit, camera, classical, edges
-inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det")  # called only from other kernels, compiled into them
+inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det", "_real_eigvecs")  # called only from other kernels, compiled into them
 kernels = [v for m in (edges, camera, blurfit, classical) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)

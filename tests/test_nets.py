@@ -58,7 +58,7 @@ def test_onnx_and_torch_give_the_same_centres():
     rig = mp.StereoRig.default()
     onnx = mp.MarkerPose(rig, propose={"weights": WEIGHTS_DIR / "keypoints.onnx"}, refine={"weights": WEIGHTS_DIR / "ellipses.onnx"})
     pt = mp.MarkerPose(rig, propose={"weights": WEIGHTS_DIR / "keypoints.pt"}, refine={"weights": WEIGHTS_DIR / "ellipses.pt"})
-    assert onnx.proposer.net.runner.backend == "onnxruntime" and pt.proposer.net.runner.backend == "torch"
+    assert onnx.detector.proposer.net.runner.backend == "onnxruntime" and pt.detector.proposer.net.runner.backend == "torch"
     for seed, pose in enumerate(([10, 0, 600], [-40, 30, 450], [0, -20, 750])):
         f = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
         a, b = onnx.estimate(*f.images), pt.estimate(*f.images)

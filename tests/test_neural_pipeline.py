@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose.frame import Frame
 from markerpose.nets import default_weights
 from markerpose.stages.match import layout_orders
 from markerpose.synth import Imaging, look_at_pose, render_stereo
@@ -212,9 +213,9 @@ def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypat
     est = mp.MarkerPose(rig).estimate(*f.images)
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
-    from markerpose import pipeline
+    from markerpose.detectors import stereo
 
-    monkeypatch.setattr(pipeline, "ring_ellipses", lambda *a: [None] * 3)  # no predicted ellipses
+    monkeypatch.setattr(stereo, "ring_ellipses", lambda *a: [None] * 3)  # no predicted ellipses
     assert mp.MarkerPose(rig).estimate(*f.images) is None
 
 
@@ -253,10 +254,10 @@ def test_plate_check_rejects_a_ring_refined_onto_the_wrong_edge(rig):
     _, (w, h), ang = ell[2]
     ell[2] = (tuple(moved), (0.8 * w, 0.8 * h), ang)
     bad = replace(right, centers=np.vstack([right.centers[:2], moved]), ellipses=ell)
-    assert mp.MarkerPose(rig, verify={**loose, "plate_check": False})._accepted([left, bad]) is not None
+    assert mp.MarkerPose(rig, verify={**loose, "plate_check": False})._accepted(Frame(list(f.images)), [left, bad]) is not None
     checked = mp.MarkerPose(rig, verify=loose)
-    assert checked._accepted([left, bad]) is None
-    assert checked._accepted([left, right]) is not None
+    assert checked._accepted(Frame(list(f.images)), [left, bad]) is None
+    assert checked._accepted(Frame(list(f.images)), [left, right]) is not None
 
 
 def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
@@ -264,18 +265,18 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     little evidence: the marker's triple first; on clutter with ring decoys, nothing."""
     f = render_stereo(rig, look_at_pose([0, 0, 650], 25, 70, 10), imaging=Imaging(alpha=0.6), seed=14)
     gray = f.images[0]
-    cand = tracker.proposer.candidates([gray])[0]
-    triples = tracker._view_triples(gray, cand, 1.0)
+    cand = tracker.detector.proposer.candidates([gray])[0]
+    triples = tracker.detector.layout_triples(Frame([gray]), gray, cand, 1.0)
     assert triples and np.abs(triples[0][0] - f.views[0].outer_centers).max() < 8
-    assert tracker.proposer.evidence(gray, f.views[0].outer_centers[None])[0] > 0.5
+    assert tracker.detector.proposer.evidence(gray, f.views[0].outer_centers[None])[0] > 0.5
     rng = np.random.default_rng(3)
     clutter = mp.synth.clutter_background((1280, 1024), rng, ring_distractors=10, ring_ratio=0.4)
     empty = (clutter * 200).astype(np.uint8)
-    cand = tracker.proposer.candidates([empty])[0]
-    kept = tracker._view_triples(empty, cand, 1.0)
+    cand = tracker.detector.proposer.candidates([empty])[0]
+    kept = tracker.detector.layout_triples(Frame([empty]), empty, cand, 1.0)
     if kept:  # whatever is tried has at least min_evidence
-        assert tracker.proposer.evidence(empty, np.stack([p for p, _ in kept])).min() >= tracker.conf["match"]["min_evidence"]
-    every = mp.MarkerPose(rig, match={"min_evidence": 0.0})._view_triples(empty, cand, 1.0)
+        assert tracker.detector.proposer.evidence(empty, np.stack([p for p, _ in kept])).min() >= tracker.conf["match"]["min_evidence"]
+    every = mp.MarkerPose(rig, match={"min_evidence": 0.0}).detector.layout_triples(Frame([empty]), empty, cand, 1.0)
     assert len(kept) <= len(every)
     assert tracker.detect(empty) is None
     # The gate says by how much it rejected the best triple.
@@ -283,8 +284,8 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     assert strict.detect(gray) is None
     best = float(strict.why.split(" has ")[1].split()[0])
     assert strict.why.startswith("ring evidence: the best of ") and "(min_evidence 1.01)" in strict.why
-    every_order = layout_orders(strict.proposer.candidates([gray])[0], strict.marker.centers2d, strict.conf["match"]["view_min_ratio"])[0]
-    assert best == pytest.approx(tracker.proposer.evidence(gray, every_order).max(), abs=1e-3)
+    every_order = layout_orders(strict.detector.proposer.candidates([gray])[0], strict.marker.centers2d, strict.conf["match"]["view_min_ratio"])[0]
+    assert best == pytest.approx(tracker.detector.proposer.evidence(gray, every_order).max(), abs=1e-3)
 
 
 def test_hard_shadow_across_the_plate_with_soft_edges(rig, tracker):
@@ -415,14 +416,13 @@ def test_look_inputs_are_kept_for_the_current_frames_only(rig):
     is looked at afresh."""
     f = render_stereo(rig, look_at_pose([0, 0, 560], 30, 40, 10), imaging=Imaging(alpha=0.6), seed=21)
     tr = mp.MarkerPose(rig)
-    net = tr.proposer.net
+    net = tr.detector.proposer.net
     left, right = (im.copy() for im in f.images)
     pts = f.views[0].centers[None]
-    alone = net.evidence(left, pts)
-    assert net._looked is None  # outside the pipeline nothing is kept
-    net.forget()
-    kept = net.evidence(left, pts)
-    assert len(net._looked) == 1 and net.evidence(left, pts) == kept and len(net._looked) == 1
+    alone = net.evidence(left, pts)  # nothing kept
+    looked: list = []  # a call's inputs (Frame.looked)
+    kept = net.evidence(left, pts, kept=looked)
+    assert len(looked) == 1 and net.evidence(left, pts, kept=looked) == kept and len(looked) == 1
     assert kept == alone and kept[0] > 0.5
     assert tr.estimate(left, right) is not None
     left[:], right[:] = 90, 90  # the same arrays, refilled with an empty scene
@@ -448,14 +448,13 @@ def test_windowed_looks_find_what_the_whole_input_gives(rig, tracker):
     an earlier look) and those resized from their part of the image alone give the same
     candidates."""
     f = render_stereo(rig, look_at_pose([20, -15, 520], 30, 50, 70), imaging=Imaging(alpha=0.8), seed=31)
-    net = tracker.proposer.net
+    net = tracker.detector.proposer.net
     grays = [np.ascontiguousarray(im) for im in f.images]
     near = [np.array([[640.0, 512.0], [300.0, 700.0]])] * 2
     for zoom, window in ((1.0, 48), (2.0, 64)):
-        net.forget()  # nothing kept: each window from its part of the image
-        alone = net.candidates(grays, 0.01, 16, zoom, near=near, window=window)
-        net.forget()
+        alone = net.candidates(grays, 0.01, 16, zoom, near=near, window=window, kept=[])  # each window from its part of the image
+        looked: list = []
         for g in grays:
-            net._input(g, zoom)  # the whole inputs kept, as after a first look
-        cut = net.candidates(grays, 0.01, 16, zoom, near=near, window=window)
+            net._input(g, zoom, looked)  # the whole inputs kept, as after a first look
+        cut = net.candidates(grays, 0.01, 16, zoom, near=near, window=window, kept=looked)
         assert len(alone[0]) and all(np.array_equal(a, b) for a, b in zip(alone, cut))

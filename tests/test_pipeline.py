@@ -264,8 +264,8 @@ def test_blas_runs_on_one_thread_inside_a_call_only(rig, frame, monkeypatch):
         pytest.skip("numpy's BLAS is not one threadpoolctl can see")
     tracker = mp.MarkerPose(rig)
     inside = []
-    cold = tracker._cold
-    monkeypatch.setattr(tracker, "_cold", lambda grays: (inside.append(_blas_threads()), cold(grays))[1])
+    cold = tracker.cold
+    monkeypatch.setattr(tracker, "cold", lambda frame: (inside.append(_blas_threads()), cold(frame))[1])
     with threadpool_limits(limits=2, user_api="blas"):
         est = tracker.estimate(*frame.images)
         assert est is not None and inside and all(n == 1 for n in inside[0])
@@ -322,4 +322,44 @@ def test_each_view_noise_is_estimated_once_a_frame(rig, frame, monkeypatch):
         est = tracker.estimate(*frame.images)
         assert len(seen) == len(set(seen)) == 2
         np.testing.assert_array_equal(est.T, expected.T)
-    assert tracker.refiner.noises([frame.images[0]]) == [real(frame.images[0])]  # outside a call: computed
+
+
+def test_two_trackers_in_two_threads_share_nothing(rig):
+    """Each thread's tracker gives what it gives alone; one tracker called from a second
+    thread while it handles a frame refuses with a clear error."""
+    import threading
+
+    from markerpose.synth import Imaging
+
+    poses = [look_at_pose([-5 + 2.0 * k, 2, 560 - k], 30 + k, 45, 10 + k) for k in range(4)]
+    others = [look_at_pose([20 - 2.0 * k, -10, 600 + k], 25, 30 + k, 70) for k in range(4)]
+    seqs = [[render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=k).images for k, T in enumerate(p)] for p in (poses, others)]
+    alone = []
+    for seq in seqs:
+        tracker = mp.MarkerPose(rig, detector="classical")
+        alone.append([tracker.track(*pair).T for pair in seq])
+    got: list = [None, None]
+
+    def run(i):
+        tracker = mp.MarkerPose(rig, detector="classical")
+        got[i] = [tracker.track(*pair).T for pair in seqs[i]]
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for a, b in zip(alone, got):
+        np.testing.assert_array_equal(np.stack(a), np.stack(b))
+    tracker = mp.MarkerPose(rig, detector="classical")
+    entered, release = threading.Event(), threading.Event()
+    cold = tracker.cold
+    tracker.cold = lambda frame: (entered.set(), release.wait(10), cold(frame))[2]
+    worker = threading.Thread(target=tracker.estimate, args=seqs[0][0])
+    worker.start()
+    assert entered.wait(10)
+    with pytest.raises(RuntimeError, match="another thread"):
+        tracker.track(*seqs[0][0])
+    release.set()
+    worker.join()
+    assert tracker.track(*seqs[0][0]) is not None  # free again

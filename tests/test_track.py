@@ -90,9 +90,9 @@ def test_a_wrong_prior_falls_back_to_detection(rig, sequence):
     frames, _ = sequence
     tracker = mp.MarkerPose(rig)
     tracker.track(*frames[0].images)
-    tracker._history = [look_at_pose([60.0, 40.0, 600.0], 10, 0, 90)]  # a prior 70 mm and 80° off
-    searched, shifted = [], tracker._shifted
-    tracker._shifted = lambda *a: searched.append(shifted(*a)) or searched[-1]
+    tracker.tracker.history = [look_at_pose([60.0, 40.0, 600.0], 10, 0, 90)]  # a prior 70 mm and 80° off
+    searched, search = [], tracker.tracker.searched
+    tracker.tracker.searched = lambda *a: searched.append(search(*a)) or searched[-1]
     est = tracker.track(*frames[1].images)
     assert searched == [None] and est is not None and est.source == "detected"  # the search found nothing like it
     assert np.linalg.norm(est.t - frames[1].T_left_marker[:3, 3]) < 0.02
@@ -121,8 +121,8 @@ def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
         tracker = mp.MarkerPose(rig, track=conf)
         for f in frames[:4]:
             tracker.track(*f.images)
-        searched, shifted = [], tracker._shifted
-        tracker._shifted = lambda grays, T_pred, seen=searched, fn=shifted: (seen.append(T_pred), fn(grays, T_pred))[1]
+        searched, search = [], tracker.tracker.searched
+        tracker.tracker.searched = lambda frame, T_pred, seen=searched, fn=search: (seen.append(T_pred), fn(frame, T_pred))[1]
         found = [tracker.track(*f.images) for f in still]
         assert [e.source for e in found] == sources
         assert all(np.linalg.norm(e.t - T[:3, 3]) < 0.02 for e in found)
@@ -137,20 +137,17 @@ def _view_shift(rig, T_from, T_to, view):
     return c[1] - c[0]
 
 
-def test_known_noises_are_used_for_the_frame(rig, monkeypatch):
+def test_known_noises_are_used_for_the_frame(monkeypatch):
     from markerpose import classical
-    from markerpose.stages.refine import Refiner, default_conf
+    from markerpose.frame import Frame
 
-    refiner = Refiner(default_conf, mp.Marker(), neural=False)
     grays = [np.zeros((64, 64), np.uint8), np.ones((64, 64), np.uint8)]
     calls = []
     monkeypatch.setattr(classical, "noise_sigma", lambda g: calls.append(1) or 9.0)
-    refiner.frame(True)
-    assert refiner.noises(grays, known=[1.5, 2.5]) == [1.5, 2.5]
-    assert refiner.noises(grays) == [1.5, 2.5] and refiner.noises(grays[1:]) == [2.5] and not calls
-    refiner.frame(False)
-    refiner.frame(True)  # a new frame: estimated
-    assert refiner.noises(grays) == [9.0, 9.0] and len(calls) == 2
+    frame = Frame(grays)
+    assert frame.noises(grays, known=[1.5, 2.5]) == [1.5, 2.5]
+    assert frame.noises(grays) == [1.5, 2.5] and frame.noises(grays[1:]) == [2.5] and not calls
+    assert Frame(grays).noises(grays) == [9.0, 9.0] and len(calls) == 2  # a new call: estimated
 
 
 def test_shift_finds_the_marker_where_the_prior_missed_it(rig):
@@ -189,7 +186,7 @@ def test_a_jump_near_the_prior_is_tracked_without_stage_1(rig, sequence):
     tracker = mp.MarkerPose(rig)
     for g in frames[:4]:
         tracker.track(*g.images)
-    seen = _spy_looks(tracker.proposer)
+    seen = _spy_looks(tracker.detector.proposer)
     est = tracker.track(*f.images)
     assert seen == [] and est is not None and est.source == "tracked"
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.02
@@ -286,7 +283,7 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
         tracker = mp.MarkerPose(rig, track=NO_SEARCH)
         for g in frames[:4]:
             tracker.track(*g.images)
-        seen = _spy_looks(tracker.proposer)
+        seen = _spy_looks(tracker.detector.proposer)
         est = tracker.track(*f.images)
         assert est is not None and est.source == "detected" and np.linalg.norm(est.t - T[:3, 3]) < 0.02
         assert seen[: len(looks)] == looks and (len(looks) == 2 or "whole" not in seen)
@@ -295,8 +292,8 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
     tracker = mp.MarkerPose(rig, track=NO_SEARCH)
     for g in frames[:4]:
         tracker.track(*g.images)
-    runs, fit = [], tracker._fit
-    tracker._fit = lambda fn, *a: (runs.append(tracker._fits_left > 0), fit(fn, *a))[1]
+    runs, fit = [], tracker.detector.fit
+    tracker.detector.fit = lambda frame, *a: (runs.append(frame.fits_left > 0), fit(frame, *a))[1]
     left = render_stereo(rig, near_pose, imaging=Imaging(alpha=0.8), seed=31).images[0]
     assert tracker.track(left, left) is None
     assert sum(runs) <= tracker.conf["match"]["max_fits"]
@@ -305,12 +302,78 @@ def test_when_the_prior_fails_stage_1_looks_near_the_prediction_first(rig, seque
     tracker = mp.MarkerPose(rig, track=NO_SEARCH)
     for g in close[:2]:
         assert tracker.track(*g.images) is not None
-    seen = _spy_looks(tracker.proposer)
+    seen = _spy_looks(tracker.detector.proposer)
     jumped = render_stereo(rig, look_at_pose([15.0, 5.0, 360.0], 20, 45, 10), imaging=Imaging(alpha=0.8), seed=63)
     assert tracker.track(*jumped.images).source == "detected" and seen[0] == "whole"
     # near_margin 0: the whole images at once.
     tracker = mp.MarkerPose(rig, track={**NO_SEARCH, "near_margin": 0})
     for g in frames[:4]:
         tracker.track(*g.images)
-    tracker.proposer.near = lambda *a: pytest.fail("no near look with near_margin 0")
+    tracker.detector.proposer.near = lambda *a: pytest.fail("no near look with near_margin 0")
     assert tracker.track(*render_stereo(rig, near_pose, imaging=Imaging(alpha=0.8), seed=30).images).source == "detected"
+
+
+class _Pipeline:
+    """A stand-in for MarkerPose's side of tracking: each step answers from its own queue
+    (an Estimate or None) and the calls are recorded."""
+
+    def __init__(self, fitted=(), near=(), cold=()):
+        self.answers = {"fitted": list(fitted), "near": list(near), "cold": list(cold)}
+        self.calls: list = []
+
+    def _answer(self, step, *args):
+        self.calls.append((step, *args))
+        return self.answers[step].pop(0) if self.answers[step] else None
+
+    def fitted(self, frame, predicted, first_tol, noises):
+        return self._answer("fitted", first_tol)
+
+    def near(self, frame, T_pred):
+        return self._answer("near")
+
+    def cold(self, frame):
+        return self._answer("cold")
+
+
+def _estimate(T, residual=0.1):
+    from markerpose.results import Estimate
+
+    return Estimate(T=T, points3d=np.zeros((3, 3)), centers=np.zeros((2, 3, 2)), residual_px=residual)
+
+
+def _frame(value=0):
+    from markerpose.frame import Frame
+
+    return Frame([np.full((1024, 1280), value, np.uint8)] * 2)
+
+
+def test_tracker_state_machine_with_a_stand_in_pipeline(rig):
+    """The Tracker alone: cold first, then the prior's fit; a fit over the residual gate
+    counts as failed; a failed prior goes to the near detection, then the cold one; a lost
+    marker in an unchanged scene is not detected again until ``lost_refresh``."""
+    from markerpose.stages.track import Tracker
+
+    conf = {**default_conf, "shift_margin": 0.0, "lost_refresh": 3}  # no search by appearance: no images needed
+    tracker = Tracker(conf, rig, mp.Marker())
+    T = [look_at_pose([1.0 * k, 0.0, 560.0], 30, 45, 0) for k in range(4)]
+    pipe = _Pipeline(cold=[_estimate(T[0])], fitted=[_estimate(T[1])])
+    assert tracker.next(_frame(), pipe) is not None and tracker.history[-1] is T[0]
+    assert tracker.next(_frame(), pipe).T is T[1]
+    assert [c[0] for c in pipe.calls] == ["cold", "fitted"] and pipe.calls[1][1] == conf["one_pass_move"]
+    assert len(tracker.history) == 2 and tracker.noise[1] == 1
+    # The prior's fit over the residual gate: failed; the near look (at the prediction), then cold.
+    pipe = _Pipeline(fitted=[_estimate(T[2], residual=conf["max_residual_px"] * 2)], cold=[_estimate(T[2])])
+    frame = _frame()
+    assert tracker.next(frame, pipe).T is T[2]
+    assert [c[0] for c in pipe.calls] == ["fitted", "near", "cold"] and frame.why is None
+    assert tracker.after_miss and len(tracker.history) == 2  # velocity only after a miss
+    # Lost in a still scene: one cold detection, then nothing until lost_refresh pairs.
+    tracker.reset()
+    pipe = _Pipeline()
+    for k in range(4):
+        frame = _frame()
+        assert tracker.next(frame, pipe) is None
+        assert frame.why == ("no marker found" if k in (0, 3) else
+                             "lost, and the pair has not changed since the last one detected without the marker")
+    assert [c[0] for c in pipe.calls] == ["cold", "cold"]
+    assert tracker.next(_frame(200), pipe) is None and len(pipe.calls) == 3  # the scene changed: detected

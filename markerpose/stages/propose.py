@@ -70,40 +70,38 @@ class NeuralProposer:
             weights = int8_weights("keypoints")
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
-    def forget(self) -> None:
-        """New frames: the inputs kept from the last ones' looks are dropped."""
-        self.net.forget()
-
     def looks(self) -> tuple[float, ...]:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""
         zoom = float(self.conf["second_look"])
         return (1.0, zoom) if zoom > 1 else (1.0,)
 
-    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None) -> list[np.ndarray]:
+    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first.
         A look with ``zoom`` > 1 given the ``previous`` look's candidates looks only near
-        its best ones (``second_look_near``)."""
+        its best ones (``second_look_near``). ``kept``: the call's stage-1 inputs
+        (:attr:`markerpose.frame.Frame.looked`), made once per call."""
         c = self.conf
         near = None
         if zoom > 1 and previous is not None and c["second_look_near"]:
             near = [p[: int(c["second_look_near"]), :2] for p in previous]
-        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]))
+        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]),
+                                   kept=kept)
 
-    def near(self, grays: list[np.ndarray], points: list, half: int) -> list[np.ndarray]:
+    def near(self, grays: list[np.ndarray], points: list, half: int, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look
         that sees only windows of 2 ``half`` x 2 ``half`` input px around ``points`` (per
         view, (M, 2) full-resolution pixels): where a tracker's prior put the marker."""
         c = self.conf
-        return self.net.candidates(grays, c["threshold"], c["candidates"], 1.0, c["nms"], near=points, window=int(half))
+        return self.net.candidates(grays, c["threshold"], c["candidates"], 1.0, c["nms"], near=points, window=int(half), kept=kept)
 
-    def decoded(self, grays: list[np.ndarray]) -> list:
+    def decoded(self, grays: list[np.ndarray], kept: list | None = None) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
-        return self.net(grays)
+        return self.net(grays, kept)
 
-    def evidence(self, gray: np.ndarray, triples: np.ndarray, zoom: float = 1.0) -> np.ndarray:
+    def evidence(self, gray: np.ndarray, triples: np.ndarray, zoom: float = 1.0, kept: list | None = None) -> np.ndarray:
         """Ring evidence (:func:`markerpose.evidence.ring_evidence`) of (T, 3, 2) triples
         in the input of the look ``zoom`` that found them: (T,)."""
-        return self.net.evidence(gray, triples, zoom)
+        return self.net.evidence(gray, triples, zoom, kept)
 
 
 def classical_view(image: np.ndarray, marker: Marker, conf: dict | None = None):

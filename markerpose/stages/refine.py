@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import camera, classical, edges, jit
+from ..frame import Frame
 from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
@@ -58,7 +59,6 @@ class Refiner:
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
-        self._noise = None  # this frame's noise estimates by image (frame); None: outside a frame
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         steps = [edges.warm_up, camera.warm_up, classical.warm_up]
@@ -77,42 +77,18 @@ class Refiner:
         # Whether refined detections carry the rings' ellipses (what the plate check needs).
         self.gives_ellipses = self.edge_refit or conf["method"] == "classical"
 
-    def frame(self, start: bool) -> None:
-        """Start (True) or end (False) one frame's work: within it, each image's noise
-        estimate is computed once (:meth:`noises`), however many hypotheses refine it."""
-        self._noise = {} if start else None
-
-    def noises(self, grays: list, known: list | None = None) -> list:
-        """Per image, its noise sigma (:func:`classical.noise_sigma`), once per frame.
-        ``known``: the images' sigmas as already estimated (a video stream's cameras, from
-        an earlier frame): this frame's later calls take them instead of estimating."""
-        memo = self._noise
-        if known is not None:
-            if memo is not None:
-                memo.update((id(g), (g, float(n))) for g, n in zip(grays, known))
-            return [float(n) for n in known]
-        if memo is None:
-            return [classical.noise_sigma(g) for g in grays]
-        for g in grays:
-            if id(g) not in memo:  # the memo holds the image, so its id is not reused within the frame
-                memo[id(g)] = (g, classical.noise_sigma(g))
-        return [memo[id(g)][1] for g in grays]
-
-    def budget(self, fits: int | None) -> None:
-        """Allow ``fits`` blurred-ring model fits from now on (None: no limit)."""
-        self.classical["blur_fit_budget"] = None if fits is None else classical.FitBudget(fits)
-
-    def __call__(self, grays: list, cameras: list, points: list, blur_gate=None, mask_gate=None) -> list:
+    def __call__(self, frame: Frame, grays: list, cameras: list, points: list, blur_gate=None, mask_gate=None) -> list:
         """Per view, the Detection near (points (3, 2), score), or None where None is given.
 
+        ``frame``: the call's context (the images' noise, the budget of blurred-ring fits).
         Gates, tests ``(gray, points (3, 2)) -> bool`` (None: none): ``blur_gate``, that a
-        view's rings must pass before their blurred-ring fit (classical ``blur_fit_gate``);
+        view's rings must pass before their blurred-ring fit (:class:`~markerpose.classical.BlurLimits`);
         ``mask_gate``, that a view's points must pass to go on to EllipSegNet's masks when
         the layout's seeds did not fit (a decoy's triple is not worth the network's cost).
         """
-        conf = self.classical if blur_gate is None else {**self.classical, "blur_fit_gate": blur_gate}
+        conf, limits = self.classical, classical.BlurLimits(frame.blur_fits, blur_gate)
         if self.net is not None:
-            return self._ellipsegnet(grays, cameras, points, conf, mask_gate)
+            return self._ellipsegnet(frame, grays, cameras, points, limits, mask_gate)
         out = []
         for gray, cam, found in zip(grays, cameras, points):
             if found is None:
@@ -123,7 +99,7 @@ class Refiner:
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
             centers, ok, ellipses, blur = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf,
-                                                                  camera=cam, with_blur=True, noise=self.noises([gray])[0])
+                                                                  camera=cam, with_blur=True, noise=frame.noises([gray])[0], limits=limits)
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur))
         return out
 
@@ -138,7 +114,8 @@ class Refiner:
         Q = np.linalg.inv(M)
         return [cq_to_rect(np.asarray(p, np.float64), Q) for p in points]
 
-    def _ellipsegnet(self, grays: list, cameras: list, points: list, conf: dict, mask_gate=None) -> list:
+    def _ellipsegnet(self, frame: Frame, grays: list, cameras: list, points: list, limits, mask_gate=None) -> list:
+        conf = self.classical
         seen = [k for k, f in enumerate(points) if f is not None]
         out = [None] * len(grays)
         if self.edge_refit and self.conf["layout_seed"]:
@@ -149,7 +126,7 @@ class Refiner:
             if views:
                 fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
                                                        {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views],
-                                                       self.noises([grays[k] for k in views]), with_blur=True)
+                                                       frame.noises([grays[k] for k in views]), with_blur=True, limits=limits)
                 for k, (centers, ok, ellipses, blur) in zip(views, fits):
                     if ok.all():
                         out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
@@ -161,7 +138,8 @@ class Refiner:
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
             fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, conf,
-                                                   [cameras[k] for k in seen], self.noises([grays[k] for k in seen]), with_blur=True)
+                                                   [cameras[k] for k in seen], frame.noises([grays[k] for k in seen]), with_blur=True,
+                                                   limits=limits)
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
             ellipses, blur = None, 0.0
@@ -169,7 +147,7 @@ class Refiner:
                 c2, ok2, ellipses, blur = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
                     c3, ok3, e3, b3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k], with_blur=True,
-                                                              noise=self.noises([grays[k]])[0])
+                                                              noise=frame.noises([grays[k]])[0], limits=limits)
                     c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
                     ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                     ok2 = ok2 | ok3
@@ -179,7 +157,7 @@ class Refiner:
             out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
         return out
 
-    def from_ellipses(self, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
+    def from_ellipses(self, frame: Frame, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
                       first_tol: float = 0.0, noises: list | None = None, blur_gate=None) -> list:
         """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
         all views in one batch: per view a Detection when all three refine, else None.
@@ -189,19 +167,19 @@ class Refiner:
         ``noises``: per view, the image's noise sigma if known. ``blur_gate``: as in
         :meth:`__call__`."""
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
-        if blur_gate is not None:
-            conf = {**conf, "blur_fit_gate": blur_gate}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
-        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, self.noises(grays) if noises is None else noises, with_blur=True)
+        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, frame.noises(grays) if noises is None else noises,
+                                               with_blur=True, limits=classical.BlurLimits(frame.blur_fits, blur_gate))
         return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
 
-    def triple(self, view: tuple, tri: tuple, cost: float, camera) -> Detection:
+    def triple(self, frame: Frame, view: tuple, tri: tuple, cost: float, camera) -> Detection:
         """The classical detector's triple ``tri`` of a view (gray, noise, rings, ...)
         refined: sub-pixel edges and the blur fit with ``subpixel``, else the paper's
         contour ellipses."""
         gray, noise, rings = view[:3]
-        return classical.refine_triple(gray, rings, tri, cost, self.marker, self.conf["subpixel"], self.classical, noise, camera)
+        return classical.refine_triple(gray, rings, tri, cost, self.marker, self.conf["subpixel"], self.classical, noise, camera,
+                                       classical.BlurLimits(frame.blur_fits))
 
 
 __all__ = ["METHODS", "Refiner", "default_conf"]

@@ -204,6 +204,123 @@ def changed(before: np.ndarray, after: np.ndarray, k: float, level: float = 1.0,
     return bool(med > scene or d.max() > k * 1.4826 * med + level)
 
 
+class Tracker:
+    """One marker's state along a video stream, and the step from one pair to the next.
+
+    It holds the last poses (the prior), the cameras' noise as the stream estimated it,
+    whether the last pose was found after the prior failed, and, while the marker is
+    lost, the pair the next ones must differ from to be detected again. :meth:`next`
+    runs the steps the module's docstring describes; the refinement, the verification
+    and the detections are the pipeline's (``pipeline``: an object with
+    ``fitted(frame, predicted, first_tol, noises)``, ``near(frame, T_pred)`` and
+    ``cold(frame)``, each an Estimate or None, as :class:`markerpose.MarkerPose` has).
+
+    Args:
+        conf: :data:`default_conf` with overrides.
+        rig: the calibrated stereo rig.
+        marker: the marker's geometry.
+    """
+
+    def __init__(self, conf: dict, rig, marker):
+        self.conf, self.rig, self.marker = check_conf(conf), rig, marker
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the prior: the next pair is detected cold (a new sequence)."""
+        self.history: list = []  # the last poses found, oldest first (at most three)
+        self.noise: tuple = (None, 0)  # both views' noise sigmas, pairs with a prior since
+        self.after_miss = False  # the last pose was found after the prior failed
+        self.lost: tuple | None = None  # lost: (block means of the last pair detected cold, pairs skipped since)
+
+    def next(self, frame, pipeline):
+        """The marker's pose in the frame's pair (an Estimate), or None; the state moves on."""
+        c, grays = self.conf, frame.grays
+        now = None
+        if not self.history and self.lost is not None and c["lost_change"]:
+            now = [blocks(g, c["lost_block"]) for g in grays]
+            before, skipped = self.lost
+            if skipped + 1 < c["lost_refresh"] and not any(changed(a, b, c["lost_change"]) for a, b in zip(before, now)):
+                self.lost = (before, skipped + 1)
+                frame.why = "lost, and the pair has not changed since the last one detected without the marker"
+                return None
+        if self.history:
+            # The cameras' noise as the stream estimated it (renewed every noise_every
+            # frames): this pair's fits take it, those of a search or a detection after a
+            # failed prior too.
+            noises, age = self.noise
+            if noises is None or age >= c["noise_every"]:
+                noises, age = frame.noises(grays), 0
+            else:
+                frame.noises(grays, known=noises)
+            self.noise = (noises, age + 1)
+        est = self._fit(frame, pipeline, self.predicted(grays, predict(self.history)), c["one_pass_move"]) if self.history else None
+        history = self.history
+        after_miss = est is None and bool(history)
+        if est is None:
+            if history:  # first the marker sought near where the prior put it, then detected there
+                # After a frame whose prior failed, the step into its pose may be a jump (the
+                # marker moved or was put down out of sight of the prior), not a velocity:
+                # the search starts from that pose, the marker standing still there.
+                T_near = history[-1] if self.after_miss else predict(history)
+                est = self._fit(frame, pipeline, self.searched(frame, T_near), 0.0)
+                if est is None and self.after_miss:  # where the search could not look: standing still
+                    est = self._fit(frame, pipeline, self.predicted(grays, T_near), c["one_pass_move"])
+                if est is None:
+                    est = pipeline.near(frame, T_near)
+            history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
+            if est is None:
+                frame.why = None  # neither the prior's nor the near look's failure is why the frame has no pose
+                est = pipeline.cold(frame)
+            frame.why = None if est is not None else (frame.why or "no marker found")
+        self.history = [*history, est.T][-3:] if est is not None else []
+        if est is None:
+            self.noise = (None, 0)  # lost: estimated afresh once the marker is found again
+        self.after_miss = after_miss and est is not None
+        # Lost: this pair is what the next ones must differ from to be detected again.
+        if est is not None or not c["lost_change"]:
+            self.lost = None
+        else:
+            self.lost = (now or [blocks(g, c["lost_block"]) for g in grays], 0)
+        return est
+
+    def _fit(self, frame, pipeline, predicted: list | None, first_tol: float):
+        """The pipeline's fit of ``predicted`` ellipses, gated on the reprojection error."""
+        if predicted is None:
+            return None
+        est = pipeline.fitted(frame, predicted, first_tol, self.noise[0])
+        return est if est is not None and est.residual_px <= self.conf["max_residual_px"] else None
+
+    def predicted(self, grays: list, T_pred: np.ndarray) -> list | None:
+        """Per view, the rings' outer ellipses under pose ``T_pred``; None where one leaves
+        its image (``margin_px``)."""
+        mk, out = self.marker, []
+        for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            ellipses = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            if not inside(ellipses, gray.shape[::-1], self.conf["margin_px"]):
+                return None
+            out.append(ellipses)
+        return out
+
+    def searched(self, frame, T_pred: np.ndarray) -> list | None:
+        """After the prior failed: per view, the prior's rings (pose ``T_pred``) moved to
+        where the search by the marker's appearance (:func:`shift`) finds them; None where
+        a view's search finds nothing like the marker or the rings leave the image."""
+        mk, c = self.marker, self.conf
+        if not c["shift_margin"]:
+            return None
+        moved = []
+        for gray, cam, T in zip(frame.grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            rings = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            found = frame.timed("search", shift, gray, cam, T, mk, c["shift_margin"], rings)
+            if found is None or found[1] < c["shift_min_score"]:
+                return None
+            ellipses = [((x + dx, y + dy), axes, angle) for ((x, y), axes, angle), (dx, dy) in zip(rings, found[0])]
+            if not inside(ellipses, gray.shape[::-1], c["margin_px"]):
+                return None
+            moved.append(ellipses)
+        return moved
+
+
 def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
     if float(conf["shift_margin"]) < 0:
@@ -221,4 +338,4 @@ def check_conf(conf: dict) -> dict:
     return conf
 
 
-__all__ = ["appearance", "blocks", "changed", "check_conf", "default_conf", "inside", "predict", "shift"]
+__all__ = ["Tracker", "appearance", "blocks", "changed", "check_conf", "default_conf", "inside", "predict", "shift"]

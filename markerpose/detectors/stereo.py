@@ -1,0 +1,171 @@
+"""The stereo detector (ours, the default): stage-1 candidates of both views matched by the
+marker's 3D shape.
+
+Each look of stage 1 (:meth:`~markerpose.stages.propose.NeuralProposer.looks`) gives every
+view a handful of candidates; triples of them that triangulate to the marker's shape
+(:func:`~markerpose.stages.match.stereo_triples`) are refined in turn. The costly
+refinements need ring evidence first (:meth:`StereoDetector.gates`). When no matched
+triple passes, one view's refined rings are carried into the other by their pose
+(:meth:`StereoDetector.transferred`). A cold detection refines at most ``match.max_fits``
+hypotheses (a bounded worst case on an inconsistent pair).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+from ..frame import Frame
+from ..geometry import ring_diameter, ring_ellipses
+from ..keypoints import look_size
+from ..results import Detection
+from ..stages import verify
+from ..stages.match import stereo_triples, transfer, transfer_sources
+from .base import NeuralDetector
+
+MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
+
+
+class StereoDetector(NeuralDetector):
+    """Stage-1 candidates matched across the views by the marker's 3D shape."""
+
+    name = "stereo"
+
+    def pairs(self, frame: Frame) -> Iterator[list[Detection]]:
+        if frame.fits_left is None:  # else the frame's budget, of which a near look took a part
+            self.start_budget(frame)
+        cand = None
+        for zoom in self.proposer.looks():
+            cand = frame.timed("propose", self.proposer.candidates, frame.grays, zoom, cand, frame.looked)
+            yield from self.from_candidates(frame, cand, zoom)
+
+    def from_candidates(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
+        """Stage 1's candidates of both views (from the look ``zoom``) matched by the
+        marker's 3D shape, each triple refined in turn, then the transfer fallback."""
+        m = self.conf["match"]
+        triples = frame.timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
+                              m["epipolar_tol"], m["shape_tol"], m["max_triples"])
+        if not triples:
+            frame.failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
+                         "matches across the views with the marker's 3D shape")
+        gates = self.gates(frame, zoom)
+        for pl, pr, s in triples:
+            found = self.fit(frame, frame.grays, list(self.rig.cameras), [(pl, s), (pr, s)], *gates)
+            if found is None:
+                break
+            yield found
+        if m["transfer"]:
+            yield from self.transferred(frame, cand, zoom)
+
+    def near(self, frame: Frame, T_pred: np.ndarray) -> Iterator[list[Detection]]:
+        """A cold detection whose stage 1 sees, in each view, only a window around where the
+        prior put the marker (pose ``T_pred``; ``track.near_margin`` of the predicted
+        marker's extent beyond it on each side), refining its best hypothesis only.
+
+        It starts the frame's work budget, which the whole-image detection after it
+        continues, so that a frame costs no more than a cold detection allows. Nothing
+        where it cannot help: ``near_margin`` 0, the predicted marker outside a view, or a
+        window of three quarters of the input's height or more (the whole images are then
+        hardly dearer)."""
+        margin = self.conf["track"]["near_margin"]
+        if not margin:
+            return
+        mk = self.marker
+        w, h = look_size(1.0)
+        centres, half = [], 0.0
+        for gray, cam, T in zip(frame.grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
+            ell = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            r = max(max(e[1]) for e in ell) / 2
+            lo = np.min([e[0] for e in ell], axis=0) - r
+            hi = np.max([e[0] for e in ell], axis=0) + r
+            H, W = gray.shape
+            if hi[0] < 0 or hi[1] < 0 or lo[0] > W - 1 or lo[1] > H - 1:  # predicted out of this view
+                return
+            extent = (hi - lo) / (W / w, H / h)  # in stage 1's input, px
+            half = max(half, float(extent.max()) * (0.5 + margin))
+            centres.append(((lo + hi) / 2)[None])
+        half = 8 * int(np.ceil(half / 8))  # the network's cells
+        if 2 * half >= 0.75 * min(w, h):
+            return
+        self.start_budget(frame)
+        left = frame.fits_left
+        frame.fits_left = min(left, 1)
+        try:
+            cand = frame.timed("propose", self.proposer.near, frame.grays, centres, half, frame.looked)
+            yield from self.from_candidates(frame, cand, 1.0)
+        finally:
+            frame.fits_left = left - (min(left, 1) - frame.fits_left)
+
+    def gates(self, frame: Frame, zoom: float) -> tuple:
+        """The refine stage's evidence gates (blur, mask) for hypotheses of the look ``zoom``
+        (:meth:`~markerpose.stages.refine.Refiner.__call__`). The mask gate passes rings
+        under ``MASK_GATE_MIN_PX`` across in the look's input: stage 1 places those too far
+        off, relative to their size, for the evidence at its points to tell."""
+        m = self.conf["match"]
+
+        def evidence(gray, pts):
+            return frame.timed("verify", self.proposer.evidence, gray, np.asarray(pts)[None], zoom, frame.looked)[0]
+
+        def small(gray, pts):
+            return ring_diameter(pts, self.marker) * look_size(zoom)[0] / gray.shape[1] < MASK_GATE_MIN_PX
+
+        blur = (lambda gray, pts: bool(evidence(gray, pts) >= m["blur_min_evidence"])) if m["blur_min_evidence"] else None
+        mask = (lambda gray, pts: small(gray, pts) or bool(evidence(gray, pts) >= m["mask_min_evidence"])) if m["mask_min_evidence"] else None
+        return blur, mask
+
+    def transferred(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
+        """Recover a marker one camera sees too steeply for stage 1 to place its rings within
+        the matching tolerances: when triples match loosely, one view's triple is refined
+        and, if its rings fit a plate pose, carried into the other view by that pose
+        (:func:`~markerpose.stages.match.transfer`), whose predicted ellipses are fitted
+        on the image's edges (or, failing that, refined at the predicted centres). Sources
+        whose ring evidence is under ``transfer_min_evidence`` are skipped."""
+        m, cams, mk, grays = self.conf["match"], self.rig.cameras, self.marker, frame.grays
+        loose = frame.timed("match", stereo_triples, self.rig, cand[0], cand[1], mk.points3d,
+                            m["transfer_epipolar_tol"], m["transfer_shape_tol"], m["transfer_attempts"])
+        if not loose:  # no sign of the marker in both views (the common case without it): stop
+            return
+        sources = transfer_sources(loose, cand, mk.centers2d, m["view_triples"])
+        blur_gate = self.gates(frame, zoom)[0]
+        gate = m["transfer_min_evidence"]
+        if gate:  # one evidence look per view for all of its sources
+            keep = np.ones(len(sources), bool)
+            for view in (0, 1):
+                idx = [k for k, (a, _, _) in enumerate(sources) if a == view]
+                if idx:
+                    ev = frame.timed("verify", self.proposer.evidence, grays[view], np.stack([sources[k][1] for k in idx]), zoom, frame.looked)
+                    keep[idx] = ev >= gate
+            sources = [u for u, k in zip(sources, keep) if k]
+        for a, pts, s in sources[: m["transfer_sources"]]:
+            b = 1 - a
+            det_a = self.fit(frame, [grays[a]], [cams[a]], [(pts, s)], blur_gate)
+            if det_a is None:
+                return
+            det_a = det_a[0]
+            poses = verify.plate_poses(det_a, cams[a], mk, self.conf["verify"]["plate_tol"])
+            for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
+                # Cheap first: the other view must show ring evidence where the pose puts the
+                # rings (an inconsistent pair, e.g. one view given twice, does not), before
+                # any costly fit there.
+                if gate and frame.timed("verify", self.proposer.evidence, grays[b], pred[None], zoom, frame.looked)[0] < gate:
+                    continue
+                # The pose predicts the rings' ellipses in the other view to within a pixel
+                # or so: their edges are fitted from there first; the usual refinement at
+                # the predicted centres can be led to a neighbouring ring by a steep,
+                # blurred view. On seeds where no edge fitted, the blurred-ring fit runs
+                # only when the source view's rings needed it too (the cameras expose
+                # together: the marker's motion blurs both views or neither), when its
+                # coarse search finds blur, and with ring evidence (blur_gate).
+                ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
+                guided = frame.timed("refine", self.refiner.from_ellipses, frame, [grays[b]], [cams[b]], [ellipses], s,
+                                     det_a.blur_px > 0, 0.0, None, blur_gate)[0]
+                if guided is not None:
+                    yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
+                det_b = self.fit(frame, [grays[b]], [cams[b]], [(pred, s)], blur_gate)
+                if det_b is None:
+                    return
+                yield [det_a, det_b[0]][:: 1 - 2 * a]
+
+
+__all__ = ["MASK_GATE_MIN_PX", "StereoDetector"]

@@ -1,0 +1,94 @@
+"""What one call of the pipeline needs and learns, in one object made per call.
+
+A :class:`Frame` is created when ``estimate()``, ``track()`` or ``detect()`` starts and
+dropped when it returns. It holds the call's images, the seconds spent per stage, the
+first reason a hypothesis failed, the cold detection's work budget, each image's noise
+estimate (computed once however many hypotheses refine it) and stage 1's inputs (made
+once however many looks and evidence tests use them). Nothing of a call lives in the
+settings or in the stages, so two trackers in two threads share nothing but their
+read-only networks and settings.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from . import classical
+
+
+class Frame:
+    """One call's working state.
+
+    Args:
+        grays: the views' uint8 gray images (H, W), left first.
+    Attributes:
+        timings: seconds per stage (``"total"`` once :meth:`finish` ran).
+        why: the first reason met why a hypothesis failed (None: none yet).
+        fits_left: hypotheses the cold detection may still refine (None: no budget).
+        blur_fits: the blurred-ring fits it may still run (None: no limit).
+        looked: stage 1's inputs of these images, (image, size, input, scale) (see
+            :meth:`markerpose.keypoints.KeypointNet.candidates`).
+    """
+
+    def __init__(self, grays: list[np.ndarray]):
+        self.grays = grays
+        self.timings: dict[str, float] = {}
+        self.why: str | None = None
+        self.fits_left: int | None = None
+        self.max_fits = 0
+        self.blur_fits: classical.FitBudget | None = None
+        self.looked: list = []
+        self._noise: dict[int, tuple[np.ndarray, float]] = {}
+        self._t0 = time.perf_counter()
+
+    def failed(self, reason: str) -> None:
+        """Remember why a hypothesis failed, if it is the first reason of this call."""
+        if self.why is None:
+            self.why = reason
+
+    def timed(self, stage: str, fn, *args):
+        """``fn(*args)``, its seconds added to ``timings[stage]``."""
+        t = time.perf_counter()
+        out = fn(*args)
+        self.timings[stage] = self.timings.get(stage, 0.0) + time.perf_counter() - t
+        return out
+
+    def budget(self, fits: int, blur_fits: int) -> None:
+        """Start a cold detection's work budget: ``fits`` refined hypotheses, ``blur_fits``
+        blurred-ring fits (the costliest refinement)."""
+        self.fits_left, self.max_fits = int(fits), int(fits)
+        self.blur_fits = classical.FitBudget(blur_fits)
+
+    def spend(self) -> bool:
+        """Charge one refined hypothesis to the budget: False (with the reason) once it is
+        spent; True without a budget."""
+        if self.fits_left is None:
+            return True
+        if self.fits_left <= 0:
+            self.failed(f"work budget: {self.max_fits} hypotheses refined, none accepted")
+            return False
+        self.fits_left -= 1
+        return True
+
+    def noises(self, grays: list[np.ndarray], known: list | None = None) -> list[float]:
+        """Per image, its noise sigma (:func:`markerpose.classical.noise_sigma`), each
+        estimated once in this call. ``known``: the images' sigmas as already estimated (a
+        video stream's cameras, from an earlier frame): this call's later requests take
+        them instead."""
+        if known is not None:
+            self._noise.update((id(g), (g, float(n))) for g, n in zip(grays, known))
+            return [float(n) for n in known]
+        for g in grays:
+            if id(g) not in self._noise:  # the memo holds the image, so its id is not reused within the call
+                self._noise[id(g)] = (g, classical.noise_sigma(g))
+        return [self._noise[id(g)][1] for g in grays]
+
+    def finish(self) -> dict[str, float]:
+        """The call's timings, with its total."""
+        self.timings["total"] = time.perf_counter() - self._t0
+        return self.timings
+
+
+__all__ = ["Frame"]
