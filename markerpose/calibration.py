@@ -3,12 +3,14 @@
 - :class:`CircleGrid`: the printed grid in OpenCV's layout (``cols`` circles per row,
   ``rows`` rows, row i shifted by half a period when odd; ``spacing`` is OpenCV's square
   size: circles of one row are 2 spacings apart, rows 1 spacing apart).
-- :func:`render_target_view`: the renderer's ray casting for any planar target that has
-  a ``reflectance(xy)`` and a ``plate`` (the grid here), so calibration is checked on
-  images of a known rig.
 - :func:`calibrate`: ``cv2.findCirclesGrid`` in both views, pairs where either view
   fails are rejected, ``cv2.calibrateCamera`` per view, then ``cv2.stereoCalibrate`` with
   those intrinsics; the rig in our conventions (``X_right = R X_left + t``, mm).
+- :func:`plot_coverage`: where the grid was seen in each image.
+
+The grid's ``reflectance`` and ``plate`` let the renderer draw it
+(:func:`markerpose.synth.render_target_view`); the procedure checked on rendered images
+of a known rig is :mod:`markerpose.experiments.calibration_check`.
 """
 
 from __future__ import annotations
@@ -79,69 +81,6 @@ class CircleGrid:
         out = np.where(ink, black, white)
         off = (xy[..., 0] < x0) | (xy[..., 0] > x1) | (xy[..., 1] < y0) | (xy[..., 1] > y1)
         return np.where(off, np.nan, out)
-
-
-def render_target_view(camera: Camera, T_cam_target: np.ndarray, target, imaging=None, background=None, seed=0) -> np.ndarray:
-    """One view of a planar ``target`` (``reflectance(xy)`` mm → [0, 1], NaN off it;
-    ``plate``): each pixel's ray through the lens model onto the plane, pixels whose
-    footprint straddles an edge supersampled ``imaging.supersample`` squared, then the
-    renderer's light, optics and sensor (:mod:`markerpose.synth.render`). uint8 (H, W)."""
-    from .synth import Imaging
-    from .synth.background import clutter_background
-    from .synth.render import _expose, _plate_bbox
-
-    imaging = imaging or Imaging()
-    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    w, h = camera.image_size
-    scene = clutter_background((w, h), rng) if background is None else np.asarray(background, np.float32).copy()
-    T = np.asarray(T_cam_target, np.float64)
-    bbox = _plate_bbox(camera, T, target)  # only pixels that can see the sheet are cast
-    if bbox is not None:
-        bx0, by0, bx1, by1 = bbox
-        _paint(camera, T, target, imaging, scene, (slice(by0, by1), slice(bx0, bx1)))
-    return _expose(scene, (w, h), imaging, rng)
-
-
-def _paint(camera: Camera, T: np.ndarray, target, imaging, scene: np.ndarray, box: tuple) -> None:
-    """Ray-cast the target into ``scene[box]`` (in place), edge pixels supersampled."""
-    from .synth.render import _plane_coords
-
-    # The box grown by one pixel, so the differences below are central up to its edge.
-    h, w = scene.shape
-    ys, xs = box
-    gy0, gy1, gx0, gx1 = max(ys.start - 1, 0), min(ys.stop + 1, h), max(xs.start - 1, 0), min(xs.stop + 1, w)
-    grid = camera.normalized_grid()[gy0:gy1, gx0:gx1]
-    inner = (slice(ys.start - gy0, ys.stop - gy0), slice(xs.start - gx0, xs.stop - gx0))
-    Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
-    mx, my = _plane_coords(Hinv, grid[..., 0], grid[..., 1])
-    front = Hinv[2, 0] * grid[..., 0] + Hinv[2, 1] * grid[..., 1] + Hinv[2, 2]  # > 0: the plane lies ahead
-    # The pixel's footprint on the plane.
-    foot = 0.75 * (np.hypot(np.gradient(mx, axis=1), np.gradient(my, axis=1)) + np.hypot(np.gradient(mx, axis=0), np.gradient(my, axis=0)))
-    J_u, J_v = np.gradient(grid, axis=1)[inner], np.gradient(grid, axis=0)[inner]
-    grid, mx, my, front, foot = grid[inner], mx[inner], my[inner], front[inner], foot[inner]
-    sub = scene[box]
-    val = target.reflectance(np.stack([mx, my], -1))
-    # Edge pixels: the texture differs across the pixel's footprint.
-    near = np.zeros(mx.shape, bool)
-    for sx in (-1, 1):
-        for sy in (-1, 1):
-            c = target.reflectance(np.stack([mx + sx * foot, my + sy * foot], -1))
-            near |= ~((c == val) | (np.isnan(c) & np.isnan(val)))
-    S = imaging.supersample
-    iy, ix = np.nonzero(near)
-    if len(iy) and S > 1:
-        off = (np.arange(S) + 0.5) / S - 0.5
-        du, dv = (a.ravel()[None, :] for a in np.meshgrid(off, off))
-        chunk = max(1, 400_000 // (S * S))
-        for k in range(0, len(iy), chunk):
-            yy, xx = iy[k : k + chunk], ix[k : k + chunk]
-            sx = grid[yy, xx, 0][:, None] + J_u[yy, xx, 0][:, None] * du + J_v[yy, xx, 0][:, None] * dv
-            sy = grid[yy, xx, 1][:, None] + J_u[yy, xx, 1][:, None] * du + J_v[yy, xx, 1][:, None] * dv
-            smx, smy = _plane_coords(Hinv, sx, sy)
-            v = target.reflectance(np.stack([smx, smy], -1))
-            val[yy, xx] = np.where(np.isnan(v), sub[yy, xx][:, None], v).mean(1)
-    on = np.isfinite(val) & (front > 0)
-    sub[on] = val[on]
 
 
 @dataclass
@@ -252,45 +191,4 @@ def plot_coverage(cal: Calibration, path: str | Path) -> Path:
     return Path(path)
 
 
-def rendered_pairs(rig: StereoRig, grid: CircleGrid, n: int = 21, seed: int = 0, imaging=None):
-    """``n`` rendered stereo pairs of ``grid`` held where both cameras see all of it:
-    380–750 mm away, tilted up to 45° about any axis, turned any way in its plane
-    (what a calibration session by hand gives). Returns (pairs, poses T_left_grid)."""
-    from .synth import look_at_pose
-
-    rng = np.random.default_rng(seed)
-    c = grid.points3d.mean(0)
-    w, h = rig.left.image_size
-    pairs, poses = [], []
-    while len(pairs) < n:
-        z = rng.uniform(380, 750)
-        T = look_at_pose([rng.uniform(-0.12, 0.12) * z - 0.12 * (z - 560), rng.uniform(-0.12, 0.12) * z, z],
-                         rng.uniform(0, 45), rng.uniform(0, 360), rng.uniform(0, 360))
-        T[:3, 3] -= T[:3, :3] @ c
-        X = grid.points3d @ T[:3, :3].T + T[:3, 3]
-        uv = rig.project(X)
-        margin = 3 * grid.radius * rig.left.K[0, 0] / z + 5
-        if not np.all((uv[..., 0] > margin) & (uv[..., 0] < w - margin) & (uv[..., 1] > margin) & (uv[..., 1] < h - margin)):
-            continue
-        T_right = rig.T_right_left @ T
-        pairs.append(tuple(render_target_view(cam, Tc, grid, imaging, seed=rng) for cam, Tc in ((rig.left, T), (rig.right, T_right))))
-        poses.append(T)
-    return pairs, poses
-
-
-def check(rig: StereoRig, cal: Calibration) -> dict:
-    """A calibration against the rig that rendered its images: focal lengths (relative),
-    principal points (px), baseline (mm), rotation between the cameras (deg)."""
-    from .geometry import rotation_angle
-
-    out = {}
-    for name, a, b in (("left", rig.left, cal.rig.left), ("right", rig.right, cal.rig.right)):
-        out[f"f_{name}_rel_error"] = float(np.max(np.abs(np.diag(b.K)[:2] / np.diag(a.K)[:2] - 1)))
-        out[f"c_{name}_px_error"] = float(np.linalg.norm(b.K[:2, 2] - a.K[:2, 2]))
-    out["baseline_mm_error"] = float(abs(np.linalg.norm(cal.rig.t) - np.linalg.norm(rig.t)))
-    out["t_mm_error"] = float(np.linalg.norm(cal.rig.t - rig.t))
-    out["R_deg_error"] = float(np.degrees(rotation_angle(cal.rig.R, rig.R)))
-    return out
-
-
-__all__ = ["Calibration", "CircleGrid", "calibrate", "check", "find_grid", "plot_coverage", "render_target_view", "rendered_pairs"]
+__all__ = ["Calibration", "CircleGrid", "calibrate", "find_grid", "plot_coverage"]

@@ -8,7 +8,8 @@ import pytest
 
 import markerpose as mp
 from markerpose import cli
-from markerpose.calibration import CircleGrid, calibrate, check, find_grid, rendered_pairs
+from markerpose.calibration import CircleGrid, calibrate, find_grid
+from markerpose.experiments.calibration_check import check, rendered_pairs
 from markerpose.synth import Imaging
 
 

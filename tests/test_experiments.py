@@ -140,7 +140,7 @@ def test_experiments_command_line():
     from markerpose import cli
 
     args = cli.build_parser().parse_args(["experiments", "--quick", "--trials", "3", "--out", "x"])
-    assert args.func is cli.cmd_experiments and args.quick and args.trials == 3 and args.pairs is None
+    assert args.func is cli.experiments.cmd_experiments and args.quick and args.trials == 3 and args.pairs is None
 
 
 def test_detection_plot_at_zero_and_full_detection(tmp_path):

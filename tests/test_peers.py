@@ -43,8 +43,7 @@ def test_every_system_finds_its_target_with_an_accurate_pose(scene_result):
 def test_corners_land_where_the_target_says():
     """Each detector's points on a rendered view lie on the projected target points:
     the raster, its orientation and each detector's corner order agree."""
-    from markerpose.calibration import render_target_view
-    from markerpose.synth import Imaging, look_at_pose
+    from markerpose.synth import Imaging, look_at_pose, render_target_view
 
     T = look_at_pose([10.0, -5.0, 500.0], 20.0, 40.0, 25.0)
     T[:3, 3] -= T[:3, :3] @ targets.CENTRE

@@ -6,24 +6,26 @@ import numpy as np
 import pytest
 
 from markerpose import cli, formats
+from markerpose.experiments.ultrasound import (
+    ProbeSetup,
+    Transducer,
+    crosswire_phantom,
+    simulate_bmode,
+    sweep_poses,
+    tube_phantom,
+)
 from markerpose.geometry import rotation_about_axis
 from markerpose.ultrasound import (
     ProbeCalibration,
-    ProbeSetup,
-    Transducer,
     calibrate_probe,
     compound,
     fit_cylinder,
     interpolate_poses,
     point_target,
-    simulate_bmode,
     sweep_normal,
     sweep_points,
-    sweep_poses,
     tracker_points,
-    tube_phantom,
 )
-from markerpose.ultrasound.bmode import crosswire_phantom
 from markerpose.ultrasound.probe import invert, rigid
 
 D_TRUE = 15.82
@@ -70,7 +72,7 @@ def test_bmode_is_seeded_and_shadows_below_air():
 def test_bmode_speckle_is_fully_developed():
     """A homogeneous scattering medium gives Rayleigh speckle: the envelope's mean over its
     standard deviation is 1.91."""
-    from markerpose.ultrasound.bmode import Medium, Phantom
+    from markerpose.experiments.ultrasound.bmode import Medium, Phantom
 
     tr = Transducer()
     im = simulate_bmode(Phantom(Medium("tissue", 0.05, 0.0)), ProbeSetup().nominal_image_pose(), tr, rng=3)
@@ -82,7 +84,7 @@ def test_point_target_finds_the_wire_crossing():
     setup = ProbeSetup()
     tr = setup.transducer
     rng = np.random.default_rng(0)
-    from markerpose.ultrasound import calibration_poses
+    from markerpose.experiments.ultrasound import calibration_poses
 
     for T in calibration_poses(setup, rng, 5, elevation_sigma_mm=0.0):
         uv = point_target(simulate_bmode(crosswire_phantom(), T, tr, rng))
@@ -243,7 +245,7 @@ def test_probe_calibration_file(tmp_path):
 def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
     """The user's journey on a simulated recording: track the calibration session,
     calibrate, track the sweep, reconstruct."""
-    from markerpose.ultrasound.recording import write_simulated_recording
+    from markerpose.experiments.ultrasound import write_simulated_recording
 
     truth = write_simulated_recording(tmp_path, n_frames=10, seed=1, calibration_frames=10, progress=False)
     cal = truth["calibration"]
@@ -299,7 +301,7 @@ def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
 
 
 def test_demo_writes_the_report_results_and_files(tmp_path):
-    from markerpose.ultrasound import experiment
+    from markerpose.experiments.ultrasound import experiment
 
     plan = experiment.Plan(n_acquisitions=1, n_frames=16, n_calibration=10, seed=3)
     path = experiment.main(tmp_path, plan=plan, jobs=1, progress=False)

@@ -24,8 +24,9 @@ def _plotted(names) -> list:
     return shown or list(names)
 
 
-def _legend_below(fig, ax, ncol: int = 5):
-    """One legend for the figure, under the panels, covering no data."""
+def legend_below(fig, ax, ncol: int = 5):
+    """One legend for the figure, under the panels, covering no data: the handles and
+    labels of ``ax``, in ``ncol`` columns; the panels are laid out above it."""
     handles, labels = ax.get_legend_handles_labels()
     fig.tight_layout(rect=(0, 0.1, 1, 1))
     fig.legend(handles, labels, loc="lower center", ncol=ncol, fontsize=8, frameon=False)
@@ -46,7 +47,7 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("estimated displacement (mm)")
     fig.suptitle("Displacement experiment (10 mm steps)")
-    _legend_below(fig, axes[0])
+    legend_below(fig, axes[0])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -65,7 +66,7 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
     ax.set_ylabel("estimated rotation (°)")
     ax.set_title("Rotation experiment (5° steps)")
     ax.grid(alpha=0.3)
-    _legend_below(fig, ax, ncol=3)
+    legend_below(fig, ax, ncol=3)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -91,7 +92,7 @@ def plot_detection(levels: dict, path: Path) -> Path:
     axes[0].set_ylabel("pairs detected (%), 95 % interval")
     axes[0].set_ylim(-2, 102)
     fig.suptitle("Detection versus darkness and motion blur")
-    _legend_below(fig, axes[1])
+    legend_below(fig, axes[1])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
@@ -113,7 +114,7 @@ def plot_accuracy(per_config: dict, path: Path) -> Path:
         ax.set_ylabel(label)
         ax.grid(alpha=0.3, axis="y")
     fig.suptitle("Absolute pose error by distance (mm) and tilt (°), α = 1")
-    _legend_below(fig, axes[0])
+    legend_below(fig, axes[0])
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path

@@ -33,7 +33,7 @@ from ..camera import StereoRig
 from ..experiments.parallel import run_tasks
 from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
-from ..synth import Imaging, look_at_pose
+from ..synth import Imaging, look_at_pose, render_target_view
 from ..synth.background import clutter_background
 from . import systems, targets
 
@@ -123,8 +123,6 @@ def _errors(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
 
 
 def _render(rig: StereoRig, scene: dict, target) -> tuple:
-    from ..calibration import render_target_view
-
     im = Imaging(alpha=scene["alpha"], motion_blur=scene["blur"], motion_angle=scene["angle"])
     bg_rng = np.random.default_rng(scene.get("bg_seed", scene["seed"]))
     if scene["kind"] == "free":
@@ -485,7 +483,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..experiments.plots import _legend_below
+    from ..experiments.plots import legend_below
 
     paths = []
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.8), sharey=True)
@@ -501,7 +499,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
     axes[0].set_ylabel("detection (% of scenes, pose within tolerance)")
     axes[0].set_title("Darkness")
     axes[1].set_title("Motion blur")
-    _legend_below(fig, axes[0], ncol=3)
+    legend_below(fig, axes[0], ncol=3)
     paths.append(out / "detection.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
@@ -520,7 +518,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
             ax.set_ylabel(ylabel)
             ax.grid(alpha=0.3, which="both")
     fig.suptitle("Accuracy of the detections (standard level), by distance and tilt")
-    _legend_below(fig, axes[1, 0], ncol=3)
+    legend_below(fig, axes[1, 0], ncol=3)
     paths.append(out / "accuracy.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)

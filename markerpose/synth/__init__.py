@@ -2,6 +2,7 @@
 
 from .background import clutter_background
 from .render import Imaging, StereoFrame, ViewTruth, look_at_pose, motion_kernel, render_stereo, render_view, sensor_readout
+from .target import render_target_view
 
 __all__ = [
     "Imaging",
@@ -11,6 +12,7 @@ __all__ = [
     "look_at_pose",
     "motion_kernel",
     "render_stereo",
+    "render_target_view",
     "render_view",
     "sensor_readout",
 ]

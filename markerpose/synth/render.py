@@ -151,8 +151,18 @@ def _circle_points(marker: Marker, n: int = 64) -> np.ndarray:
     return marker.points3d[:, None, :] + ring[None]
 
 
-def _plate_bbox(camera: Camera, T: np.ndarray, marker: Marker):
-    """Pixel bounding box (x0, y0, x1, y1) of the plate, or None if not in front/visible."""
+def plate_bbox(camera: Camera, T: np.ndarray, marker: Marker):
+    """Pixel bounding box (x0, y0, x1, y1) of a planar target's plate seen by ``camera``,
+    or None when none of it is in the image.
+
+    Args:
+        camera: the view.
+        T: (4, 4) T_camera_target, mm.
+        marker: anything with a ``plate`` (x0, y0, x1, y1) in its plane, mm (a
+            :class:`Marker`, a calibration grid, a peer's target).
+
+    Raises ``ValueError`` when the plate does not lie entirely in front of the camera.
+    """
     x0, y0, x1, y1 = marker.plate
     s = np.linspace(0, 1, 33)
     border = np.concatenate(
@@ -178,8 +188,15 @@ def _plate_bbox(camera: Camera, T: np.ndarray, marker: Marker):
     return bx0, by0, bx1, by1
 
 
-def _plane_coords(Hinv: np.ndarray, xn: np.ndarray, yn: np.ndarray):
-    """Marker-plane coordinates (mm) of rays through normalised image points."""
+def plane_coords(Hinv: np.ndarray, xn: np.ndarray, yn: np.ndarray):
+    """Plane coordinates (mm) of the rays through normalised image points.
+
+    Args:
+        Hinv: (3, 3) inverse of the plane's homography ``[r1 r2 t]`` of T_camera_plane
+            (normalised image → plane).
+        xn, yn: normalised image coordinates, any one shape.
+    Returns (mx, my), each of that shape (meaningless where the plane is behind the ray).
+    """
     w = Hinv[2, 0] * xn + Hinv[2, 1] * yn + Hinv[2, 2]
     mx = (Hinv[0, 0] * xn + Hinv[0, 1] * yn + Hinv[0, 2]) / w
     my = (Hinv[1, 0] * xn + Hinv[1, 1] * yn + Hinv[1, 2]) / w
@@ -203,7 +220,7 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
     """Paint the plate into ``scene`` (float, in place); return the ring-ID mask."""
     w, h = camera.image_size
     mask = np.zeros((h, w), np.uint8)
-    bbox = _plate_bbox(camera, T, marker)
+    bbox = plate_bbox(camera, T, marker)
     if bbox is None:
         return mask
     bx0, by0, bx1, by1 = bbox
@@ -213,7 +230,7 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
     J_u = np.gradient(grid, axis=1)  # d(normalised)/d(u), central differences
     J_v = np.gradient(grid, axis=0)
     Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
-    mx, my = _plane_coords(Hinv, grid[..., 0], grid[..., 1])
+    mx, my = plane_coords(Hinv, grid[..., 0], grid[..., 1])
     # Footprint of a pixel on the plane (mm): how far the texture can change within it.
     # Differences on the grown grid, so a box one pixel thin still has neighbours.
     dmx_u, dmy_u = np.gradient(mx, axis=1), np.gradient(my, axis=1)
@@ -250,7 +267,7 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
             yy, xx = iy[k : k + chunk], ix[k : k + chunk]
             sx = xn[yy, xx][:, None] + J_u[yy, xx, 0][:, None] * du + J_v[yy, xx, 0][:, None] * dv
             sy = yn[yy, xx][:, None] + J_u[yy, xx, 1][:, None] * du + J_v[yy, xx, 1][:, None] * dv
-            smx, smy = _plane_coords(Hinv, sx, sy)
+            smx, smy = plane_coords(Hinv, sx, sy)
             v = _texture(marker, smx, smy, imaging.paper, imaging.ink, bg[yy, xx][:, None])
             val[yy, xx] = v.mean(axis=1)
     if imaging.plate_light is not None:
@@ -305,7 +322,11 @@ def motion_kernel(length: float, angle_deg: float) -> np.ndarray:
 _POISSON_EXACT_BELOW = 25.0  # electrons
 
 
-def _expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
+def expose(scene: np.ndarray, size, imaging: Imaging, rng: np.random.Generator) -> np.ndarray:
+    """A scene's radiance (float32 (H, W), reflectance units) to the recorded image: the
+    illumination field and vignetting, the exposure gain, the PSF and motion blur, the
+    sensor (shot and read noise, quantisation) and what follows it (gamma, resampling,
+    JPEG). ``size`` is (W, H). Returns what :func:`sensor_readout` returns, after that."""
     img = scene * _illumination(size, imaging)
     if imaging.psf_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), imaging.psf_sigma, borderType=cv2.BORDER_REFLECT)
@@ -399,7 +420,7 @@ def render_view(
             raise ValueError(f"background must be (H, W) = {(h, w)}, got {scene.shape}")
         scene = scene.copy()
     mask = _render_plate(camera, T, marker, scene, imaging)
-    image = _expose(scene, (w, h), imaging, rng)
+    image = expose(scene, (w, h), imaging, rng)
     centers, outer, inner, outer_centers = _ring_truth(camera, T, marker)
     rim = _circle_points(marker) @ T[:3, :3].T + T[:3, 3]
     uv = camera.project(rim.reshape(-1, 3)).reshape(3, -1, 2)
@@ -460,4 +481,5 @@ def look_at_pose(position: np.ndarray, tilt_deg: float = 0.0, tilt_axis_deg: flo
     return T
 
 
-__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose", "sensor_readout"]
+__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose", "sensor_readout",
+           "expose", "plane_coords", "plate_bbox"]

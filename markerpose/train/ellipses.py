@@ -32,7 +32,7 @@ from .data import render_many
 from .loop import export as export_checkpoint
 from .loop import to_onnx
 from .loop import fit
-from .scenes import FULL_SIZES, _loguniform, _occluders, random_imaging
+from .scenes import FULL_SIZES, loguniform, occluders, random_imaging
 
 default_conf = {
     "lr": 1e-4,  # Adam (the paper's)
@@ -105,7 +105,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
     K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
     full_cam = Camera(K, dist, (W, H))
 
-    ring_px = draw("ring_px", lambda: _loguniform(rng, 40, 200))
+    ring_px = draw("ring_px", lambda: loguniform(rng, 40, 200))
     z = f * marker.outer_diameter / ring_px
     tilt = draw("tilt", lambda: rng.uniform(0, 60) if rng.uniform() < 0.9 else rng.uniform(60, 65))
     T = look_at_pose([0, 0, z], tilt, rng.uniform(0, 360), rng.uniform(0, 360))
@@ -141,7 +141,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
     Kc[1, 2] -= cy0
     crop_cam = Camera(Kc, dist, (cx1 - cx0, cy1 - cy0))
 
-    alpha = draw("alpha", lambda: rng.uniform(0.25, 1.0) if rng.uniform() < 0.5 else _loguniform(rng, 0.03, 0.25))
+    alpha = draw("alpha", lambda: rng.uniform(0.25, 1.0) if rng.uniform() < 0.5 else loguniform(rng, 0.03, 0.25))
     blur = draw("blur", lambda: 0.0 if rng.uniform() < 0.45 else rng.uniform(1, 30))
     imaging = random_imaging(rng, alpha, blur, psf=(0.3, 2.0), vignetting=0.0)
     bg = clutter_background((cx1 - cx0, cy1 - cy0), rng, scale=1.0)
@@ -149,7 +149,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, conf: dict | 
     if rng.uniform() < conf.get("p_occlude", 0.2):
         h, w = dn.shape
         near = truth.centers[int(rng.integers(3))]
-        cover, refl = _occluders((h, w), rng, near, ring_px)
+        cover, refl = occluders((h, w), rng, near, ring_px)
         dn = dn * (1 - cover) + refl * float(alpha * imaging.exposure * 255.0) * cover
     img = sensor_readout(dn, Imaging(full_well=imaging.full_well, read_noise=imaging.read_noise), rng)
     patch, frame = es.extract_patch(img, rough - [cx0, cy0], side)

@@ -96,7 +96,9 @@ def random_imaging(rng, alpha: float, blur: float, px_scale: float = 1.0, binnin
     )
 
 
-def _loguniform(rng, lo, hi):
+def loguniform(rng, lo, hi):
+    """A draw between ``lo`` and ``hi`` (both > 0), uniform in the logarithm: each factor
+    of two as likely as any other."""
     return float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
 
 
@@ -118,8 +120,11 @@ def _draw_decoys(bg: np.ndarray, rng, ring_px: float, ratio: float):
             cv2.ellipse(bg, (tuple(p), (ax[0] * ratio, ax[1] * ratio), ang_e), float(rng.uniform(0.6, 0.95)), -1, cv2.LINE_AA)
 
 
-def _occluders(shape, rng, near: np.ndarray | None, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Skin-like blobs (fingers, a hand's edge) and cables: (coverage (H, W) in [0, 1], reflectance)."""
+def occluders(shape, rng, near: np.ndarray | None, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Skin-like blobs (fingers, a hand's edge) and cables: (coverage (H, W) in [0, 1], reflectance).
+
+    ``shape`` is (H, W); most blobs start near ``near`` ((2,) px, or None: anywhere), and
+    ``scale`` (px, about a ring's size) sets their size."""
     h, w = shape
     cover = np.zeros((h, w), np.float32)
     refl = np.zeros((h, w), np.float32)
@@ -175,7 +180,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, negative: boo
         negative = rng.uniform() < 0.08
     # Apparent outer diameter at full resolution: 50-150 px over the working volume, plus
     # margins either side for other lenses and distances.
-    ring_px = draw("ring_px", lambda: _loguniform(rng, 40, 190))
+    ring_px = draw("ring_px", lambda: loguniform(rng, 40, 190))
     z = f * 2 * marker.outer_radius / ring_px
     tilt = draw("tilt", lambda: rng.uniform(0, 60) if rng.uniform() < 0.9 else rng.uniform(60, 65))
     T = look_at_pose([0, 0, z], tilt, rng.uniform(0, 360), rng.uniform(0, 360))
@@ -195,7 +200,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, negative: boo
 
     def default_alpha():
         r = rng.uniform()
-        return rng.uniform(0.25, 1.0) if r < 0.45 else _loguniform(rng, 0.035, 0.25) if r < 0.92 else _loguniform(rng, 0.02, 0.035)
+        return rng.uniform(0.25, 1.0) if r < 0.45 else loguniform(rng, 0.035, 0.25) if r < 0.92 else loguniform(rng, 0.02, 0.035)
 
     alpha = draw("alpha", default_alpha)
     blur = draw("blur", lambda: 0.0 if rng.uniform() < 0.45 else rng.uniform(1, 30))
@@ -208,7 +213,7 @@ def sample(rng: np.random.Generator, marker: Marker | None = None, negative: boo
         occ_cover = np.zeros((h, w), np.float32)
         if rng.uniform() < conf.get("p_occlude", 0.3):
             near = truth.centers[int(rng.integers(3))]
-            occ_cover, occ_refl = _occluders((h, w), rng, near, ring_low)
+            occ_cover, occ_refl = occluders((h, w), rng, near, ring_low)
             level = float(imaging.alpha * imaging.exposure * 255.0)
             dn = dn * (1 - occ_cover) + occ_refl * level * occ_cover
         # A ring is a target when its centre is in the image and >= 65% of its disk is
@@ -237,4 +242,4 @@ def _conic_area(C: np.ndarray) -> float:
     return float(np.pi * abs(np.linalg.det(C)) / detA**1.5)
 
 
-__all__ = ["FULL_SIZES", "Sample", "random_imaging", "sample", "scaled_camera"]
+__all__ = ["FULL_SIZES", "Sample", "loguniform", "occluders", "random_imaging", "sample", "scaled_camera"]

@@ -2,16 +2,15 @@
 
 Plain functions, one module per step:
 - :mod:`.probe`: the probe calibration (image → marker), saved and loaded as YAML;
-- :mod:`.bmode`: a B-mode simulator (phantoms of cylinders and wires);
-- :mod:`.simulate`: a simulated probe, hand-held sweeps and calibration sessions;
 - :mod:`.calibrate`: probe calibration from a cross-wire (point) phantom;
 - :mod:`.segment`: semi-automatic segmentation of a tube's wall and of a wire crossing;
 - :mod:`.reconstruct`: 3D points, cylinder fit, volume compounding, pose interpolation;
-- :mod:`.recording`: the same on a user's own recording (poses.csv + frames);
-- :mod:`.experiment`: the paper's tube experiment on simulated data (``markerpose ultrasound demo``).
+- :mod:`.recording`: the same on a user's own recording (poses.csv + frames).
+
+The simulation (B-mode images, sweeps, a simulated recording) and the paper's tube
+experiment on it are in the lab, :mod:`markerpose.experiments.ultrasound`.
 """
 
-from .bmode import Transducer, crosswire_phantom, simulate_bmode, tube_phantom
 from .calibrate import calibrate_probe
 from .probe import ProbeCalibration
 from .reconstruct import (
@@ -23,28 +22,25 @@ from .reconstruct import (
     sweep_normal,
     tracker_points,
 )
+from .recording import calibrate_recording, read_frames, read_track_csv, reconstruct_recording
 from .segment import RingSearch, point_target, ring_points, sweep_points
-from .simulate import ProbeSetup, calibration_poses, sweep_poses
 
 __all__ = [
     "CylinderFit",
     "ProbeCalibration",
-    "ProbeSetup",
     "RingSearch",
-    "Transducer",
     "Volume",
     "calibrate_probe",
-    "calibration_poses",
+    "calibrate_recording",
     "compound",
-    "crosswire_phantom",
     "fit_cylinder",
     "interpolate_poses",
     "point_target",
+    "read_frames",
+    "read_track_csv",
+    "reconstruct_recording",
     "ring_points",
-    "simulate_bmode",
     "sweep_normal",
     "sweep_points",
-    "sweep_poses",
     "tracker_points",
-    "tube_phantom",
 ]

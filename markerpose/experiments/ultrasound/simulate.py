@@ -1,6 +1,7 @@
 """A simulated freehand acquisition: a probe carrying the marker plate, swept by hand
 along a tube in a water bath, watched by the stereo rig; and a cross-wire calibration
-session with the same probe.
+session with the same probe. :func:`write_simulated_recording` writes both as a user's
+rig would record them (``markerpose ultrasound simulate``).
 
 Frames: the phantom frame has x along the tube's axis and z pointing down (depth); the
 probe images the tube in cross-section (image z along the phantom's x). The rig sees the
@@ -9,14 +10,18 @@ marker from above, about half a metre away.
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import cv2
 import numpy as np
 
-from ..geometry import rotation_about_axis
-from ..synth.render import look_at_pose
-from .bmode import Transducer
-from .probe import invert, rigid
+from ...camera import StereoRig
+from ...geometry import rotation_about_axis
+from ...synth import look_at_pose, render_stereo
+from ...ultrasound.probe import ProbeCalibration, invert, rigid
+from .bmode import Transducer, crosswire_phantom, simulate_bmode, tube_phantom
 
 # Image axes expressed in the marker frame for a probe held under the plate: lateral
 # along the marker's x, depth away from the cameras (−z), the image normal along y.
@@ -130,4 +135,67 @@ def calibration_poses(setup: ProbeSetup, rng: np.random.Generator, n: int = 30, 
     return out
 
 
-__all__ = ["ProbeSetup", "calibration_poses", "sweep_poses"]
+def _write_session(out: Path, rig, marker_poses: list, us_images: list, times_cam, times_us, rng, progress: bool):
+    for d in ("left", "right", "us"):
+        (out / d).mkdir(parents=True, exist_ok=True)
+    it = range(len(marker_poses))
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=f"render {out.name}", unit="pair", leave=False)
+    for k in it:
+        frame = render_stereo(rig, marker_poses[k], seed=rng)
+        cv2.imwrite(str(out / "left" / f"{k:05d}.png"), frame.images[0])
+        cv2.imwrite(str(out / "right" / f"{k:05d}.png"), frame.images[1])
+    with open(out / "us" / "timestamps.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["file", "timestamp_s"])
+        for k, (t, im) in enumerate(zip(times_us, us_images)):
+            name = f"us_{k:05d}.png"
+            cv2.imwrite(str(out / "us" / name), im)
+            w.writerow([name, f"{t:.6f}"])
+
+
+def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera_fps: float = 30.0,
+                              us_fps: float = 15.0, calibration_frames: int = 12, progress: bool = True) -> dict:
+    """A recording as a user's rig would produce it, from the simulation:
+    - the sweep: ``left/`` and ``right/`` camera frames at ``camera_fps``, ``us/``
+      ultrasound frames with ``timestamps.csv`` at ``us_fps`` (half a camera frame late:
+      the clocks are not in step);
+    - ``calibration/``: the same three folders for a cross-wire session, one frame of each
+      per probe position, one position a second;
+    - ``probe_true.yaml``: the true calibration, to compare with.
+    Returns the truth: the seed pixel inside the tube on the first frame, the true
+    diameter, the paths."""
+    from .experiment import TRUE_DIAMETER_MM  # the experiment imports this module
+
+    out = Path(out_dir)
+    setup, rig = ProbeSetup(), StereoRig.default()
+    rng = np.random.default_rng(seed)
+    # The sweep: one hand motion (9 mm/s along the tube), sampled by both clocks; the
+    # scanner's frames fall between the cameras' (half a camera frame late).
+    t_us = np.arange(n_frames) / us_fps + 0.5 / camera_fps
+    n_cam = int(np.floor(t_us[-1] * camera_fps)) + 2
+    t_cam = np.arange(n_cam) / camera_fps
+    t_all = np.concatenate([t_cam, t_us])
+    _, all_poses = sweep_poses(setup, rng, length_mm=9.0 * t_all.max(), times=t_all)
+    cam_poses, us_poses = all_poses[:n_cam], all_poses[n_cam:]
+    phantom = tube_phantom()
+    us_images = [simulate_bmode(phantom, T, setup.transducer, rng) for T in us_poses]
+    _write_session(out, rig, [setup.marker_pose(T) for T in cam_poses], us_images, t_cam, t_us, rng, progress)
+    # The calibration session: the probe held still on the wire crossing, one second per
+    # position, the cameras and the scanner each taking one frame per position.
+    cal = calibration_poses(setup, rng, calibration_frames)
+    cw = crosswire_phantom()
+    t_cal = np.arange(calibration_frames, dtype=np.float64)
+    _write_session(out / "calibration", rig, [setup.marker_pose(T) for T in cal],
+                   [simulate_bmode(cw, T, setup.transducer, rng) for T in cal], t_cal, t_cal, rng, progress)
+    ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(out / "probe_true.yaml")
+    seed_px = invert(us_poses[0])[:3, 3][:2] / np.asarray(setup.transducer.spacing)
+    return {"seed_px": seed_px, "diameter_mm": TRUE_DIAMETER_MM, "camera_fps": camera_fps, "us_frames": n_frames,
+            "camera_frames": n_cam, "left": out / "left", "right": out / "right", "us": out / "us",
+            "calibration": out / "calibration", "true_calibration": out / "probe_true.yaml",
+            "spacing": setup.transducer.spacing, "T_phantom_image": us_poses}
+
+
+__all__ = ["ProbeSetup", "calibration_poses", "sweep_poses", "write_simulated_recording"]

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .probe import invert
+from ...ultrasound.probe import invert
 
 
 @dataclass(frozen=True)

@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import StereoRig
-from ..experiments.parallel import run_tasks
-from ..synth.render import render_stereo
+from ...camera import StereoRig
+from ...synth import render_stereo
+from ...ultrasound.calibrate import calibrate_probe
+from ...ultrasound.probe import ProbeCalibration, invert
+from ...ultrasound.reconstruct import fit_cylinder, sweep_normal, tracker_points
+from ...ultrasound.segment import point_target, sweep_points
+from ..parallel import run_tasks
 from .bmode import crosswire_phantom, simulate_bmode, tube_phantom
-from .calibrate import calibrate_probe
-from .probe import ProbeCalibration, invert
-from .reconstruct import fit_cylinder, sweep_normal, tracker_points
-from .segment import point_target, sweep_points
 from .simulate import ProbeSetup, calibration_poses, sweep_poses
 
 TRUE_DIAMETER_MM = 15.82  # the paper's caliper value, which the simulated tube has exactly
@@ -53,7 +53,7 @@ def _trackers(rig: StereoRig):
     """One MarkerPose per pose source and process (networks load once)."""
     key = id(rig)
     if key not in _TRACKERS:
-        from ..pipeline import MarkerPose
+        from ...pipeline import MarkerPose
 
         _TRACKERS.clear()
         _TRACKERS[key] = {"markerpose": MarkerPose(rig, threads=1), "paper-classical": MarkerPose(rig, preset="paper-classical", threads=1)}
@@ -320,7 +320,7 @@ def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
     matplotlib.use("Agg")  # files only; no display needed
     import matplotlib.pyplot as plt
 
-    from ..experiments.plots import _legend_below
+    from ..plots import legend_below
 
     def _save(fig, path: Path) -> Path:
         fig.savefig(path, dpi=110)
@@ -375,7 +375,7 @@ def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
     axs[1].set_xlabel("position along the axis (mm)")
     axs[1].set_ylabel("residual (mm)")
     axs[1].set_ylim(-0.25, 0.25)
-    _legend_below(fig, axs[0], ncol=3)
+    legend_below(fig, axs[0], ncol=3)
     paths.append(_save(fig, out / "residuals.png"))
 
     # Calibration.
@@ -417,7 +417,7 @@ def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
     ax.set_xlabel("acquisition")
     ax.set_ylabel("diameter (mm)")
     ax.set_title(f"The paper, on real data: {PAPER['diameter_mm']} mm")
-    _legend_below(fig, ax, ncol=3)
+    legend_below(fig, ax, ncol=3)
     paths.append(_save(fig, out / "diameters.png"))
     return paths
 
@@ -428,8 +428,8 @@ def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, see
     """Run the experiment and write report.md, results.json, plots and files into
     ``out_dir`` (``plan`` overrides ``quick``, ``seed`` and ``acquisitions``). Returns the
     report's path."""
-    from .. import formats
-    from .reconstruct import compound
+    from ... import formats
+    from ...ultrasound.reconstruct import compound
 
     if plan is None:
         plan = Plan.quick(seed) if quick else Plan(seed=seed)

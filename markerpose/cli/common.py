@@ -1,0 +1,145 @@
+"""What several commands share: exit codes, the rig, the marker and tracker options,
+``--set`` parsing and argument types."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+EXIT_NOT_FOUND = 1
+EXIT_BAD_INPUT = 2
+
+TOP_LEVEL = ("detector", "threads", "backend")  # settings of the whole pipeline, not of a stage
+
+
+def rig(path):
+    """The rig file at ``path``, or the built-in rig when None."""
+    from ..camera import StereoRig
+
+    return StereoRig.default() if path is None else StereoRig.load(path)
+
+
+def marker(args):
+    """The marker of a command's geometry options (:func:`add_marker_args`)."""
+    from ..marker import Marker
+
+    return Marker(
+        outer_diameter=args.outer_diameter,
+        inner_diameter=args.inner_diameter,
+        c1=(args.c1, 0.0),
+        c2=(0.0, args.c2),
+        margin=args.margin,
+    )
+
+
+def add_marker_args(p):
+    g = p.add_argument_group("marker geometry (mm)")
+    g.add_argument("--outer-diameter", type=float, default=20.0, help="black ring diameter (default 20)")
+    g.add_argument("--inner-diameter", type=float, default=8.0, help="white inner disk diameter (default 8)")
+    g.add_argument("--c1", type=float, default=25.0, help="distance c0→c1 along x (default 25)")
+    g.add_argument("--c2", type=float, default=40.0, help="distance c0→c2 along y (default 40)")
+    g.add_argument("--margin", type=float, default=10.0, help="plate margin around the rings (default 10)")
+
+
+def positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a number >= 1, got {n}")
+    return n
+
+
+def pixel(text: str) -> tuple[float, float]:
+    try:
+        u, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}") from None
+    return u, v
+
+
+def setting(text: str) -> tuple[str, str | None, object]:
+    """``STAGE.KEY=VALUE`` (or ``KEY=VALUE`` for ``detector`` / ``threads`` / ``backend``) →
+    (stage or key, key or None, value); the value is read as JSON (numbers, true, false,
+    null, lists), anything else as a string."""
+    import json
+
+    name, sep, raw = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(f"expected STAGE.KEY=VALUE (e.g. track.lost_change=0), got {text!r}")
+    try:
+        value = json.loads(raw)
+    except ValueError:
+        value = raw
+    stage, dot, key = name.partition(".")
+    return (stage, key, value) if dot else (stage, None, value)
+
+
+def _checked(stage: str, key: str, value, default):
+    """``value`` if it has the type of the setting's ``default``, else ``ValueError``: a
+    switch takes true or false (JSON's; ``False`` would be a string, and true), a number a
+    number, a name a string; a setting whose default is None takes anything."""
+    if isinstance(default, bool):
+        ok, want = isinstance(value, bool), "true or false"
+    elif isinstance(default, (int, float)):
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
+        want = "a finite number"
+    elif isinstance(default, str):
+        ok, want = isinstance(value, str), "a string"
+    else:  # None: a weights file, a budget, ...
+        return value
+    if not ok:
+        raise ValueError(f"--set {stage}.{key}: expected {want}, got {value!r}")
+    return value
+
+
+def overrides(settings: list | None) -> dict:
+    """--set settings → MarkerPose's overrides: one dict per stage, and top-level keys;
+    ``ValueError`` (one line) for an unknown stage or setting, or a value of the wrong type."""
+    from ..presets import default_conf
+
+    out: dict = {}
+    for stage, key, value in settings or ():
+        if stage in TOP_LEVEL:
+            if key is not None:
+                raise ValueError(f"--set {stage}.{key}: {stage} takes a value, e.g. --set {stage}=...")
+            out[stage] = value
+            continue
+        if stage not in default_conf:
+            known = [k for k in default_conf if k not in TOP_LEVEL]
+            raise ValueError(f"--set {stage}{'.' + key if key else ''}: unknown stage {stage!r}; stages: {known}")
+        if key is None:
+            raise ValueError(f"--set {stage}: expected {stage}.KEY=VALUE")
+        if key not in default_conf[stage]:
+            raise ValueError(f"--set {stage}.{key}: unknown {stage} setting; known: {sorted(default_conf[stage])}")
+        out.setdefault(stage, {})[key] = _checked(stage, key, value, default_conf[stage][key])
+    return out
+
+
+def tracker(args):
+    """The MarkerPose of a command's --rig, marker, --preset / --detector and --set."""
+    from ..pipeline import MarkerPose
+
+    found = overrides(args.settings)
+    detector = found.pop("detector", args.detector)
+    return MarkerPose(rig(args.rig), marker(args), preset=args.preset, detector=detector, **found)
+
+
+def add_set_arg(p) -> None:
+    p.add_argument("--set", dest="settings", action="append", type=setting, metavar="STAGE.KEY=VALUE",
+                   help="a stage setting over the preset (README: stage settings), e.g. track.lost_change=0 or "
+                        "match.max_fits=5; also threads=N, backend=NAME, detector=NAME; repeatable")
+
+
+def add_rig_arg(p) -> None:
+    p.add_argument("--rig", help="rig file (OpenCV YAML/XML with K1 dist1 K2 dist2 R t); default: the built-in rig")
+
+
+def add_preset_args(p) -> None:
+    """--preset and --detector of the commands that run the tracker (estimate, track)."""
+    from ..presets import ORDER
+
+    p.add_argument("--preset", default="default", choices=list(ORDER), help="pipeline configuration (default: default)")
+    p.add_argument("--detector", choices=["neural", "classical"], help="shorthand: classical = --preset classical")

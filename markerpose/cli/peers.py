@@ -1,0 +1,33 @@
+"""``markerpose peers``: markerpose beside AprilTag 3, ArUco, ChArUco and STag."""
+
+from __future__ import annotations
+
+import time
+
+from .common import positive_int
+
+
+def cmd_peers(args):
+    from ..peers import experiment
+
+    t0 = time.perf_counter()
+    cmd = "markerpose peers" + (" --quick" if args.quick else "") + f" --out {args.out}"
+    if args.pairs is not None:
+        cmd += f" --pairs {args.pairs}"
+    if args.systems:
+        cmd += " --systems " + " ".join(args.systems)
+    conf = experiment.plan(args.quick, pairs=args.pairs, seed=args.seed, systems=tuple(args.systems) if args.systems else None)
+    doc = experiment.main(conf, args.out, jobs=args.jobs, command=cmd, progress=not args.quiet)
+    print(f"wrote {doc['files'][0]} and the plots and results.json beside it ({time.perf_counter() - t0:.0f} s)")
+
+
+def register(sub) -> None:
+    pe = sub.add_parser("peers", help="markerpose beside AprilTag 3, ArUco, ChArUco and STag on the same rendered scenes")
+    pe.add_argument("--out", default="markerpose-peers", help="output folder (default: markerpose-peers)")
+    pe.add_argument("--quick", action="store_true", help="6 scenes per level instead of 40 (a few minutes)")
+    pe.add_argument("--pairs", type=positive_int, help="scenes per darkness / blur level (default 40; --quick 6)")
+    pe.add_argument("--systems", nargs="+", choices=("markerpose", "apriltag", "aruco", "charuco", "stag"), help="systems to run (default: all installed)")
+    pe.add_argument("--seed", type=int, default=0)
+    pe.add_argument("--jobs", type=positive_int, help="processes (default: up to 2)")
+    pe.add_argument("--quiet", action="store_true", help="no progress bar")
+    pe.set_defaults(func=cmd_peers)
