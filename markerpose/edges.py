@@ -1036,7 +1036,7 @@ def _real_eigvecs(M, V):  # pragma: no cover - compiled
     np.imag / np.real take either."""
     try:
         w, Vk = np.linalg.eig(M)
-    except Exception:  # noqa: BLE001 - numba catches no narrower class
+    except Exception:
         return False
     wi = np.imag(w)
     for i in range(wi.shape[0]):

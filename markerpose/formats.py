@@ -225,7 +225,8 @@ def read_sequence(path: str | Path) -> dict:
         raise ValueError(f"{path}: expected a 4D (W, H, 1, N) sequence, got {data.ndim}D")
     images = data[:, :, 0, :].transpose(2, 1, 0)
     n = images.shape[0]
-    mat = lambda s: np.array([float(v) for v in s.split()]).reshape(4, 4)
+    def mat(s):
+        return np.array([float(v) for v in s.split()]).reshape(4, 4)
     times, p2t, i2p = [], [], []
     for k in range(n):
         p = f"Seq_Frame{k:04d}_"

@@ -48,4 +48,15 @@ def check_size(image: np.ndarray, camera, name: str) -> None:
         raise ValueError(f"{name} is {image.shape[1]}x{image.shape[0]} but the rig was calibrated for {w}x{h}")
 
 
-__all__ = ["MIN_SIDE", "as_gray", "check_size"]
+def gray_pair(left, right, rig) -> list[np.ndarray]:
+    """A stereo pair validated (:func:`as_gray`, the same size, the rig's :func:`check_size`)
+    and returned as [left, right] gray images."""
+    gl, gr = as_gray(left, "left image"), as_gray(right, "right image")
+    if gl.shape != gr.shape:
+        raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
+    check_size(gl, rig.left, "left image")
+    check_size(gr, rig.right, "right image")
+    return [gl, gr]
+
+
+__all__ = ["MIN_SIDE", "as_gray", "check_size", "gray_pair"]

@@ -12,8 +12,8 @@ from __future__ import annotations
 import importlib.util
 import json
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -260,7 +260,7 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
 
     path = Path(path)
     axes = {0: "batch", **({2: "height", 3: "width"} if dynamic_hw else {})}
-    dynamic = {"image": axes, **{n: axes for n in output_names}}
+    dynamic = {"image": axes, **dict.fromkeys(output_names, axes)}
     import warnings
 
     with torch.no_grad(), warnings.catch_warnings():

@@ -23,7 +23,7 @@ from contextlib import closing, contextmanager
 from . import detectors, presets
 from .camera import StereoRig
 from .frame import Frame
-from .images import as_gray, check_size
+from .images import as_gray, check_size, gray_pair
 from .marker import Marker
 from .results import Detection, Estimate
 from .stages import refine, solve, track, verify
@@ -136,14 +136,6 @@ class MarkerPose:
         with self._call([gray]) as frame:
             return self.detector.view(frame, view)
 
-    def _pair(self, left, right) -> list:
-        gl, gr = as_gray(left, "left image"), as_gray(right, "right image")
-        if gl.shape != gr.shape:
-            raise ValueError(f"left and right images differ in size: {gl.shape[::-1]} vs {gr.shape[::-1]}")
-        check_size(gl, self.rig.left, "left image")
-        check_size(gr, self.rig.right, "right image")
-        return [gl, gr]
-
     def estimate(self, left, right) -> Estimate | None:
         """Pose of the marker from a stereo pair, or None if it is not found in both views.
         Stateless: every pair is detected from scratch (see :meth:`track` for video).
@@ -153,7 +145,7 @@ class MarkerPose:
         Returns:
             :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
         """
-        with self._call(self._pair(left, right)) as frame:
+        with self._call(gray_pair(left, right, self.rig)) as frame:
             est = self.cold(frame)
             frame.why = None if est is not None else (frame.why or "no marker found")
             return est
@@ -173,7 +165,7 @@ class MarkerPose:
         ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
         :meth:`reset` between sequences.
         """
-        with self._call(self._pair(left, right)) as frame:
+        with self._call(gray_pair(left, right, self.rig)) as frame:
             return self.tracker.next(frame, self)
 
     def reset(self) -> None:

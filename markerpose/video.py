@@ -14,8 +14,8 @@ import contextlib
 import csv
 import json
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import cv2
 import numpy as np

@@ -12,11 +12,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from markerpose import geometry as geo
-from markerpose import Marker, MarkerPose, StereoRig
-from markerpose import blurfit
+from markerpose import Marker, MarkerPose, StereoRig, blurfit, synth
 from markerpose import classical as C
-from markerpose import synth
+from markerpose import geometry as geo
 from markerpose.nets import default_weights
 
 RHO = Marker().inner_diameter / Marker().outer_diameter

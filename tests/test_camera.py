@@ -38,11 +38,6 @@ FIXTURE_R = np.array(
 FIXTURE_T = np.array([-1.5873419210583461e02, 1.2034789120931000e00, 2.4876319870142000e01])
 
 
-@pytest.fixture(scope="module")
-def rig() -> StereoRig:
-    return StereoRig.default()
-
-
 def _random_points(rng: np.random.Generator, n: int, spread: float = 0.1) -> np.ndarray:
     """(n, 3) points in the working volume (z in 350..800 mm) inside a cone of half-width ``spread * z``."""
     z = rng.uniform(350.0, 800.0, n)

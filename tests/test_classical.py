@@ -20,13 +20,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-import markerpose as mp
 import pytest
 
-from markerpose import geometry as geo
+import markerpose as mp
 from markerpose import Marker, StereoRig
 from markerpose import classical as C
+from markerpose import geometry as geo
 from markerpose.geometry import circle_conic, conic_center, epipolar_distance, plane_homography, project_conic
 from markerpose.results import Detection
 
@@ -80,11 +79,6 @@ POSES = [
 
 
 # --- renderer fixtures (shared; the first render builds each camera's ray grid) -------------
-@pytest.fixture(scope="module")
-def rig():
-    return StereoRig.default()
-
-
 @pytest.fixture(scope="module")
 def plain_bg():
     return np.full((1024, 1280), 0.45, np.float32)

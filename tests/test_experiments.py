@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 import markerpose as mp
-
 from markerpose.experiments import bench, endtoend
 
 
@@ -259,7 +258,7 @@ def test_sequence_segments_and_summary():
         est = {"ms": ms, "found": t_mm is not None, "source": "tracked" if t_mm is not None else None, "t_mm": t_mm,
                "r_deg": 0.01 if t_mm is not None else None, "t": [0.0, 0.0, 500.0 + (k % 2) * 0.002] if t_mm is not None else None,
                "R": np.eye(3).tolist() if t_mm is not None else None}
-        return {"frame": k, "segment": segment, "visible": visible, "blur_px": 0.0, **{m: est for m in sq.METHODS}}
+        return {"frame": k, "segment": segment, "visible": visible, "blur_px": 0.0, **dict.fromkeys(sq.METHODS, est)}
 
     rows = [row(k, "static", True, 0.001, 5.0) for k in range(4)] + [row(4, "out of view", False, None, 50.0)]
     rows += [row(5, "dark", True, None, 80.0), row(6, "dark", True, 0.002, 10.0)]
@@ -267,7 +266,7 @@ def test_sequence_segments_and_summary():
     assert s["detected"] == 5 / 6 and s["false_poses"] == 0 and s["frames_to_reacquire"] == 1
     assert s["jitter_mm"] == pytest.approx(0.001) and s["jitter_deg"] == pytest.approx(0.0, abs=1e-6)
     assert s["median_ms"] == 7.5 and s["max_ms"] == 80.0
-    assert "frames to re-acquire" in sq.report({"conf": sq.default_conf, "summary": {m: s for m in sq.METHODS}, "frames": rows})
+    assert "frames to re-acquire" in sq.report({"conf": sq.default_conf, "summary": dict.fromkeys(sq.METHODS, s), "frames": rows})
 
 
 def test_sequence_methods_run_as_paced_streams_in_alternating_passes(monkeypatch):

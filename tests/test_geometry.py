@@ -6,15 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from markerpose import Marker, StereoRig
+from markerpose import Marker
 from markerpose import geometry as g
 
 SIGMA_PX = 0.05  # pixel noise of the synthetic "detections"
-
-
-@pytest.fixture(scope="module")
-def rig() -> StereoRig:
-    return StereoRig.default()
 
 
 @pytest.fixture(scope="module")

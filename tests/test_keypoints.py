@@ -319,7 +319,8 @@ def test_operating_points_from_the_checkpoint(tmp_path):
 
 def test_weight_files_that_cannot_work_fail_at_load(tmp_path):
     """Every broken or foreign weights file is a ValueError naming the file, at load."""
-    from markerpose.ellipses import EllipseNet, build_network as es_net
+    from markerpose.ellipses import EllipseNet
+    from markerpose.ellipses import build_network as es_net
     from markerpose.nets import FORMAT
 
     good = tmp_path / "good.pt"

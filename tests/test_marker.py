@@ -129,10 +129,10 @@ class TestValidation:
     @pytest.mark.parametrize(
         "kwargs",
         [
-            dict(c1=(15.0, 0.0)),  # c0-c1 closer than a diameter
-            dict(c2=(0.0, 20.0)),  # touching counts as overlapping
-            dict(c1=(25.0, 0.0), c2=(18.0, 12.0)),  # c1-c2 overlap
-            dict(outer_diameter=30.0, inner_diameter=8.0),  # big rings overlap c0-c1
+            {"c1": (15.0, 0.0)},  # c0-c1 closer than a diameter
+            {"c2": (0.0, 20.0)},  # touching counts as overlapping
+            {"c1": (25.0, 0.0), "c2": (18.0, 12.0)},  # c1-c2 overlap
+            {"outer_diameter": 30.0, "inner_diameter": 8.0},  # big rings overlap c0-c1
         ],
     )
     def test_overlapping_rings(self, kwargs):
@@ -142,9 +142,9 @@ class TestValidation:
     @pytest.mark.parametrize(
         "kwargs",
         [
-            dict(c2=(0.0, -40.0)),  # mirror image: c2 on -y
-            dict(c1=(0.0, 40.0), c2=(25.0, 0.0)),  # c1 and c2 swapped
-            dict(c1=(25.0, 0.0), c2=(50.0, 0.0)),  # collinear: no frame
+            {"c2": (0.0, -40.0)},  # mirror image: c2 on -y
+            {"c1": (0.0, 40.0), "c2": (25.0, 0.0)},  # c1 and c2 swapped
+            {"c1": (25.0, 0.0), "c2": (50.0, 0.0)},  # collinear: no frame
         ],
     )
     def test_wrong_handedness(self, kwargs):

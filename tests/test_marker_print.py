@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import re
-import zlib
 import xml.etree.ElementTree as ET
+import zlib
 
 import numpy as np
 import pytest

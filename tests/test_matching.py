@@ -5,15 +5,9 @@ import pytest
 
 import markerpose as mp
 from markerpose.classical import refine_points
-from markerpose.geometry import rotation_angle
-from markerpose.geometry import ring_ellipses, signed_areas, view_poses
+from markerpose.geometry import ring_ellipses, rotation_angle, signed_areas, view_poses
 from markerpose.stages.match import side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return mp.StereoRig.default()
 
 
 def _project(rig, T, pts_marker):
@@ -107,7 +101,7 @@ def test_transfer_puts_the_rings_where_the_other_view_sees_them(rig, view, seed)
     np.testing.assert_allclose(preds[0][0], true[1 - view], atol=0.05)
     T_other = T if view == 1 else rig.T_right_left @ T
     np.testing.assert_allclose(preds[0][1][:3, 3], T_other[:3, 3], atol=0.05)
-    for (c, ax, ang), (c2, ax2, ang2) in zip(ring_ellipses(rig.cameras[1 - view], preds[0][1], m.points3d, m.outer_radius), _ellipses(rig, T, m, 1 - view)):
+    for (c, ax, _ang), (c2, ax2, _ang2) in zip(ring_ellipses(rig.cameras[1 - view], preds[0][1], m.points3d, m.outer_radius), _ellipses(rig, T, m, 1 - view)):
         np.testing.assert_allclose(c, c2, atol=0.05)
         np.testing.assert_allclose(sorted(ax), sorted(ax2), atol=0.1)
     # Without ellipses the right pose is still among P3P's solutions.

@@ -20,11 +20,6 @@ pytestmark = pytest.mark.skipif(
 
 
 @pytest.fixture(scope="module")
-def rig():
-    return mp.StereoRig.default()
-
-
-@pytest.fixture(scope="module")
 def tracker(rig):
     return mp.MarkerPose(rig, detector="neural")
 

@@ -1,19 +1,14 @@
 """The public API contract (DESIGN §3) on rendered stereo pairs."""
 
-import cv2
 import re
 
+import cv2
 import numpy as np
 import pytest
 
 import markerpose as mp
 from markerpose.geometry import rotation_angle
 from markerpose.synth import Imaging, clutter_background, look_at_pose, render_stereo
-
-
-@pytest.fixture(scope="module")
-def rig():
-    return mp.StereoRig.default()
 
 
 @pytest.fixture(scope="module", params=["neural", "classical"])

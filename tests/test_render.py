@@ -17,11 +17,6 @@ POSES = [  # (c0 position mm, tilt deg, tilt axis deg, roll deg): the working vo
 ]
 
 
-@pytest.fixture(scope="module")
-def rig():
-    return mp.StereoRig.default()
-
-
 def iso_crossings(img: np.ndarray, level: float, up: int = 2) -> np.ndarray:
     """(N, 2) sub-pixel points where the image crosses ``level`` along rows and columns.
 

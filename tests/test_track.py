@@ -21,11 +21,6 @@ needs_nets = pytest.mark.skipif(not default_weights("keypoints").is_file(), reas
 
 
 @pytest.fixture(scope="module")
-def rig():
-    return mp.StereoRig.default()
-
-
-@pytest.fixture(scope="module")
 def sequence(rig):
     """Eight frames of a marker moving 1.5 mm and 1° a frame, the last two without it."""
     frames = [render_stereo(rig, look_at_pose([-5 + 1.5 * k, 2, 560 - k], 30 + k, 45, 10 + k), imaging=Imaging(alpha=0.8), seed=k)

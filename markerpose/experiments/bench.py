@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..formats import write_json
 from ..camera import StereoRig
+from ..formats import write_json
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, look_at_pose, render_stereo
@@ -83,11 +83,11 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     trackers = {name: MarkerPose(rig, marker, preset=name) for name in available(c["configs"])}
     times = {name: [] for name in trackers}
     stages = {name: {} for name in trackers}
-    found = {name: 0 for name in trackers}
+    found = dict.fromkeys(trackers, 0)
     times_empty = {name: [] for name in trackers}
     times_blur = {name: [] for name in trackers}
-    found_blur = {name: 0 for name in trackers}
-    false_poses = {name: 0 for name in trackers}
+    found_blur = dict.fromkeys(trackers, 0)
+    false_poses = dict.fromkeys(trackers, 0)
     odd = inconsistent_pairs(frames) if c["inconsistent"] else []
     worst = {name: {} for name in trackers}  # kind -> (worst ms, poses returned)
     items = [(f.images, "marker") for f in frames] + [(f.images, "blur") for f in blurred] + [(f.images, "empty") for f in empty]

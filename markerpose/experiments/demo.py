@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ..formats import write_json
 from ..camera import StereoRig
+from ..formats import write_json
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..presets import ABOUT

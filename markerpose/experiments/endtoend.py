@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..formats import write_json
 from ..camera import StereoRig
+from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose

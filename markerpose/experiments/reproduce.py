@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..formats import write_json
 from ..camera import StereoRig
+from ..formats import write_json
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging

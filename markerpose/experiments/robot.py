@@ -14,9 +14,8 @@ a failure (reported, never dropped).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 from tqdm import tqdm

@@ -265,7 +265,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     for i in range(1, len(segs) + 1):
         if i == len(segs) or segs[i] != segs[start]:
             for ax in axes:
-                ax.axvspan(start - 0.5, i - 0.5, color="0.92" if len({s for s in segs[:i]}) % 2 else "white", zorder=0)
+                ax.axvspan(start - 0.5, i - 0.5, color="0.92" if len(set(segs[:i])) % 2 else "white", zorder=0)
             axes[0].text((start + i) / 2, 0.97, segs[start], transform=axes[0].get_xaxis_transform(), ha="center", va="top", fontsize=8)
             start = i
     axes[0].set_yscale("log")

@@ -91,9 +91,9 @@ class Imaging:
             raise ValueError("motion_blur and psf_sigma must be >= 0")
 
     @classmethod
-    def ideal(cls, **kw) -> "Imaging":
+    def ideal(cls, **kw) -> Imaging:
         """Noise-free, blur-free, evenly lit, unquantised: for geometric tests."""
-        base = dict(gradient=0.0, vignetting=0.0, psf_sigma=0.0, noise=False, quantize=False)
+        base = {"gradient": 0.0, "vignetting": 0.0, "psf_sigma": 0.0, "noise": False, "quantize": False}
         base.update(kw)
         return cls(**base)
 

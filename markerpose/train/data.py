@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing as mp
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from tqdm import tqdm

@@ -30,8 +30,7 @@ from .data import cached as data_cache
 from .data import draw as draw_value
 from .data import render_many
 from .loop import export as export_checkpoint
-from .loop import to_onnx
-from .loop import fit
+from .loop import fit, to_onnx
 from .scenes import FULL_SIZES, loguniform, occluders, random_imaging
 
 default_conf = {

@@ -29,8 +29,7 @@ from .augment import augment
 from .data import cached as data_cache
 from .data import render_many
 from .loop import export as export_checkpoint
-from .loop import to_onnx
-from .loop import fit
+from .loop import fit, to_onnx
 from .scenes import sample
 
 default_conf = {
