@@ -99,13 +99,37 @@ def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
     # form's diagonal, square-rooted) can be non-zero.
     ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma
     ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma
-    _disk_kernel(x, y, float(c[0]), float(c[1]), q00, q01, q11, u0, u1, L, sigma, ext0, ext1, float(sign), bool(jac), val, J,
-                 int(cols[0]), int(cols[1]), int(cols[2]), float(scales[0]), float(scales[1]), float(scales[2]))
+    _disk_kernel(
+        x,
+        y,
+        float(c[0]),
+        float(c[1]),
+        q00,
+        q01,
+        q11,
+        u0,
+        u1,
+        L,
+        sigma,
+        ext0,
+        ext1,
+        float(sign),
+        bool(jac),
+        val,
+        J,
+        int(cols[0]),
+        int(cols[1]),
+        int(cols[2]),
+        float(scales[0]),
+        float(scales[1]),
+        float(scales[2]),
+    )
 
 
 @compiled
-def _disk_kernel(x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m,
-                 sq, sl, ss):  # pragma: no cover - compiled
+def _disk_kernel(
+    x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
+):  # pragma: no cover - compiled
     """:func:`_add_disk` per point: the chord [s1, s2] of the ellipse along the motion
     through the point (shifted across it by each Gauss-Hermite node), its overlap with
     the box [-L/2, L/2] smoothed by sigma (G, the antiderivative of the normal CDF,
@@ -293,8 +317,21 @@ class _Problem:
             if not (Q[0, 0] > 0 and Q[0, 0] * Q[1, 1] - Q[0, 1] * Q[1, 0] > 0):
                 raise ValueError("ellipse form not positive definite")
             _add_disk(self.x, self.y, c, Q, theta, L, sigma, 1.0, jac, R, J, (7 * j, -1, 7 * k), (self.scale**2, L, sigma))
-            _add_disk(self.x, self.y, c + d, Q / self.rho**2, theta, L, sigma, -1.0, jac, R, J, (7 * j, 7 * j + 5, 7 * k),
-                      (self.rho**2 * self.scale**2, L, sigma))
+            _add_disk(
+                self.x,
+                self.y,
+                c + d,
+                Q / self.rho**2,
+                theta,
+                L,
+                sigma,
+                -1.0,
+                jac,
+                R,
+                J,
+                (7 * j, 7 * j + 5, 7 * k),
+                (self.rho**2 * self.scale**2, L, sigma),
+            )
         if not jac:
             return R, None
         self._kept = (p.copy(), R, J)
@@ -364,8 +401,11 @@ def _robust_lm(prob, p, conf):
             lam *= 10
             if lam > 1e8:
                 return p, nfev, False
-        small = (E - Et <= conf["ftol"] * E or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
-                 or np.abs(prob.centers(step)).max() <= conf["center_tol"])
+        small = (
+            E - Et <= conf["ftol"] * E
+            or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
+            or np.abs(prob.centers(step)).max() <= conf["center_tol"]
+        )
         p, r = trial, rt
         if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
             return p, nfev, True

@@ -65,8 +65,12 @@ class CircleGrid:
         """(x0, y0, x1, y1) of the printed sheet, mm."""
         m = self.spacing if self.margin is None else self.margin
         p = self.points3d
-        return (float(p[:, 0].min() - self.radius - m), float(p[:, 1].min() - self.radius - m),
-                float(p[:, 0].max() + self.radius + m), float(p[:, 1].max() + self.radius + m))
+        return (
+            float(p[:, 0].min() - self.radius - m),
+            float(p[:, 1].min() - self.radius - m),
+            float(p[:, 0].max() + self.radius + m),
+            float(p[:, 1].max() + self.radius + m),
+        )
 
     def reflectance(self, xy: np.ndarray, black: float = 0.04, white: float = 0.85) -> np.ndarray:
         """Reflectance at plane points (..., 2), mm; NaN off the sheet."""
@@ -100,10 +104,16 @@ class Calibration:
         return float(np.linalg.norm(self.rig.t))
 
     def summary(self) -> dict:
-        return {"rms_left_px": self.rms_left_px, "rms_right_px": self.rms_right_px, "rms_stereo_px": self.rms_stereo_px,
-                "baseline_mm": self.baseline_mm, "pairs_used": len(self.pairs_used), "pairs_rejected": self.pairs_rejected,
-                "f_left_px": [float(self.rig.left.K[0, 0]), float(self.rig.left.K[1, 1])],
-                "f_right_px": [float(self.rig.right.K[0, 0]), float(self.rig.right.K[1, 1])]}
+        return {
+            "rms_left_px": self.rms_left_px,
+            "rms_right_px": self.rms_right_px,
+            "rms_stereo_px": self.rms_stereo_px,
+            "baseline_mm": self.baseline_mm,
+            "pairs_used": len(self.pairs_used),
+            "pairs_rejected": self.pairs_rejected,
+            "f_left_px": [float(self.rig.left.K[0, 0]), float(self.rig.left.K[1, 1])],
+            "f_right_px": [float(self.rig.right.K[0, 0]), float(self.rig.right.K[1, 1])],
+        }
 
 
 def find_grid(image: np.ndarray, grid: CircleGrid) -> np.ndarray | None:
@@ -118,6 +128,7 @@ def _consistent(left: np.ndarray, right: np.ndarray, grid: CircleGrid) -> np.nda
     same from its two ends (with an odd number of rows, reversed row by row), so
     ``cv2.findCirclesGrid`` may start it at either end in each view; the order whose row
     and column directions agree best with the left view's is the same physical one."""
+
     def axes(p):
         q = p.reshape(grid.rows, grid.cols, 2)
         return np.concatenate([(q[:, -1] - q[:, 0]).mean(0), (q[-1] - q[0]).mean(0)])
@@ -155,15 +166,21 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
         P1.append(a.astype(np.float32))
         P2.append(_consistent(a, b, grid).astype(np.float32))
     if len(used) < min_pairs:
-        raise ValueError(f"the grid ({grid.cols}x{grid.rows}) was found in both views of only {len(used)} pairs; "
-                         f"at least {min_pairs} are needed (rejected: {rejected[:10]}{' ...' if len(rejected) > 10 else ''})")
+        raise ValueError(
+            f"the grid ({grid.cols}x{grid.rows}) was found in both views of only {len(used)} pairs; "
+            f"at least {min_pairs} are needed (rejected: {rejected[:10]}{' ...' if len(rejected) > 10 else ''})"
+        )
     objs = [obj] * len(used)
     rms1, K1, d1, _, _ = cv2.calibrateCamera(objs, P1, size, None, None)
     rms2, K2, d2, _, _ = cv2.calibrateCamera(objs, P2, size, None, None)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
     rms, K1, d1, K2, d2, R, t, _, _ = cv2.stereoCalibrate(objs, P1, P2, K1, d1, K2, d2, size, criteria=crit, flags=cv2.CALIB_FIX_INTRINSIC)
-    rig = StereoRig(Camera(K1, d1.ravel(), image_size=tuple(int(v) for v in size)),
-                    Camera(K2, d2.ravel(), image_size=tuple(int(v) for v in size)), R, t.ravel())
+    rig = StereoRig(
+        Camera(K1, d1.ravel(), image_size=tuple(int(v) for v in size)),
+        Camera(K2, d2.ravel(), image_size=tuple(int(v) for v in size)),
+        R,
+        t.ravel(),
+    )
     return Calibration(rig, float(rms1), float(rms2), float(rms), used, rejected, (np.concatenate(P1), np.concatenate(P2)))
 
 

@@ -69,9 +69,7 @@ def _as_dist(value, name="dist") -> np.ndarray:
     if not np.all(np.isfinite(d)):
         raise ValueError(f"{name}: contains non-finite values")
     if np.any(np.abs(d) > MAX_DIST_COEFF):
-        raise ValueError(
-            f"{name}: coefficient magnitude above {MAX_DIST_COEFF:g} is not a lens distortion, got {d.tolist()}"
-        )
+        raise ValueError(f"{name}: coefficient magnitude above {MAX_DIST_COEFF:g} is not a lens distortion, got {d.tolist()}")
     return d
 
 
@@ -79,17 +77,13 @@ def _as_intrinsics(value, name="K") -> np.ndarray:
     """(3, 3) pinhole intrinsic matrix ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]``, numerically invertible."""
     K = _as_matrix(value, (3, 3), name)
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or K[2, 2] != 1 or np.any(K[2, :2] != 0):
-        raise ValueError(
-            f"{name}: not an intrinsic matrix (need fx, fy > 0, K[1,0] = 0 and last row 0 0 1), got {K.tolist()}"
-        )
+        raise ValueError(f"{name}: not an intrinsic matrix (need fx, fy > 0, K[1,0] = 0 and last row 0 0 1), got {K.tolist()}")
     if np.abs(K).max() > MAX_K_ENTRY:
         raise ValueError(f"{name}: entries must be at most {MAX_K_ENTRY:g} px in magnitude, got {K.tolist()}")
     with np.errstate(all="ignore"):
         cond = np.linalg.cond(K)
     if not cond <= MAX_K_COND:
-        raise ValueError(
-            f"{name}: numerically singular (condition number {cond:.3g} > {MAX_K_COND:g}), got {K.tolist()}"
-        )
+        raise ValueError(f"{name}: numerically singular (condition number {cond:.3g} > {MAX_K_COND:g}), got {K.tolist()}")
     return K
 
 

@@ -427,9 +427,7 @@ def _find_rings_gray(gray: np.ndarray, marker: Marker, c: dict, noise: float) ->
                 rect = cq_to_rect(ci, Qo)
                 major = max(rect[1])
                 if c["min_outer_px"] <= major <= max_outer and min(rect[1]) / major >= c["min_axis_ratio"]:
-                    ring = Ring(
-                        ci.copy(), rect, inner_rect, 0.5, from_hole=True, _outer_cq=(ci, Qo), _inner_cq=(ci, Qi)
-                    )
+                    ring = Ring(ci.copy(), rect, inner_rect, 0.5, from_hole=True, _outer_cq=(ci, Qo), _inner_cq=(ci, Qi))
             if ring is None:
                 continue
             frac, _ = _contrast_check(gray, ring._outer_cq[0], ring._outer_cq[1], rho, gap, offset)
@@ -476,11 +474,7 @@ def _ring_from_pair(outer, inner, rho, max_outer, c) -> Ring | None:
     shape_tol = c["shape_tol"] + 1.5 / max(min(rect_i[1]), 1.0)
     if dshape > shape_tol:
         return None
-    cost = (
-        ((ratio - rho) / c["ratio_tol"]) ** 2
-        + (dc / (c["concentric_tol"] * major + 1.0)) ** 2
-        + (dshape / shape_tol) ** 2
-    )
+    cost = ((ratio - rho) / c["ratio_tol"]) ** 2 + (dc / (c["concentric_tol"] * major + 1.0)) ** 2 + (dshape / shape_tol) ** 2
     return Ring(co.copy(), rect_o, rect_i, float(np.exp(-0.5 * cost)), _outer_cq=(co, Qo), _inner_cq=(ci, Qi))
 
 
@@ -530,8 +524,18 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Ma
     view = np.asarray(view, np.intp)
     floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
     oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
-    outer = edges.refine_edges(grays, view, np.array([r._outer_cq[0] for r in rings]), np.array([r._outer_cq[1] for r in rings]),
-                               w_out, True, c, floor, oth, cameras)
+    outer = edges.refine_edges(
+        grays,
+        view,
+        np.array([r._outer_cq[0] for r in rings]),
+        np.array([r._outer_cq[1] for r in rings]),
+        w_out,
+        True,
+        c,
+        floor,
+        oth,
+        cameras,
+    )
     # The inner ellipses: from the hole's, or from the outer one scaled by rho.
     inner_cqs = [None] * len(rings)
     for k, (r, out) in enumerate(zip(rings, outer)):
@@ -540,8 +544,18 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Ma
     inner: list = [None] * len(rings)
     todo = [k for k in range(len(rings)) if inner_cqs[k] is not None]
     if (c["refine_inner"] or c["center"] == "concentric") and todo:
-        fits = edges.refine_edges(grays, view[todo], np.array([inner_cqs[k][0] for k in todo]), np.array([inner_cqs[k][1] for k in todo]),
-                                  w_in, False, c, floor[todo], [[] for _ in todo], cameras)
+        fits = edges.refine_edges(
+            grays,
+            view[todo],
+            np.array([inner_cqs[k][0] for k in todo]),
+            np.array([inner_cqs[k][1] for k in todo]),
+            w_in,
+            False,
+            c,
+            floor[todo],
+            [[] for _ in todo],
+            cameras,
+        )
         for k, f in zip(todo, fits):
             inner[k] = f
     result = []
@@ -565,16 +579,18 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Ma
             # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
             if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
                 center = cc
-        result.append(replace(
-            ring,
-            center=center,
-            outer=cq_to_rect(*outer_cq),
-            inner=cq_to_rect(*inner_cq) if inner[k] is not None else ring.inner,
-            refined=True,
-            _outer_cq=outer_cq,
-            _inner_cq=inner_cq,
-            _edge_width=width,
-        ))
+        result.append(
+            replace(
+                ring,
+                center=center,
+                outer=cq_to_rect(*outer_cq),
+                inner=cq_to_rect(*inner_cq) if inner[k] is not None else ring.inner,
+                refined=True,
+                _outer_cq=outer_cq,
+                _inner_cq=inner_cq,
+                _edge_width=width,
+            )
+        )
     return result
 
 
@@ -643,8 +659,9 @@ def refine_views(
     noises = _noises(grays, noises)
     flat = [(v, k, r) for v, rs in enumerate(rings) for k, r in enumerate(rs) if r is not None]
     present = [[r for r in rs if r is not None] for rs in rings]
-    done = _refine_batch(grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], marker, c,
-                         noises, cameras)
+    done = _refine_batch(
+        grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], marker, c, noises, cameras
+    )
     out = [list(rs) for rs in rings]
     for (v, k, _), r in zip(flat, done):
         out[v][k] = r
@@ -675,8 +692,14 @@ def _unrefined(rings: list) -> list:
     return [replace(r, refined=False, _rejected=True) for r in rings]
 
 
-def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), conf: dict | None = None, noise: float | None = None,
-                   limits: BlurLimits | None = None) -> list:
+def refine_blurred(
+    gray: np.ndarray,
+    rings: list,
+    marker: Marker = Marker(),
+    conf: dict | None = None,
+    noise: float | None = None,
+    limits: BlurLimits | None = None,
+) -> list:
     """The marker's edge-refined rings, fitted again together under a motion-blur model
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
 
@@ -731,8 +754,10 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
     if fit is None:
         return rings
     # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
-    far = [not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"])
-           for r, (cen, _) in zip(rings, fit["cqs"])]
+    far = [
+        not (np.all(np.isfinite(cen)) and np.linalg.norm(cen - r._outer_cq[0]) <= c["blur_fit_max_move"])
+        for r, (cen, _) in zip(rings, fit["cqs"])
+    ]
     if any(f and r.refined for f, r in zip(far, rings)):
         # The blur model puts a ring far from where its edges were fitted: under such blur
         # the edge fit can be as far off, so neither is trusted.
@@ -747,9 +772,7 @@ def refine_blurred(gray: np.ndarray, rings: list, marker: Marker = Marker(), con
 
 
 # --- IDs from the layout -------------------------------------------------------------------
-def find_triples(
-    rings: list[Ring], marker: Marker = Marker(), conf: dict | None = None
-) -> list[tuple[float, tuple[int, int, int]]]:
+def find_triples(rings: list[Ring], marker: Marker = Marker(), conf: dict | None = None) -> list[tuple[float, tuple[int, int, int]]]:
     """Ordered triples of candidates that look like the marker, best first.
 
     Each candidate's outer ellipse is the affine image of a circle of one outer radius, so
@@ -846,8 +869,13 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera,
         chosen = refine_views([gray], [chosen], marker, c, [noise], [camera])[0]
         chosen = refine_blurred(gray, chosen, marker, c, noise, limits)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
-    return Detection(centers=centers, ellipses=[r.outer for r in chosen], score=float(np.exp(-0.5 * cost)),
-                     refined=np.array([not r._rejected for r in chosen]), blur_px=_blur_length(chosen))
+    return Detection(
+        centers=centers,
+        ellipses=[r.outer for r in chosen],
+        score=float(np.exp(-0.5 * cost)),
+        refined=np.array([not r._rejected for r in chosen]),
+        blur_px=_blur_length(chosen),
+    )
 
 
 def detect(
@@ -887,8 +915,14 @@ def _shift_ring(ring: Ring, d: np.ndarray) -> Ring:
     def cq(v):
         return None if v is None else (v[0] + d, v[1])
 
-    return replace(ring, center=ring.center + d, outer=rect(ring.outer), inner=rect(ring.inner),
-                   _outer_cq=cq(ring._outer_cq), _inner_cq=cq(ring._inner_cq))
+    return replace(
+        ring,
+        center=ring.center + d,
+        outer=rect(ring.outer),
+        inner=rect(ring.inner),
+        _outer_cq=cq(ring._outer_cq),
+        _inner_cq=cq(ring._inner_cq),
+    )
 
 
 def refine_points(
@@ -1020,7 +1054,9 @@ def refine_ellipses_views(
                 continue
             (cx, cy), (w, h), ang = rect
             inner = ((cx, cy), (w * rho, h * rho), ang)
-            rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner)))
+            rings.append(
+                Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner))
+            )
         views.append(rings)
     out = []
     for gray, noise, rings in zip(grays, noises, refine_views(grays, views, marker, c, noises, cameras)):

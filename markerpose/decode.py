@@ -184,8 +184,9 @@ def _template(marker: Marker) -> tuple[np.ndarray, np.ndarray]:
     return _TEMPLATES[key]
 
 
-def align_triple(image: np.ndarray, points: np.ndarray, marker: Marker | None = None,
-                 iterations: int = 50, move_rule: str = "spacing") -> tuple[np.ndarray, float | None]:
+def align_triple(
+    image: np.ndarray, points: np.ndarray, marker: Marker | None = None, iterations: int = 50, move_rule: str = "spacing"
+) -> tuple[np.ndarray, float | None]:
     """Refine three ring centres by aligning the marker's printed pattern to the image.
 
     The triple fixes the affine map from the marker's frame to the image; from there
@@ -251,8 +252,9 @@ def _min_spacing(p: np.ndarray) -> float:
     return float(min(np.linalg.norm(p[a] - p[b]) for a, b in ((0, 1), (0, 2), (1, 2))))
 
 
-def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, marker: Marker | None = None,
-           image: np.ndarray | None = None):
+def decode(
+    det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = None, marker: Marker | None = None, image: np.ndarray | None = None
+):
     """The three ring centres and their IDs from the two heads of one image.
 
     Args:
@@ -347,5 +349,3 @@ def decode(det_logits: np.ndarray, id_logits: np.ndarray, conf: dict | None = No
     if score < c["min_score"]:
         return None
     return best, score
-
-

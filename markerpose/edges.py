@@ -368,7 +368,9 @@ def integral(v: np.ndarray, v_out: np.ndarray, dd: np.ndarray, lam: np.ndarray, 
     return list(out)
 
 
-def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np.ndarray, scale: np.ndarray, floor: np.ndarray) -> np.ndarray:
+def plane_levels(
+    xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np.ndarray, scale: np.ndarray, floor: np.ndarray
+) -> np.ndarray:
     """Per row k, fit ``values ≈ a + g . (xy - center)`` on the rays ``use``; evaluate at all.
 
     Robust: rays farther than max(3 MAD, ``floor``) from the median, then from the fit, are
@@ -380,9 +382,15 @@ def plane_levels(xy: np.ndarray, values: np.ndarray, use: np.ndarray, center: np
     Args: xy (K, N, 2), values / use (K, N), center (K, 2), scale / floor (K,).
     """
     out = np.empty(values.shape)
-    _plane_rows(np.ascontiguousarray(xy, np.float64), np.ascontiguousarray(values, np.float64), np.ascontiguousarray(use, bool),
-                np.ascontiguousarray(center, np.float64), (0.15 * np.asarray(scale, np.float64)) ** 2,
-                np.ascontiguousarray(floor, np.float64), out)
+    _plane_rows(
+        np.ascontiguousarray(xy, np.float64),
+        np.ascontiguousarray(values, np.float64),
+        np.ascontiguousarray(use, bool),
+        np.ascontiguousarray(center, np.float64),
+        (0.15 * np.asarray(scale, np.float64)) ** 2,
+        np.ascontiguousarray(floor, np.float64),
+        out,
+    )
     return out
 
 
@@ -618,7 +626,9 @@ def _ray_levels(v_in, v_out, xy, cen, pen, clean, n, level_tol, ok, planes):  # 
 
 
 @compiled
-def _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, aw1, weights, e, W, w1090, width):  # pragma: no cover - compiled
+def _ray_edges(
+    v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, aw1, weights, e, W, w1090, width
+):  # pragma: no cover - compiled
     """Each ray's edge (lambda, into ``e``) from its profile normalised by the plateau
     levels, its fit weight (``W``), its 10-90 % width (``w1090``) and each ring's 75th
     percentile of those widths over the valid rays (``width``); rays without a clear
@@ -668,8 +678,9 @@ def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
     return np.convolve(np.r_[v[-k:], v, v[:k]], ker, "same")[k:-k]
 
 
-def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict,
-                floor: np.ndarray, others: list):
+def edge_points(
+    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict, floor: np.ndarray, others: list
+):
     """Sub-pixel edge points along rays of K ellipses (x - cen)^T Q (x - cen) = 1.
 
     Rays run from the centre through the ellipse (radial lines are images of the circle's
@@ -742,8 +753,27 @@ def edge_points(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, h
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
     e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
     aw = c["area_window"]
-    _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), float(half),
-               c["edge_method"] == "area", float(aw[0]), float(aw[1]), bool(c["edge_weights"]), e, W, w1090, width)
+    _ray_edges(
+        v,
+        v_in,
+        v_out,
+        lam,
+        dl,
+        S,
+        r,
+        ok,
+        floor,
+        bool(dark_inside),
+        float(half),
+        c["edge_method"] == "area",
+        float(aw[0]),
+        float(aw[1]),
+        bool(c["edge_weights"]),
+        e,
+        W,
+        w1090,
+        width,
+    )
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
@@ -1018,8 +1048,9 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
     fcen = np.zeros((K, 2)) if frame is None else np.ascontiguousarray(frame[0], np.float64)
     fR = np.tile(np.eye(2), (K, 1, 1)) if frame is None else _spd2(frame[1], 0.5)[0]
     cen, Q, fitted, keep, fallback = np.empty((K, 2)), np.empty((K, 2, 2)), np.empty(K, bool), np.empty((K, N), bool), np.empty(K, bool)
-    _robust_rows(P, mask, W, screen, fcen, fR, idx, float(c["outlier_k"]), float(c["outlier_min_px"]), _S1, _S2, _S3,
-                 cen, Q, fitted, keep, fallback)
+    _robust_rows(
+        P, mask, W, screen, fcen, fR, idx, float(c["outlier_k"]), float(c["outlier_min_px"]), _S1, _S2, _S3, cen, Q, fitted, keep, fallback
+    )
     if fallback.any():
         f = np.nonzero(fallback)[0]
         sub = None if frame is None else (frame[0][f], frame[1][f])
@@ -1047,7 +1078,9 @@ def _real_eigvecs(M, V):  # pragma: no cover - compiled
 
 
 @compiled
-def _robust_rows(P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S3i, cen, Q, fitted, keep, fallback):  # pragma: no cover - compiled
+def _robust_rows(
+    P, mask, W, screen, fcen, fR, idx, k_sigma, min_px, S1i, S2i, S3i, cen, Q, fitted, keep, fallback
+):  # pragma: no cover - compiled
     """:func:`fit_robust` ring by ring: the least-median screen where ``screen[k]`` (radial
     offsets from the frame ellipse fcen[k], fR[k] = Q^(1/2)), then up to three weighted
     direct fits, each followed by the outlier rejection, stopping when the points kept do
@@ -1163,8 +1196,18 @@ def _spd2_rows(Q, inverse, out, eig):  # pragma: no cover - compiled
         out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = r00, r01, r01, r11
 
 
-def refine_edges(grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict,
-                 floor: np.ndarray, others: list, cameras: list | None = None) -> list:
+def refine_edges(
+    grays: list,
+    view: np.ndarray,
+    cen: np.ndarray,
+    Q: np.ndarray,
+    half: float,
+    dark_inside: bool,
+    c: dict,
+    floor: np.ndarray,
+    others: list,
+    cameras: list | None = None,
+) -> list:
     """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
     arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
 
@@ -1257,21 +1300,62 @@ def warm_up() -> None:
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
     n, S1 = np.full(K, N, np.int64), np.full(K, Sm, np.int64)
     u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
-    _ray_frame(np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)),
-               np.empty(K), xy, ok)
+    _ray_frame(
+        np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)), np.empty(K), xy, ok
+    )
     _normalisers(f2, f2, True)
     _first_look(v, f2, f2, lam, np.full(K, 1 / 3), S1, f2, b2, np.ones(K), True, f2.copy(), ok, np.empty(K))
-    _neighbours(xy, f2, np.ones(K), 0.5, np.zeros(1, np.int64), np.zeros((1, 2)), np.tile(np.eye(2), (1, 1, 1)), np.ones(1), n, 0.25,
-                b2.copy(), b2.copy(), n.copy())
+    _neighbours(
+        xy,
+        f2,
+        np.ones(K),
+        0.5,
+        np.zeros(1, np.int64),
+        np.zeros((1, 2)),
+        np.tile(np.eye(2), (1, 1, 1)),
+        np.ones(1),
+        n,
+        0.25,
+        b2.copy(),
+        b2.copy(),
+        n.copy(),
+    )
     _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
-    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, n, 0.25, b2.copy(),
-                np.empty(K, bool))
-    _ray_edges(v, f2, np.zeros((K, N)), lam, np.full(K, 1 / 3), S1, f2, b2.copy(), np.ones(K), True, 0.5, True, 0.5,
-               0.5, True, np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K))
+    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, n, 0.25, b2.copy(), np.empty(K, bool))
+    _ray_edges(
+        v,
+        f2,
+        np.zeros((K, N)),
+        lam,
+        np.full(K, 1 / 3),
+        S1,
+        f2,
+        b2.copy(),
+        np.ones(K),
+        True,
+        0.5,
+        True,
+        0.5,
+        0.5,
+        True,
+        np.empty((K, N)),
+        np.empty((K, N)),
+        np.empty((K, N)),
+        np.empty(K),
+    )
     _WARM = True
 
 
-__all__ = ["bilinear", "edge_points", "fit_ellipses", "fit_robust", "lmeds_inliers", "masked_median", "masked_percentile",
-           "plane_levels", "refine_edges"]
+__all__ = [
+    "bilinear",
+    "edge_points",
+    "fit_ellipses",
+    "fit_robust",
+    "lmeds_inliers",
+    "masked_median",
+    "masked_percentile",
+    "plane_levels",
+    "refine_edges",
+]

@@ -56,7 +56,9 @@ def build_network():
 
     def block(cin, cout):
         return nn.Sequential(
-            nn.Conv2d(cin, cout, 3, padding=1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True),
+            nn.Conv2d(cin, cout, 3, padding=1, bias=False),
+            nn.BatchNorm2d(cout),
+            nn.ReLU(inplace=True),
         )
 
     class EllipSegNet(nn.Module):
@@ -212,7 +214,6 @@ def sigmoid(x: np.ndarray) -> np.ndarray:
     return np.where(x >= 0, 1 / (1 + e), e / (1 + e)).astype(np.float32)
 
 
-
 class EllipseNet:
     """EllipSegNet with its weights: rough centres → sub-pixel centres.
 
@@ -225,14 +226,21 @@ class EllipseNet:
         backend: what runs ``.onnx`` weights (:data:`markerpose.nets.BACKENDS`).
     """
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", threads: int | None = None,
-                 backend: str = "onnxruntime"):
+    def __init__(
+        self,
+        weights: str | Path | None = None,
+        conf: dict | None = None,
+        device: str = "cpu",
+        threads: int | None = None,
+        backend: str = "onnxruntime",
+    ):
         self.conf = {**default_conf, **(conf or {})}
         for key, allowed in (("patch", PATCH_MODES), ("fit", FITS)):
             if self.conf[key] not in allowed:
                 raise ValueError(f"unknown {key} {self.conf[key]!r}; choose from {allowed}")
-        self.runner, self.meta, self.path = load_network(weights, "ellipses", lambda meta: build_network(), threads, device,
-                                                         backend=backend)
+        self.runner, self.meta, self.path = load_network(
+            weights, "ellipses", lambda meta: build_network(), threads, device, backend=backend
+        )
 
     def probabilities(self, patches: np.ndarray) -> np.ndarray:
         """(N, 120, 120) uint8 patches → (N, 120, 120) float32 mask probabilities."""

@@ -42,7 +42,19 @@ def write_json(path: str | Path, obj, indent: int | None = 1) -> Path:
     return path
 
 
-__all__ = ["dumps", "jsonable", "open_storage", "read_ply", "read_sequence", "read_volume", "storage_array", "write_json", "write_ply", "write_sequence", "write_volume"]
+__all__ = [
+    "dumps",
+    "jsonable",
+    "open_storage",
+    "read_ply",
+    "read_sequence",
+    "read_volume",
+    "storage_array",
+    "write_json",
+    "write_ply",
+    "write_sequence",
+    "write_volume",
+]
 
 
 # --- OpenCV FileStorage (rig and probe calibration files) ----------------------------
@@ -100,8 +112,11 @@ def write_ply(path: str | Path, points: np.ndarray, frame: np.ndarray | None = N
     if frame is not None:
         rec["frame"] = np.asarray(frame, dtype="<i4").reshape(-1)
     names = {"<f4": "float", "<i4": "int"}
-    header = ["ply", "format binary_little_endian 1.0", "comment markerpose point cloud, millimetres",
-              f"element vertex {len(P)}"] + [f"property {names[t]} {n}" for n, t in props] + ["end_header"]
+    header = (
+        ["ply", "format binary_little_endian 1.0", "comment markerpose point cloud, millimetres", f"element vertex {len(P)}"]
+        + [f"property {names[t]} {n}" for n, t in props]
+        + ["end_header"]
+    )
     with open(path, "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(rec.tobytes())
@@ -111,8 +126,7 @@ def write_ply(path: str | Path, points: np.ndarray, frame: np.ndarray | None = N
 def read_ply(path: str | Path) -> dict:
     """Read a binary little-endian PLY vertex list written by :func:`write_ply` (float and
     int properties): a dict of property name → array."""
-    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "int": "<i4", "int32": "<i4",
-             "uchar": "u1", "uint8": "u1"}
+    types = {"float": "<f4", "float32": "<f4", "double": "<f8", "int": "<i4", "int32": "<i4", "uchar": "u1", "uint8": "u1"}
     with open(path, "rb") as f:
         if f.readline().strip() != b"ply":
             raise ValueError(f"{path}: not a PLY file")
@@ -225,8 +239,10 @@ def read_sequence(path: str | Path) -> dict:
         raise ValueError(f"{path}: expected a 4D (W, H, 1, N) sequence, got {data.ndim}D")
     images = data[:, :, 0, :].transpose(2, 1, 0)
     n = images.shape[0]
+
     def mat(s):
         return np.array([float(v) for v in s.split()]).reshape(4, 4)
+
     times, p2t, i2p = [], [], []
     for k in range(n):
         p = f"Seq_Frame{k:04d}_"
@@ -234,5 +250,4 @@ def read_sequence(path: str | Path) -> dict:
         ok = header.get(p + "ProbeToTrackerTransformStatus", "OK") == "OK"
         p2t.append(mat(header[p + "ProbeToTrackerTransform"]) if ok else None)
         i2p.append(mat(header[p + "ImageToProbeTransform"]))
-    return {"images": np.ascontiguousarray(images), "timestamps": np.array(times), "probe_to_tracker": p2t,
-            "image_to_probe": i2p}
+    return {"images": np.ascontiguousarray(images), "timestamps": np.array(times), "probe_to_tracker": p2t, "image_to_probe": i2p}

@@ -80,6 +80,7 @@ def ring_diameter(points: np.ndarray, marker) -> float:
 
 # --- triangulation ------------------------------------------------------------------
 
+
 def triangulate(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of corresponding distorted pixels, as the paper does.
 

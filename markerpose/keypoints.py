@@ -198,13 +198,22 @@ class KeypointNet:
         backend: what runs ``.onnx`` weights (:data:`markerpose.nets.BACKENDS`).
     """
 
-    def __init__(self, weights: str | Path | None = None, conf: dict | None = None, device: str = "cpu", marker: Marker | None = None,
-                 stereo: bool = False, threads: int | None = None, backend: str = "onnxruntime"):
+    def __init__(
+        self,
+        weights: str | Path | None = None,
+        conf: dict | None = None,
+        device: str = "cpu",
+        marker: Marker | None = None,
+        stereo: bool = False,
+        threads: int | None = None,
+        backend: str = "onnxruntime",
+    ):
         def build(meta):
             return build_network(float(meta["width"]), meta.get("stem_width"))
 
-        self.runner, meta, self.path = load_network(weights, "keypoints", build, threads, device, required=("state_dict", "width"),
-                                                    backend=backend)
+        self.runner, meta, self.path = load_network(
+            weights, "keypoints", build, threads, device, required=("state_dict", "width"), backend=backend
+        )
         if "width" not in meta:
             raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
         # Decoding thresholds: the defaults, those tuned for this ID mode and operating
@@ -272,9 +281,17 @@ class KeypointNet:
         inputs, scales = zip(*(self._input(g, zoom, kept) for g in images))
         return (*self.logits(np.stack(inputs)), scales, inputs)
 
-    def candidates(self, images: list[np.ndarray], threshold: float = 0.01, k: int = 16, zoom: float = 1.0,
-                   nms_radius: int | None = None, near: list | None = None, window: int = 64,
-                   kept: list | None = None) -> list[np.ndarray]:
+    def candidates(
+        self,
+        images: list[np.ndarray],
+        threshold: float = 0.01,
+        k: int = 16,
+        zoom: float = 1.0,
+        nms_radius: int | None = None,
+        near: list | None = None,
+        window: int = 64,
+        kept: list | None = None,
+    ) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
         ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
         image, (N, 3) rows (x, y, score) in full-resolution pixels, best first.

@@ -34,9 +34,7 @@ class Marker:
 
     def __post_init__(self):
         if not (0 < self.inner_diameter < self.outer_diameter):
-            raise ValueError(
-                f"need 0 < inner_diameter < outer_diameter, got {self.inner_diameter} and {self.outer_diameter}"
-            )
+            raise ValueError(f"need 0 < inner_diameter < outer_diameter, got {self.inner_diameter} and {self.outer_diameter}")
         if self.margin < 0:
             raise ValueError(f"margin must be >= 0, got {self.margin}")
         c = self.centers2d
@@ -257,8 +255,7 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         a0, a1 = cp[0] + shift * n, cp[j] + shift * n
         items += _arrow(a0, a1, _ANNOT, 0.35, f"axis-{name}")
         # A short tick at the origin end marks where c0 projects onto the arrow.
-        items.append(_Polyline((tuple(a0 - 1.5 * n), tuple(a0 + 1.5 * n)), _ANNOT, 0.35, False, False,
-                               f"axis-{name}-origin"))
+        items.append(_Polyline((tuple(a0 - 1.5 * n), tuple(a0 + 1.5 * n)), _ANNOT, 0.35, False, False, f"axis-{name}-origin"))
         tip = a1 + 2.8 * u
         items.append(_text_centered(tip[0], tip[1], name, _LABEL_SIZE, "center", _ANNOT, f"axis-{name}-label"))
 
@@ -289,8 +286,7 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         "Print at 100% / actual size (no \u201cfit to page\u201d); check the scale bar with a ruler.",
     ]
     for k, line in enumerate(notes):
-        items.append(_Text(W / 2, 24.0 - 5.0 * k, line, _NOTE_SIZE, "center", _ANNOT if k < 2 else _INK,
-                           f"note-{k}"))
+        items.append(_Text(W / 2, 24.0 - 5.0 * k, line, _NOTE_SIZE, "center", _ANNOT if k < 2 else _INK, f"note-{k}"))
     return items
 
 
@@ -316,8 +312,10 @@ def write_grid(grid, path, paper: str = "a4") -> Path:
     span = p.max(0) - p.min(0) + 2 * grid.radius
     free_w, free_h = W - 2 * _PAGE_MARGIN, H - _TOP_RESERVED - _BOTTOM_RESERVED
     if span[0] > free_w or span[1] > free_h:
-        raise ValueError(f"the grid ({span[0]:g} x {span[1]:g} mm) does not fit on {key} (at most {free_w:g} x {free_h:g} mm): "
-                         "use a smaller --spacing or larger paper")
+        raise ValueError(
+            f"the grid ({span[0]:g} x {span[1]:g} mm) does not fit on {key} (at most {free_w:g} x {free_h:g} mm): "
+            "use a smaller --spacing or larger paper"
+        )
     # Centred in the free area; the grid's y axis runs down the page (as seen in an image).
     ox = W / 2 - (p[:, 0].min() + p[:, 0].max()) / 2
     oy = _BOTTOM_RESERVED + free_h / 2 + (p[:, 1].min() + p[:, 1].max()) / 2
@@ -399,8 +397,7 @@ def _write_svg(items: list, paper_mm: tuple[float, float], path: Path, title: st
             if it.filled:
                 style = f'fill="{it.color}" stroke="none"'
             else:
-                style = (f'fill="none" stroke="{it.color}" stroke-width="{_fmt(it.width)}" '
-                         'stroke-linecap="butt" stroke-linejoin="miter"')
+                style = f'fill="none" stroke="{it.color}" stroke-width="{_fmt(it.width)}" stroke-linecap="butt" stroke-linejoin="miter"'
             out.append(f'<{tag} id="{it.gid}" points="{pts}" {style}/>')
         else:
             out.append(
@@ -429,24 +426,48 @@ def _write_pdf(items: list, paper_mm: tuple[float, float], path: Path, title: st
         ax.set_axis_off()
         for it in items:
             if isinstance(it, _Circle):
-                ax.add_patch(Circle((it.cx, it.cy), it.r, facecolor=it.fill, edgecolor="none", linewidth=0,
-                                    gid=it.gid))
+                ax.add_patch(Circle((it.cx, it.cy), it.r, facecolor=it.fill, edgecolor="none", linewidth=0, gid=it.gid))
             elif isinstance(it, _Polyline):
                 if it.filled:
-                    ax.add_patch(Polygon(it.points, closed=True, facecolor=it.color, edgecolor="none",
-                                         linewidth=0, gid=it.gid))
+                    ax.add_patch(Polygon(it.points, closed=True, facecolor=it.color, edgecolor="none", linewidth=0, gid=it.gid))
                 elif it.closed:
-                    ax.add_patch(Polygon(it.points, closed=True, fill=False, edgecolor=it.color,
-                                         linewidth=it.width * _PT_PER_MM, joinstyle="miter", gid=it.gid))
+                    ax.add_patch(
+                        Polygon(
+                            it.points,
+                            closed=True,
+                            fill=False,
+                            edgecolor=it.color,
+                            linewidth=it.width * _PT_PER_MM,
+                            joinstyle="miter",
+                            gid=it.gid,
+                        )
+                    )
                 else:
                     xs, ys = zip(*it.points)
-                    ax.add_line(Line2D(xs, ys, color=it.color, linewidth=it.width * _PT_PER_MM,
-                                       solid_capstyle="butt", solid_joinstyle="miter", gid=it.gid))
+                    ax.add_line(
+                        Line2D(
+                            xs,
+                            ys,
+                            color=it.color,
+                            linewidth=it.width * _PT_PER_MM,
+                            solid_capstyle="butt",
+                            solid_joinstyle="miter",
+                            gid=it.gid,
+                        )
+                    )
             else:
-                ax.text(it.x, it.y, it.text, fontsize=it.size * _PT_PER_MM, ha=it.ha, va="baseline",
-                        color=it.color, family="DejaVu Sans", gid=it.gid)
-        fig.savefig(path, format="pdf", facecolor=_PAPER,
-                    metadata={"Title": title, "Creator": "markerpose", "CreationDate": None})
+                ax.text(
+                    it.x,
+                    it.y,
+                    it.text,
+                    fontsize=it.size * _PT_PER_MM,
+                    ha=it.ha,
+                    va="baseline",
+                    color=it.color,
+                    family="DejaVu Sans",
+                    gid=it.gid,
+                )
+        fig.savefig(path, format="pdf", facecolor=_PAPER, metadata={"Title": title, "Creator": "markerpose", "CreationDate": None})
 
 
 def write_target(marker: Marker, path, paper: str = "a4") -> Path:

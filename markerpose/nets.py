@@ -171,7 +171,7 @@ def _openvino_runner(path: Path, kind: str, threads: int | None, bf16: bool) -> 
     try:
         import openvino as ov
     except ImportError as exc:
-        raise ValueError(f"{path}: the openvino backend needs OpenVINO (pip install -e \".[openvino]\")") from exc
+        raise ValueError(f'{path}: the openvino backend needs OpenVINO (pip install -e ".[openvino]")') from exc
     core = ov.Core()
     try:
         model = core.read_model(str(path))
@@ -220,8 +220,15 @@ def _torch_runner(path: Path, kind: str, build: Callable[[dict], object], device
     return Runner(run, "torch"), {k: v for k, v in ckpt.items() if k != "state_dict"}
 
 
-def load_network(path: str | Path | None, kind: str, build: Callable[[dict], object], threads: int | None = None,
-                 device: str = "cpu", required: tuple = ("state_dict",), backend: str = "onnxruntime") -> tuple[Runner, dict, Path]:
+def load_network(
+    path: str | Path | None,
+    kind: str,
+    build: Callable[[dict], object],
+    threads: int | None = None,
+    device: str = "cpu",
+    required: tuple = ("state_dict",),
+    backend: str = "onnxruntime",
+) -> tuple[Runner, dict, Path]:
     """A network and what its file says besides the weights (format, width, tuned
     thresholds, metrics), from an ``.onnx`` file (ONNX Runtime or OpenVINO) or a ``.pt``
     one (PyTorch).
@@ -240,7 +247,11 @@ def load_network(path: str | Path | None, kind: str, build: Callable[[dict], obj
         raise ValueError(f"unknown backend {backend!r}; choose from {BACKENDS}")
     path = Path(path) if path is not None else default_weights(kind)
     if not path.is_file():
-        how = f"make them with `markerpose train {kind} --int8 SRC DEST`" if path == int8_weights(kind) else f"train them with `markerpose train {kind}`"
+        how = (
+            f"make them with `markerpose train {kind} --int8 SRC DEST`"
+            if path == int8_weights(kind)
+            else f"train them with `markerpose train {kind}`"
+        )
         raise ValueError(f"{kind} weights not found: {path} ({how})")
     if backend != "onnxruntime" and path.suffix != ".onnx":
         raise ValueError(f"{path}: the {backend} backend runs .onnx weights only")
@@ -251,8 +262,7 @@ def load_network(path: str | Path | None, kind: str, build: Callable[[dict], obj
     return (*_torch_runner(path, kind, build, device, required), path)
 
 
-def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: dict, output_names: tuple,
-                dynamic_hw: bool = False) -> Path:
+def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: dict, output_names: tuple, dynamic_hw: bool = False) -> Path:
     """Write an inference copy of a torch network (eval mode, batch norm folded) as ONNX,
     with ``meta`` (JSON) and the format entry in its metadata. Needs ``onnx`` (the train extra)."""
     import onnx
@@ -266,8 +276,16 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
     with torch.no_grad(), warnings.catch_warnings():
         # The TorchScript exporter needs no onnxscript; its deprecation notice is not for users.
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(net, torch.zeros(example_shape), str(path), input_names=["image"], output_names=list(output_names),
-                          dynamic_axes=dynamic, opset_version=17, dynamo=False)
+        torch.onnx.export(
+            net,
+            torch.zeros(example_shape),
+            str(path),
+            input_names=["image"],
+            output_names=list(output_names),
+            dynamic_axes=dynamic,
+            opset_version=17,
+            dynamo=False,
+        )
     model = onnx.load(str(path))
     entry = model.metadata_props.add()
     entry.key, entry.value = META_KEY, json.dumps({"format": {"network": kind, "version": FORMAT}, **meta})
@@ -350,9 +368,17 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
         outputs = {o.name for o in graph.output}
         last = [n.name for n in graph.node if outputs & set(n.output)]
         pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
-        quantize_static(str(pre), str(dest), Reader(), quant_format=QuantFormat.QDQ, per_channel=True,
-                        activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, nodes_to_exclude=last,
-                        extra_options={"TensorQuantOverrides": pinned})
+        quantize_static(
+            str(pre),
+            str(dest),
+            Reader(),
+            quant_format=QuantFormat.QDQ,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            nodes_to_exclude=last,
+            extra_options={"TensorQuantOverrides": pinned},
+        )
     out = onnx.load(str(dest))
     # Only the operator sets the nodes use: the tool declares every domain the installed
     # runtime knows, which older runtimes refuse to load.
@@ -368,5 +394,19 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     return dest
 
 
-__all__ = ["BACKENDS", "FORMAT", "Runner", "default_weights", "export_onnx", "fuse_batchnorm", "have_backend", "have_onnxruntime",
-           "int8_weights", "load_checkpoint", "load_network", "load_weights", "quantizable_meta", "quantize_onnx"]
+__all__ = [
+    "BACKENDS",
+    "FORMAT",
+    "Runner",
+    "default_weights",
+    "export_onnx",
+    "fuse_batchnorm",
+    "have_backend",
+    "have_onnxruntime",
+    "int8_weights",
+    "load_checkpoint",
+    "load_network",
+    "load_weights",
+    "quantizable_meta",
+    "quantize_onnx",
+]

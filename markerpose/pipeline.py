@@ -183,8 +183,9 @@ class MarkerPose:
     def fitted(self, frame: Frame, predicted: list, first_tol: float, noises: list | None = None) -> Estimate | None:
         """Per view, the rings' edges fitted from ``predicted`` ellipses (a tracker's),
         verified and solved (``source`` "tracked"), or None."""
-        found = frame.timed("refine", self.refiner.from_ellipses, frame, frame.grays, list(self.rig.cameras), predicted, 1.0, False,
-                            first_tol, noises)
+        found = frame.timed(
+            "refine", self.refiner.from_ellipses, frame, frame.grays, list(self.rig.cameras), predicted, 1.0, False, first_tol, noises
+        )
         if any(det is None for det in found):
             return None
         if frame.timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], True) is not None:
@@ -213,8 +214,10 @@ class MarkerPose:
         est = frame.timed("solve", solve.solve, self.rig, self.marker, found[0], found[1], self.conf["solve"], source)
         if verify.shape(est.points3d, self.marker, self.conf["verify"]):
             return est
-        frame.failed(f"shape check: the triangulated centres are {verify.shape_error(est.points3d, self.marker.points3d):.2f} mm "
-                     f"from the marker's layout (limit {self.conf['verify']['max_shape_error']:g} mm)")
+        frame.failed(
+            f"shape check: the triangulated centres are {verify.shape_error(est.points3d, self.marker.points3d):.2f} mm "
+            f"from the marker's layout (limit {self.conf['verify']['max_shape_error']:g} mm)"
+        )
         return None
 
 

@@ -34,7 +34,10 @@ PRESETS: dict[str, dict] = {
     "paper-classical": {"detector": "classical", "refine": {"subpixel": False}, "solve": PAPER_POSE},
     # Ablations of the neural pipeline, from the paper's towards ours.
     "neural-layout": {
-        "match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE, "solve": PAPER_POSE,
+        "match": {"method": "layout"},
+        "propose": {"second_look": 1.0},
+        "refine": _NO_EDGE,
+        "solve": PAPER_POSE,
     },
     "neural-layout-rigid": {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE},
     "neural-stereo": {"refine": _NO_EDGE},
@@ -75,9 +78,22 @@ ABOUT: dict[str, str] = {
 
 # Reports list the default and the paper's configurations first, then the ablations.
 ORDER = (
-    "default", "paper", "paper-classical", "classical", "neural-layout", "neural-layout-rigid", "neural-stereo",
-    "default-no-transfer", "default-no-blur-fit", "default-no-second-look", "neural-classical-refine",
-    "default-masks-first", "classical-subpixel", "classical-subpixel-bias", "default-bf16", "default-int8",
+    "default",
+    "paper",
+    "paper-classical",
+    "classical",
+    "neural-layout",
+    "neural-layout-rigid",
+    "neural-stereo",
+    "default-no-transfer",
+    "default-no-blur-fit",
+    "default-no-second-look",
+    "neural-classical-refine",
+    "default-masks-first",
+    "classical-subpixel",
+    "classical-subpixel-bias",
+    "default-bf16",
+    "default-int8",
 )
 
 

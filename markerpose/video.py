@@ -108,7 +108,9 @@ class StereoStream:
             raise
         if self.left.count is not None and self.right.count is not None and self.left.count != self.right.count:
             self.close()
-            raise ValueError(f"the two sources differ in length: {self.left.name} has {self.left.count} frames, {self.right.name} {self.right.count}")
+            raise ValueError(
+                f"the two sources differ in length: {self.left.name} has {self.left.count} frames, {self.right.name} {self.right.count}"
+            )
         self.count = self.left.count if self.left.count is not None else self.right.count
         # Timestamps: a video's own, a camera's clock, else frame / fps (image folders).
         self.fps = self.left.fps or self.right.fps or fps
@@ -163,7 +165,7 @@ class IGTLSender:
         try:
             import pyigtl
         except ImportError as exc:
-            raise ValueError("--igtl needs pyigtl: pip install -e \".[igtl]\"") from exc
+            raise ValueError('--igtl needs pyigtl: pip install -e ".[igtl]"') from exc
         self._pyigtl, self.name = pyigtl, name
         try:
             self.server = pyigtl.OpenIGTLinkServer(port=int(port), local_server=local_only)
@@ -227,8 +229,9 @@ class ShowSink:
         cv2.destroyWindow(self.name)
 
 
-def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True,
-                 send=None, sinks: tuple = ()) -> dict:
+def track_stream(
+    tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
+) -> dict:
     """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
     ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
     e.g. an :class:`IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
@@ -242,7 +245,7 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
     stopped = False
     t0 = time.perf_counter()
     bar = tqdm(total=stream.count, desc="track", unit="pair", disable=not progress)
-    with open(partial, "w", newline="") as f, (open(partial_jsonl, "w") if partial_jsonl else contextlib.nullcontext()) as fj:
+    with open(partial, "w", newline="") as f, open(partial_jsonl, "w") if partial_jsonl else contextlib.nullcontext() as fj:
         w = csv.writer(f)
         w.writerow(CSV_HEADER)
         try:
@@ -255,10 +258,19 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
                 for sink in sinks:
                     sink(k, t, left, right, est)
                 if partial_jsonl:
-                    fj.write(json.dumps({"frame": k, "timestamp_s": t, "valid": est is not None,
-                                         "T_left_marker": None if est is None else est.T.tolist(),
-                                         "residual_px": None if est is None else est.residual_px,
-                                         "source": None if est is None else est.source}) + "\n")
+                    fj.write(
+                        json.dumps(
+                            {
+                                "frame": k,
+                                "timestamp_s": t,
+                                "valid": est is not None,
+                                "T_left_marker": None if est is None else est.T.tolist(),
+                                "residual_px": None if est is None else est.residual_px,
+                                "source": None if est is None else est.source,
+                            }
+                        )
+                        + "\n"
+                    )
                 n += 1
                 found += est is not None
                 tracked += est is not None and est.source == "tracked"
@@ -283,8 +295,15 @@ def track_stream(tracker, stream: StereoStream, out_csv: str | Path, jsonl: str 
     if partial_jsonl:
         partial_jsonl.replace(jsonl)
     seconds = time.perf_counter() - t0
-    return {"frames": n, "found": found / n if n else 0.0, "tracked": tracked / found if found else 0.0,
-            "fps": n / seconds if seconds > 0 else 0.0, "longest_gap": longest, "stopped": stopped, "csv": str(out_csv)}
+    return {
+        "frames": n,
+        "found": found / n if n else 0.0,
+        "tracked": tracked / found if found else 0.0,
+        "fps": n / seconds if seconds > 0 else 0.0,
+        "longest_gap": longest,
+        "stopped": stopped,
+        "csv": str(out_csv),
+    }
 
 
 __all__ = ["CSV_HEADER", "IGTLSender", "ShowSink", "StereoStream", "VideoSink", "open_stereo", "pose_row", "track_stream"]

@@ -17,8 +17,12 @@ def test_openvino_gives_onnxruntimes_poses():
     pytest.importorskip("openvino")
     rig = mp.StereoRig.default()
     ort, f32, bf16 = mp.MarkerPose(rig), mp.MarkerPose(rig, backend="openvino"), mp.MarkerPose(rig, preset="default-bf16")
-    assert (ort.detector.proposer.net.runner.backend, f32.refiner.net.runner.backend, bf16.detector.proposer.net.runner.backend,
-            bf16.refiner.net.runner.backend) == ("onnxruntime", "openvino", "openvino-bf16", "openvino-bf16")
+    assert (
+        ort.detector.proposer.net.runner.backend,
+        f32.refiner.net.runner.backend,
+        bf16.detector.proposer.net.runner.backend,
+        bf16.refiner.net.runner.backend,
+    ) == ("onnxruntime", "openvino", "openvino-bf16", "openvino-bf16")
     for seed, pose in enumerate(([10, 0, 600], [-40, 30, 450], [0, -20, 750])):
         f = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
         a, b, c = ort.estimate(*f.images), f32.estimate(*f.images), bf16.estimate(*f.images)

@@ -257,8 +257,14 @@ def test_a_blur_fit_that_disagrees_with_the_edge_fit_refines_no_ring(blurred_vie
     _, found, _ = C.refine_points(img, truth.outer_centers, Marker(), camera=rig.left)
     assert not found.any()
     gray = C.to_gray(img)
-    rings = C.refine_views([gray], [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]], Marker(),
-                           C.default_conf, [C.noise_sigma(gray)], [rig.left])[0]
+    rings = C.refine_views(
+        [gray],
+        [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]],
+        Marker(),
+        C.default_conf,
+        [C.noise_sigma(gray)],
+        [rig.left],
+    )[0]
     det = C.refine_triple(gray, rings, (0, 1, 2), 0.0, Marker(), True, {}, C.noise_sigma(gray), rig.left)
     assert not det.refined.any()
 
@@ -297,8 +303,14 @@ def test_a_seed_without_edges_that_goes_astray_keeps_the_edge_fit(blurred_view, 
     rig, img, truth = blurred_view
     rects = _truth_rects(truth)
     gray = C.to_gray(img)
-    rings = C.refine_views([gray], [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]], Marker(),
-                           C.default_conf, [C.noise_sigma(gray)], [rig.left])[0]
+    rings = C.refine_views(
+        [gray],
+        [[C.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=geo.rect_to_cq(r)) for r in rects]],
+        Marker(),
+        C.default_conf,
+        [C.noise_sigma(gray)],
+        [rig.left],
+    )[0]
     assert all(r.refined for r in rings)
     rings[2] = replace(rings[2], refined=False)
     _fit_moving(monkeypatch, 2, 4.0)

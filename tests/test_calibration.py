@@ -53,6 +53,7 @@ def test_calibration_recovers_the_rig(rendered):
     assert c["baseline_mm_error"] < 0.1 and c["R_deg_error"] < 0.05
     assert max(cal.rms_left_px, cal.rms_right_px, cal.rms_stereo_px) <= 0.15
 
+
 def test_a_view_found_from_the_other_end_is_put_in_step(rendered):
     """The grid looks alike from both ends: a right view whose rows came in reverse is
     reordered to match the left view (else the stereo calibration pairs wrong circles)."""
@@ -90,8 +91,24 @@ def test_cli_pattern_and_calibrate(tmp_path, capsys, rendered):
         cv2.imwrite(str(tmp_path / "L" / f"{k:02d}.png"), a)
         cv2.imwrite(str(tmp_path / "R" / f"{k:02d}.png"), b)
     out = tmp_path / "rig.yaml"
-    assert cli.main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "--grid", "4x11", "--spacing", "12",
-                     "--out", str(out), "--coverage", str(tmp_path / "cov.png")]) == 0
+    assert (
+        cli.main(
+            [
+                "calibrate",
+                str(tmp_path / "L"),
+                str(tmp_path / "R"),
+                "--grid",
+                "4x11",
+                "--spacing",
+                "12",
+                "--out",
+                str(out),
+                "--coverage",
+                str(tmp_path / "cov.png"),
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     assert re.search(r"8 pairs used .*RMS reprojection error left 0\.0\d\d px", text)
     loaded = mp.StereoRig.load(out)

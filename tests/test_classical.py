@@ -500,7 +500,9 @@ def test_edge_weights_steady_the_centre_under_motion_blur():
     bg = synth.clutter_background((1280, 1024), np.random.default_rng(0), ring_distractors=0)
     errs = {True: [], False: []}
     for seed in range(6):
-        img, truth = synth.render_view(rig.left, T, imaging=synth.Imaging(alpha=0.7, motion_blur=25, motion_angle=70), background=bg, seed=seed)
+        img, truth = synth.render_view(
+            rig.left, T, imaging=synth.Imaging(alpha=0.7, motion_blur=25, motion_angle=70), background=bg, seed=seed
+        )
         for w in (True, False):
             det = C.detect(img, conf={"edge_weights": w, "blur_fit": False}, camera=rig.left)
             assert det is not None

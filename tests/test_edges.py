@@ -108,7 +108,7 @@ def _profiles(seed: int):
         prof += rng.normal(0, 8, prof.shape)
         prof[:2] = 180 + rng.normal(0, 2, (2, S[k]))  # flat: no crossing
         v[k, :, : S[k]] = prof
-        v[k, :, S[k]:] = prof[:, -1:]
+        v[k, :, S[k] :] = prof[:, -1:]
     v_out = rng.normal(40, 3, (K, N))
     dd = rng.normal(160, 10, (K, N))
     r = rng.uniform(20, 60, (K, N))
@@ -286,7 +286,9 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
             P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
         else:  # a ring with noise and a few outliers
             a, b = rng.uniform(15, 40), rng.uniform(10, 15)
-            P[k, :n] = np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+            P[k, :n] = (
+                np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+            )
             P[k, : n // 8] += rng.normal(scale=3, size=(n // 8, 2))
         mask[k, :n] = True
     W = rng.uniform(0.5, 2, (K, N))
@@ -295,8 +297,25 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
     fallback = np.empty(K, bool)
     cnt = mask.sum(1)
     idx = np.stack([edges._subsets(int(n), 40) for n in cnt])
-    edges._robust_rows(P, mask, W, cnt >= 12, frame[0], edges._spd2(frame[1], 0.5)[0], idx, 3.0, 0.15, edges._S1, edges._S2, edges._S3,
-                       np.empty((K, 2)), np.empty((K, 2, 2)), np.empty(K, bool), np.empty((K, N), bool), fallback)
+    edges._robust_rows(
+        P,
+        mask,
+        W,
+        cnt >= 12,
+        frame[0],
+        edges._spd2(frame[1], 0.5)[0],
+        idx,
+        3.0,
+        0.15,
+        edges._S1,
+        edges._S2,
+        edges._S3,
+        np.empty((K, 2)),
+        np.empty((K, 2, 2)),
+        np.empty(K, bool),
+        np.empty((K, N), bool),
+        fallback,
+    )
     assert fallback.any() and not fallback.all()
     for fr in (None, frame):
         for got, want in zip(edges.fit_robust(P, mask, c, fr, W), edges._fit_robust_numpy(P, mask, c, fr, W)):

@@ -107,5 +107,7 @@ def test_ellipse_training_loop_runs_and_exports(tmp_path):
     best = te.main(conf, tmp_path / "run", data_dir=tmp_path / "data")
     w = te.export(best, tmp_path / "w.pt")
     net = es.EllipseNet(w)
-    out = net([np.zeros((300, 400), np.uint8)], [np.array([[100.0, 100.0], [150.0, 100.0], [100.0, 20.0]])], __import__("markerpose").Marker())
+    out = net(
+        [np.zeros((300, 400), np.uint8)], [np.array([[100.0, 100.0], [150.0, 100.0], [100.0, 20.0]])], __import__("markerpose").Marker()
+    )
     assert len(out) == 1 and out[0][0].shape == (3, 2) and out[0][1].shape == (3,)

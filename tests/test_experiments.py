@@ -10,7 +10,10 @@ from markerpose.experiments import bench, endtoend
 
 
 def test_bench_runs_and_reports_every_configuration():
-    res = bench.main({"pairs": 1, "blurred_pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["paper-classical", "classical-subpixel"]}, progress=False)
+    res = bench.main(
+        {"pairs": 1, "blurred_pairs": 1, "empty_pairs": 1, "repeats": 2, "configs": ["paper-classical", "classical-subpixel"]},
+        progress=False,
+    )
     assert set(res["configs"]) == {"paper-classical", "classical-subpixel"}
     assert res["reference"] == "paper-classical"
     assert res["configs"]["paper-classical"]["speed_vs_reference"] == 1.0
@@ -118,7 +121,14 @@ def test_experiments_write_report_plots_and_json(tmp_path):
 
     from markerpose.experiments import reproduce
 
-    conf = {"trials": 1, "pairs": 2, "alphas": (1.0,), "detection_alphas": (1.0, 0.0625), "blurs": (0.0, 25.0), "configs": ("paper-classical", "classical")}
+    conf = {
+        "trials": 1,
+        "pairs": 2,
+        "alphas": (1.0,),
+        "detection_alphas": (1.0, 0.0625),
+        "blurs": (0.0, 25.0),
+        "configs": ("paper-classical", "classical"),
+    }
     res = reproduce.main(conf, tmp_path, progress=False)
     for f in ("report.md", "results.json", "displacement.png", "rotation.png", "detection.png", "accuracy.png"):
         assert (tmp_path / f).stat().st_size > 0
@@ -147,8 +157,10 @@ def test_detection_plot_at_zero_and_full_detection(tmp_path):
     from markerpose.experiments.plots import plot_detection
     from markerpose.experiments.reproduce import wilson
 
-    levels = {"alpha": {"1.0": {"a": {"detection": wilson(8, 8)}}, "0.039": {"a": {"detection": wilson(0, 8)}}},
-              "blur": {"0.0": {"a": {"detection": wilson(8, 8)}}, "25.0": {"a": {"detection": wilson(3, 8)}}}}
+    levels = {
+        "alpha": {"1.0": {"a": {"detection": wilson(8, 8)}}, "0.039": {"a": {"detection": wilson(0, 8)}}},
+        "blur": {"0.0": {"a": {"detection": wilson(8, 8)}}, "25.0": {"a": {"detection": wilson(3, 8)}}},
+    }
     assert plot_detection(levels, tmp_path / "d.png").stat().st_size > 0
 
 
@@ -177,9 +189,14 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["found"]
     # Wrong settings: a one-line error naming them, exit 2 (a Python-style False would be a
     # string, and true).
-    for bad, says in ((["track.nope=1"], "unknown track setting"), (["solve.bias_correction=False"], "expected true or false"),
-                      (["match.max_fits=many"], "expected a finite number"), (["track=1"], "expected track.KEY=VALUE"),
-                      (["threads.x=1"], "threads takes a value"), (["stagex.y=1"], "unknown stage 'stagex'")):
+    for bad, says in (
+        (["track.nope=1"], "unknown track setting"),
+        (["solve.bias_correction=False"], "expected true or false"),
+        (["match.max_fits=many"], "expected a finite number"),
+        (["track=1"], "expected track.KEY=VALUE"),
+        (["threads.x=1"], "threads takes a value"),
+        (["stagex.y=1"], "unknown stage 'stagex'"),
+    ):
         assert cli.main(["estimate", *pair, *sum((["--set", b] for b in bad), [])]) == 2
         err = capsys.readouterr().err
         assert says in err and err.count("\n") == 1, err
@@ -238,6 +255,7 @@ def test_cli_output_into_a_closed_pipe_is_quiet(tmp_path, monkeypatch, capsys):
     assert rc == 0
     assert "Traceback" not in capsys.readouterr().err
 
+
 def test_sequence_segments_and_summary():
     """The sequence benchmark's trajectory and figures, on hand-made rows (no rendering)."""
     from markerpose.experiments import sequence as sq
@@ -255,9 +273,15 @@ def test_sequence_segments_and_summary():
     assert np.allclose(c0[seg.index("static") : seg.index("hand-held")], c0[0])  # held still
 
     def row(k, segment, visible, t_mm, ms):
-        est = {"ms": ms, "found": t_mm is not None, "source": "tracked" if t_mm is not None else None, "t_mm": t_mm,
-               "r_deg": 0.01 if t_mm is not None else None, "t": [0.0, 0.0, 500.0 + (k % 2) * 0.002] if t_mm is not None else None,
-               "R": np.eye(3).tolist() if t_mm is not None else None}
+        est = {
+            "ms": ms,
+            "found": t_mm is not None,
+            "source": "tracked" if t_mm is not None else None,
+            "t_mm": t_mm,
+            "r_deg": 0.01 if t_mm is not None else None,
+            "t": [0.0, 0.0, 500.0 + (k % 2) * 0.002] if t_mm is not None else None,
+            "R": np.eye(3).tolist() if t_mm is not None else None,
+        }
         return {"frame": k, "segment": segment, "visible": visible, "blur_px": 0.0, **dict.fromkeys(sq.METHODS, est)}
 
     rows = [row(k, "static", True, 0.001, 5.0) for k in range(4)] + [row(4, "out of view", False, None, 50.0)]
@@ -356,6 +380,13 @@ def test_blur_distance_c0_c1_under_blur_along_it(tmp_path, monkeypatch):
     # Found, the distance within a few hundredths of a mm.
     assert all(r["found"] == 1.0 and abs(r["mean_mm"]) < 0.03 and r["max_abs_mm"] >= r["p95_abs_mm"] for r in rows)
     assert (tmp_path / "report.md").read_text().startswith("# Distance c0-c1") and (tmp_path / "blur-distance.png").stat().st_size > 0
-    for bad in ({"pairs": 0}, {"lengths": (-1.0,)}, {"lengths": ()}, {"lengths": (0.5,)}, {"lengths": (float("inf"),)}, {"lengths": (float("nan"),)}):
+    for bad in (
+        {"pairs": 0},
+        {"lengths": (-1.0,)},
+        {"lengths": ()},
+        {"lengths": (0.5,)},
+        {"lengths": (float("inf"),)},
+        {"lengths": (float("nan"),)},
+    ):
         with pytest.raises(ValueError):
             bd.main(bad, None, progress=False)

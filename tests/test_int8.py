@@ -43,7 +43,9 @@ def test_default_int8_gives_the_defaults_poses(gain):
     scale, as cameras are often set), outside most of the calibration images' range."""
     rig = mp.StereoRig.default()
     ref, i8 = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-int8")
-    assert i8.detector.proposer.net.path == nets.int8_weights("keypoints") and ref.detector.proposer.net.path != i8.detector.proposer.net.path
+    assert (
+        i8.detector.proposer.net.path == nets.int8_weights("keypoints") and ref.detector.proposer.net.path != i8.detector.proposer.net.path
+    )
     for frame in _frames():
         images = [np.clip(np.asarray(im, np.float32) * gain, 0, 255).astype(np.uint8) for im in frame.images]
         a, b = ref.estimate(*images), i8.estimate(*images)

@@ -19,8 +19,14 @@ import markerpose as mp
 from markerpose import edges, jit
 
 # Nearly collinear points: the direct fit's reduced scatter matrix has complex eigenvalues.
-COLLINEAR = [[7.617325, -11.074389], [-5.624674, 8.190656], [14.00355, -20.377278], [-2.679697, 3.899663],
-             [-4.195389, 6.105089], [-3.027713, 4.402007]]
+COLLINEAR = [
+    [7.617325, -11.074389],
+    [-5.624674, 8.190656],
+    [14.00355, -20.377278],
+    [-2.679697, 3.899663],
+    [-4.195389, 6.105089],
+    [-3.027713, 4.402007],
+]
 CONF = {"outlier_k": 3.0, "outlier_min_px": 0.15}
 
 
@@ -59,9 +65,21 @@ def test_complex_eigenproblem_takes_numpy_path():
     K, N = P.shape[:2]
     fallback = np.zeros(K, bool)
     out = [np.empty((K, 2)), np.empty((K, 2, 2)), np.empty(K, bool), np.empty((K, N), bool), fallback]
-    edges._robust_rows(P, np.ones((K, N), bool), np.ones((K, N)), np.zeros(K, bool), np.zeros((K, 2)),
-                       np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 40, 5), np.int64), 3.0, 0.15, edges._S1, edges._S2,
-                       edges._S3, *out)
+    edges._robust_rows(
+        P,
+        np.ones((K, N), bool),
+        np.ones((K, N)),
+        np.zeros(K, bool),
+        np.zeros((K, 2)),
+        np.tile(np.eye(2), (K, 1, 1)),
+        np.zeros((K, 40, 5), np.int64),
+        3.0,
+        0.15,
+        edges._S1,
+        edges._S2,
+        edges._S3,
+        *out,
+    )
     assert fallback[0]
     got = edges.fit_robust(P, np.ones((K, N), bool), CONF)
     ref = edges._fit_robust_numpy(P, np.ones((K, N), bool), CONF)

@@ -103,6 +103,7 @@ def _point_logits(points):
 
 def _view(tilt_deg: float, tilt_axis_deg: float, roll_deg: float, dist: float = 600.0, f: float = 300.0):
     """Ring centres of the default marker seen by a pinhole camera (y down), marker facing it."""
+
     def rot(axis, a):
         a = np.radians(a)
         c, s = np.cos(a), np.sin(a)
@@ -206,7 +207,7 @@ def test_peaks_of_a_batch_are_each_images_candidates_at_their_3x3_centroids():
         peaks = dec.nms(scores, 2, 0.01, 5)
         assert len(peaks) == len(cand) > 0
         for (x, y, sc), got in zip(peaks, cand):
-            ys, xs = np.mgrid[max(int(y) - 1, 0): int(y) + 2, max(int(x) - 1, 0): int(x) + 2]
+            ys, xs = np.mgrid[max(int(y) - 1, 0) : int(y) + 2, max(int(x) - 1, 0) : int(x) + 2]
             ys, xs = ys[(ys < scores.shape[0]) & (xs < scores.shape[1])], xs[(ys < scores.shape[0]) & (xs < scores.shape[1])]
             w = scores[ys, xs].astype(np.float64)
             np.testing.assert_allclose(got, [(w * xs).sum() / w.sum(), (w * ys).sum() / w.sum(), sc], rtol=1e-12)
@@ -253,7 +254,10 @@ def test_shipped_network_output_is_none_or_right():
     rig = mp.StereoRig.default()
     net = kp.KeypointNet()
     assert set(net.conf) >= {"threshold", "min_score", "min_id_prob", "width", "ids"}
-    views = [render_view(rig.left, look_at_pose([x, -10, 550], 35, 60, r), imaging=Imaging(alpha=0.5), seed=4) for x, r in ((20, 130), (0, 10), (-30, 250))]
+    views = [
+        render_view(rig.left, look_at_pose([x, -10, 550], 35, 60, r), imaging=Imaging(alpha=0.5), seed=4)
+        for x, r in ((20, 130), (0, 10), (-30, 250))
+    ]
     empty = np.full_like(views[0][0], 90)
     *found, nothing = net([v[0] for v in views] + [empty])
     assert nothing is None
@@ -299,8 +303,16 @@ def _save_kp(path, decode, width=0.25, **extra):
     """A stage-1 weights file as ``markerpose train keypoints --export`` writes it."""
     from markerpose.nets import FORMAT
 
-    torch.save({"format": {"network": "keypoints", "version": FORMAT}, "state_dict": kp.build_network(width).state_dict(),
-                "width": width, "decode": decode, **extra}, path)
+    torch.save(
+        {
+            "format": {"network": "keypoints", "version": FORMAT},
+            "state_dict": kp.build_network(width).state_dict(),
+            "width": width,
+            "decode": decode,
+            **extra,
+        },
+        path,
+    )
 
 
 def test_operating_points_from_the_checkpoint(tmp_path):
@@ -667,8 +679,16 @@ def _decode_by_loop(det, ids, conf, image=None):
     return None if best is None or best[1] < c["min_score"] else best
 
 
-@pytest.mark.parametrize("conf", [{"ids": "head", "min_id_prob": 0.05}, {"ids": "layout"}, {"ids": "layout", "ratio_full": None},
-                                  {"ids": "layout", "verify": True}, {"ids": "layout", "verify": True, "ratio_full": None}])
+@pytest.mark.parametrize(
+    "conf",
+    [
+        {"ids": "head", "min_id_prob": 0.05},
+        {"ids": "layout"},
+        {"ids": "layout", "ratio_full": None},
+        {"ids": "layout", "verify": True},
+        {"ids": "layout", "verify": True, "ratio_full": None},
+    ],
+)
 def test_decode_agrees_with_a_loop_over_triples(conf):
     rng = np.random.default_rng(3)
     image = rng.uniform(0, 1, (240, 320)).astype(np.float32)

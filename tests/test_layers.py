@@ -59,9 +59,15 @@ def _imports(path: Path, source: str | None = None):
             else:
                 module = node.module or ""
             yield node.lineno, module, tuple(a.name for a in node.names)
-        elif (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "import_module"
-              and node.args and isinstance(node.args[0], ast.Constant) and isinstance(node.args[0].value, str)
-              and not node.args[0].value.startswith(".")):
+        elif (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr == "import_module"
+            and node.args
+            and isinstance(node.args[0], ast.Constant)
+            and isinstance(node.args[0].value, str)
+            and not node.args[0].value.startswith(".")
+        ):
             yield node.lineno, node.args[0].value, ()
 
 
@@ -87,10 +93,11 @@ def test_the_core_is_found():
 
 @pytest.mark.parametrize("path", CORE, ids=lambda p: _module_name(p))
 def test_core_imports_nothing_from_the_lab(path):
-    bad = [f"{path.relative_to(ROOT.parent)}:{line}: imports {module}{' (' + ', '.join(names) + ')' if names else ''} "
-           f"from the {layer}"
-           for line, module, names in _imports(path)
-           if (layer := _reaches(module, names, ABOVE_CORE))]
+    bad = [
+        f"{path.relative_to(ROOT.parent)}:{line}: imports {module}{' (' + ', '.join(names) + ')' if names else ''} from the {layer}"
+        for line, module, names in _imports(path)
+        if (layer := _reaches(module, names, ABOVE_CORE))
+    ]
     assert not bad, "the core must not import the lab or the CLI:\n" + "\n".join(bad)
 
 
@@ -108,16 +115,24 @@ def test_no_private_names_across_modules(path):
 
 
 def test_the_checks_see_relative_and_nested_imports():
-    src = ("import numpy\n"
-           "def f():\n"
-           "    from ..synth.render import _expose\n"
-           "    from .. import experiments\n"
-           "    from .probe import invert\n"
-           "    import importlib\n"
-           "    importlib.import_module('markerpose.train.loop')\n")
+    src = (
+        "import numpy\n"
+        "def f():\n"
+        "    from ..synth.render import _expose\n"
+        "    from .. import experiments\n"
+        "    from .probe import invert\n"
+        "    import importlib\n"
+        "    importlib.import_module('markerpose.train.loop')\n"
+    )
     found = [(m, n) for _, m, n in _imports(ROOT / "ultrasound" / "recording.py", src)]
-    assert found == [("numpy", ()), ("markerpose.synth.render", ("_expose",)), ("markerpose", ("experiments",)),
-                     ("markerpose.ultrasound.probe", ("invert",)), ("importlib", ()), ("markerpose.train.loop", ())]
+    assert found == [
+        ("numpy", ()),
+        ("markerpose.synth.render", ("_expose",)),
+        ("markerpose", ("experiments",)),
+        ("markerpose.ultrasound.probe", ("invert",)),
+        ("importlib", ()),
+        ("markerpose.train.loop", ()),
+    ]
     assert [_reaches(m, n, LAB) for m, n in found] == [None, "synth", "experiments", None, None, "train"]
     # In a package's __init__, "." is the package itself.
     assert [m for _, m, _ in _imports(ROOT / "ultrasound" / "__init__.py", "from .probe import x\n")] == ["markerpose.ultrasound.probe"]

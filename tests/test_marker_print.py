@@ -143,8 +143,19 @@ def test_svg_contents(tmp_path):
     path = write_target(Marker(), tmp_path / "t.svg")
     root = ET.parse(path).getroot()
     ids = {e.get("id") for e in root.iter() if e.get("id")}
-    assert {"plate", "scale-bar", "scale-tick-0", "scale-tick-50", "axis-x-shaft", "axis-x-head",
-            "axis-y-shaft", "axis-y-head", "label-c0", "label-c1", "label-c2"} <= ids
+    assert {
+        "plate",
+        "scale-bar",
+        "scale-tick-0",
+        "scale-tick-50",
+        "axis-x-shaft",
+        "axis-x-head",
+        "axis-y-shaft",
+        "axis-y-head",
+        "label-c0",
+        "label-c1",
+        "label-c2",
+    } <= ids
     texts = {e.get("id"): e.text for e in root.iter(SVG_NS + "text")}
     assert [texts[f"label-c{i}"] for i in range(3)] == ["c0", "c1", "c2"]
     assert texts["scale-label"] == "50 mm"
@@ -156,8 +167,7 @@ def test_svg_contents(tmp_path):
     tx = [float(ticks[f"scale-tick-{k}"].get("points").split()[0].split(",")[0]) for k in (0, 50)]
     assert tx[1] - tx[0] == pytest.approx(50.0, abs=1e-9)
     # Axis arrows point along +x (right) and the marker's +y (up the page = decreasing SVG y).
-    shaft = {k: np.array([list(map(float, p.split(","))) for p in ticks[f"axis-{k}-shaft"].get("points").split()])
-            for k in "xy"}
+    shaft = {k: np.array([list(map(float, p.split(","))) for p in ticks[f"axis-{k}-shaft"].get("points").split()]) for k in "xy"}
     dx, dy = shaft["x"][1] - shaft["x"][0], shaft["y"][1] - shaft["y"][0]
     assert dx[0] > 0 and dx[1] == pytest.approx(0) and dy[1] < 0 and dy[0] == pytest.approx(0)
 
@@ -232,8 +242,7 @@ def test_bad_paper(tmp_path):
 
 @pytest.mark.parametrize(
     "marker",
-    [Marker(c2=(0.0, 250.0)), Marker(c1=(200.0, 0.0)), Marker(outer_diameter=90.0, inner_diameter=30.0,
-                                                            c1=(100.0, 0.0), c2=(0.0, 120.0))],
+    [Marker(c2=(0.0, 250.0)), Marker(c1=(200.0, 0.0)), Marker(outer_diameter=90.0, inner_diameter=30.0, c1=(100.0, 0.0), c2=(0.0, 120.0))],
 )
 @pytest.mark.parametrize("suffix", [".svg", ".pdf"])
 def test_marker_too_large(tmp_path, marker, suffix):

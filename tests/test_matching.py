@@ -27,11 +27,13 @@ def test_side_lengths_of_the_default_marker():
 def test_finds_the_marker_among_decoys_in_id_order(rig, seed):
     rng = np.random.default_rng(seed)
     m = mp.Marker()
-    T = look_at_pose([rng.uniform(-60, 60), rng.uniform(-40, 40), rng.uniform(380, 750)], rng.uniform(0, 50), rng.uniform(0, 360), rng.uniform(0, 360))
+    T = look_at_pose(
+        [rng.uniform(-60, 60), rng.uniform(-40, 40), rng.uniform(380, 750)], rng.uniform(0, 50), rng.uniform(0, 360), rng.uniform(0, 360)
+    )
     true = _project(rig, T, m.points3d)
     # Decoys: random 3D points near the marker (seen in both views, on their epipolar
     # lines) and image points with no partner; stage-1 noise of ~1 px on the true ones.
-    decoys3d = (T[:3, 3] + rng.uniform(-80, 80, (6, 3)))
+    decoys3d = T[:3, 3] + rng.uniform(-80, 80, (6, 3))
     dec = rig.project(decoys3d)
     noise = rng.normal(0, 1.0, (2, 3, 2))
     left = np.vstack([true[0] + noise[0], dec[0], rng.uniform(0, 1280, (4, 2))])
@@ -92,16 +94,22 @@ def test_transfer_puts_the_rings_where_the_other_view_sees_them(rig, view, seed)
     rng = np.random.default_rng(seed)
     m = mp.Marker()
     # Steep, as where transfer is needed: 45-60° to the look-at axis.
-    T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(400, 700)], rng.uniform(45, 60), rng.uniform(0, 360), rng.uniform(0, 360))
+    T = look_at_pose(
+        [rng.uniform(-40, 40), rng.uniform(-30, 30), rng.uniform(400, 700)], rng.uniform(45, 60), rng.uniform(0, 360), rng.uniform(0, 360)
+    )
     true = _project(rig, T, m.points3d)
-    preds = transfer(rig, view, view_poses(rig.cameras[view], true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius), m.points3d)
+    preds = transfer(
+        rig, view, view_poses(rig.cameras[view], true[view], _ellipses(rig, T, m, view), m.points3d, m.outer_radius), m.points3d
+    )
     assert 1 <= len(preds) <= 2
     # The ellipses' shapes pick the right one of P3P's poses: it comes first, with the
     # marker's pose in the other view and so its rings' ellipses there.
     np.testing.assert_allclose(preds[0][0], true[1 - view], atol=0.05)
     T_other = T if view == 1 else rig.T_right_left @ T
     np.testing.assert_allclose(preds[0][1][:3, 3], T_other[:3, 3], atol=0.05)
-    for (c, ax, _ang), (c2, ax2, _ang2) in zip(ring_ellipses(rig.cameras[1 - view], preds[0][1], m.points3d, m.outer_radius), _ellipses(rig, T, m, 1 - view)):
+    for (c, ax, _ang), (c2, ax2, _ang2) in zip(
+        ring_ellipses(rig.cameras[1 - view], preds[0][1], m.points3d, m.outer_radius), _ellipses(rig, T, m, 1 - view)
+    ):
         np.testing.assert_allclose(c, c2, atol=0.05)
         np.testing.assert_allclose(sorted(ax), sorted(ax2), atol=0.1)
     # Without ellipses the right pose is still among P3P's solutions.

@@ -25,11 +25,14 @@ def _randomised(net, seed=0):
     return net.eval()
 
 
-@pytest.mark.parametrize("build, shape", [
-    (lambda: kp.build_network(0.5, 0.25), (2, 1, 240, 320)),
-    (lambda: kp.build_network(0.25), (1, 1, 480, 640)),
-    (es.build_network, (3, 1, 120, 120)),
-])
+@pytest.mark.parametrize(
+    "build, shape",
+    [
+        (lambda: kp.build_network(0.5, 0.25), (2, 1, 240, 320)),
+        (lambda: kp.build_network(0.25), (1, 1, 480, 640)),
+        (es.build_network, (3, 1, 120, 120)),
+    ],
+)
 def test_fused_network_gives_the_same_outputs(build, shape):
     net = _randomised(build())
     fused = fuse_batchnorm(copy.deepcopy(net))
@@ -65,4 +68,3 @@ def test_onnx_and_torch_give_the_same_centres():
         assert a is not None and b is not None
         np.testing.assert_allclose(a.centers, b.centers, atol=1e-3)
         np.testing.assert_allclose(a.T, b.T, atol=1e-4)
-

@@ -151,8 +151,11 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     assert err.max() < 0.05, err
     from markerpose import classical
 
-    monkeypatch.setattr(classical, "refine_points",
-                        lambda img, pts, *a, **k: (np.asarray(pts, float), np.zeros(3, bool), [None] * 3, 0.0)[: 4 if k.get("with_blur") else 3])
+    monkeypatch.setattr(
+        classical,
+        "refine_points",
+        lambda img, pts, *a, **k: (np.asarray(pts, float), np.zeros(3, bool), [None] * 3, 0.0)[: 4 if k.get("with_blur") else 3],
+    )
     assert tr.estimate(*f.images) is None
 
 
@@ -279,7 +282,9 @@ def test_single_view_tries_triples_by_ring_evidence(rig, tracker):
     assert strict.detect(gray) is None
     best = float(strict.why.split(" has ")[1].split()[0])
     assert strict.why.startswith("ring evidence: the best of ") and "(min_evidence 1.01)" in strict.why
-    every_order = layout_orders(strict.detector.proposer.candidates([gray])[0], strict.marker.centers2d, strict.conf["match"]["view_min_ratio"])[0]
+    every_order = layout_orders(
+        strict.detector.proposer.candidates([gray])[0], strict.marker.centers2d, strict.conf["match"]["view_min_ratio"]
+    )[0]
     assert best == pytest.approx(tracker.detector.proposer.evidence(gray, every_order).max(), abs=1e-3)
 
 

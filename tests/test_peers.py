@@ -121,8 +121,9 @@ def test_missing_peer_is_skipped_with_its_package_named(monkeypatch, capsys, tmp
     with pytest.raises(ImportError, match="pip install stag-python"):
         systems.make("stag")
     # The experiment goes on without it and says so.
-    conf = experiment.plan(quick=True, pairs=1, systems=("aruco", "stag"), alphas=(1.0,), blurs=(), jitter_poses=1,
-                           jitter_repeats=2, marker_free=1)
+    conf = experiment.plan(
+        quick=True, pairs=1, systems=("aruco", "stag"), alphas=(1.0,), blurs=(), jitter_poses=1, jitter_repeats=2, marker_free=1
+    )
     doc = experiment.main(conf, tmp_path, jobs=1, progress=False)
     assert "skipping stag" in capsys.readouterr().out
     data = json.loads((tmp_path / "results.json").read_text())

@@ -207,10 +207,15 @@ def test_rejection_names_the_failed_check(rig, frame):
     conf = verify.default_conf
     assert verify.rejection(rig, [left, right], tracker.marker, conf, True) is None
     moved = replace(right, centers=right.centers + [0.0, 8.0])
-    assert re.match(r"epipolar check: c\d is \d+\.\d px from its epipolar line \(limit 3 px\)", verify.rejection(rig, [left, moved], tracker.marker, conf, True))
+    assert re.match(
+        r"epipolar check: c\d is \d+\.\d px from its epipolar line \(limit 3 px\)",
+        verify.rejection(rig, [left, moved], tracker.marker, conf, True),
+    )
     unrefined = replace(right, refined=np.array([True, False, True]))
-    assert verify.rejection(rig, [left, unrefined], tracker.marker, conf, True) == ("c1 not refined in the right view (the sub-pixel edge fit failed, or under heavy blur the blurred-ring fit "
-                                                                                 "disagreed with it or could not run)")
+    assert verify.rejection(rig, [left, unrefined], tracker.marker, conf, True) == (
+        "c1 not refined in the right view (the sub-pixel edge fit failed, or under heavy blur the blurred-ring fit "
+        "disagreed with it or could not run)"
+    )
 
 
 @pytest.mark.parametrize("swap", [False, True], ids=["left view twice", "views swapped"])
@@ -298,7 +303,6 @@ def test_serial_blas_puts_the_threads_back_when_a_call_raises(rig):
         from markerpose.pipeline import serial_blas
 
         assert serial_blas._inside == 0
-
 
 
 def test_each_view_noise_is_estimated_once_a_frame(rig, frame, monkeypatch):

@@ -23,8 +23,10 @@ needs_nets = pytest.mark.skipif(not default_weights("keypoints").is_file(), reas
 @pytest.fixture(scope="module")
 def sequence(rig):
     """Eight frames of a marker moving 1.5 mm and 1° a frame, the last two without it."""
-    frames = [render_stereo(rig, look_at_pose([-5 + 1.5 * k, 2, 560 - k], 30 + k, 45, 10 + k), imaging=Imaging(alpha=0.8), seed=k)
-              for k in range(6)]
+    frames = [
+        render_stereo(rig, look_at_pose([-5 + 1.5 * k, 2, 560 - k], 30 + k, 45, 10 + k), imaging=Imaging(alpha=0.8), seed=k)
+        for k in range(6)
+    ]
     rng = np.random.default_rng(5)
     empty = [(clutter_background((1280, 1024), rng) * 200).astype(np.uint8) for _ in range(2)]
     return frames, empty
@@ -37,6 +39,7 @@ def test_predict_is_constant_velocity_then_constant_acceleration():
     T2 = predict([T0, T1])
     np.testing.assert_allclose(T2 @ np.linalg.inv(T1), T1 @ np.linalg.inv(T0), atol=1e-9)  # the same step again
     np.testing.assert_allclose(predict([T0, T1, T2]), predict([T1, T2]), atol=1e-9)  # steady motion: no acceleration
+
     # Uniformly accelerated (x = 0.5 a k^2, a = 2 mm per frame squared), or turning at a
     # steady rate: the next pose exactly.
     def moved(k):
@@ -247,8 +250,14 @@ def test_while_lost_an_unchanged_pair_is_not_detected_again(rig):
 
 
 def test_track_conf_is_checked(rig):
-    for bad in ({"near_margin": -1}, {"shift_margin": -0.5}, {"shift_min_score": 1.5}, {"lost_change": -1}, {"lost_block": 0},
-                {"lost_refresh": 0}):
+    for bad in (
+        {"near_margin": -1},
+        {"shift_margin": -0.5},
+        {"shift_min_score": 1.5},
+        {"lost_change": -1},
+        {"lost_block": 0},
+        {"lost_refresh": 0},
+    ):
         with pytest.raises(ValueError, match=next(iter(bad))):
             mp.MarkerPose(rig, detector="classical", track=bad)
 
@@ -368,7 +377,8 @@ def test_tracker_state_machine_with_a_stand_in_pipeline(rig):
     for k in range(4):
         frame = _frame()
         assert tracker.next(frame, pipe) is None
-        assert frame.why == ("no marker found" if k in (0, 3) else
-                             "lost, and the pair has not changed since the last one detected without the marker")
+        assert frame.why == (
+            "no marker found" if k in (0, 3) else "lost, and the pair has not changed since the last one detected without the marker"
+        )
     assert [c[0] for c in pipe.calls] == ["cold", "cold"]
     assert tracker.next(_frame(200), pipe) is None and len(pipe.calls) == 3  # the scene changed: detected

@@ -116,7 +116,12 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
         assert {name, name + "_stereo"} <= set(tuned), name
     assert {name + "_look" for name in tk.LOOKS} <= set(tuned)
     assert all(tuned[k]["ratio_full"] == dec.default_conf["ratio_full"] for k in tuned if tuned[k].get("ids") == "layout")
-    assert all(tuned[k][key] == dec.default_conf[key] for k in tuned if tuned[k].get("align") for key in ("align_top", "align_orders", "align_cc_power"))
+    assert all(
+        tuned[k][key] == dec.default_conf[key]
+        for k in tuned
+        if tuned[k].get("align")
+        for key in ("align_top", "align_orders", "align_cc_power")
+    )
     assert kp.KeypointNet(slim, {"verify": True, "align": True}).conf["min_score"] == tuned["layout_verify_align"]["min_score"]
     assert len(net([np.zeros((480, 640), np.uint8)])) == 1
     # The export writes the ONNX copy inference loads: same thresholds, same logits.
@@ -143,7 +148,9 @@ def test_training_window_keeps_the_marker_and_shifts_its_points():
         if (lab == 1).all():
             assert lit == sorted((int(x), int(y)) for x, y in p)
     # A point outside the window is absent, one on its edge ignored.
-    out, p, lab = crop(img, np.array([[1.0, 1.0], [319.0, 239.0], [160.0, 120.0]], np.float32), np.ones(3, np.int8), np.random.default_rng(1))
+    out, p, lab = crop(
+        img, np.array([[1.0, 1.0], [319.0, 239.0], [160.0, 120.0]], np.float32), np.ones(3, np.int8), np.random.default_rng(1)
+    )
     assert lab[2] in (1, -1) and (lab[:2] != 1).all()
 
 
@@ -163,7 +170,9 @@ def test_training_window_option():
             tk.check_window(bad)
     with pytest.raises(ValueError, match="multiples of 8"):
         tk.main({"window": (100, 100)}, "unused", data_dir="unused")
-    out, _, _ = tk.crop(np.zeros((240, 320), np.uint8), np.full((3, 2), 150.0, np.float32), np.ones(3, np.int8), np.random.default_rng(0), (160, 128))
+    out, _, _ = tk.crop(
+        np.zeros((240, 320), np.uint8), np.full((3, 2), 150.0, np.float32), np.ones(3, np.int8), np.random.default_rng(0), (160, 128)
+    )
     assert out.shape == (128, 160)
 
 

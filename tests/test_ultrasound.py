@@ -46,7 +46,7 @@ def test_bmode_tube_echo_at_the_interface():
     # The column through the tube's axis: the brightest echo near the top of the tube lies
     # at the outer surface's depth.
     u = round(tr.size[0] / 2)
-    col = im[:, u - 1:u + 2].astype(float).mean(1)
+    col = im[:, u - 1 : u + 2].astype(float).mean(1)
     top_px = (setup.depth_mm - D_TRUE / 2) / tr.spacing[1]
     win = slice(int(top_px) - 8, int(top_px) + 9)
     peak = win.start + int(np.argmax(col[win]))
@@ -54,7 +54,7 @@ def test_bmode_tube_echo_at_the_interface():
     # Water is dark; the echo is far above it; the tube's lumen is water too.
     assert col[peak] > 150 and np.median(im[:20]) < 60
     centre_px = int(setup.depth_mm / tr.spacing[1])
-    assert np.median(im[centre_px - 5:centre_px + 5, u - 5:u + 5]) < 80
+    assert np.median(im[centre_px - 5 : centre_px + 5, u - 5 : u + 5]) < 80
 
 
 def test_bmode_is_seeded_and_shadows_below_air():
@@ -251,20 +251,51 @@ def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
     cal = truth["calibration"]
     assert cli.main(["track", str(cal / "left"), str(cal / "right"), "--fps", "1", "--out", str(cal / "poses.csv"), "--quiet"]) == 0
     sx, sy = truth["spacing"]
-    assert cli.main(["ultrasound", "calibrate", "--poses", str(cal / "poses.csv"), "--images", str(cal / "us"),
-                     "--spacing", f"{sx},{sy}", "--out", str(tmp_path / "probe.yaml")]) == 0
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "calibrate",
+                "--poses",
+                str(cal / "poses.csv"),
+                "--images",
+                str(cal / "us"),
+                "--spacing",
+                f"{sx},{sy}",
+                "--out",
+                str(tmp_path / "probe.yaml"),
+            ]
+        )
+        == 0
+    )
     calib = ProbeCalibration.load(tmp_path / "probe.yaml")
     true_calib = ProbeCalibration.load(truth["true_calibration"])
     assert calib.size == true_calib.size and calib.rms_mm < 0.5
     corners = [[0, 0], [255, 0], [0, 333], [255, 333]]
     assert np.abs(calib.pixels_to_marker(corners) - true_calib.pixels_to_marker(corners)).max() < 1.5  # mm
-    assert cli.main(["track", str(truth["left"]), str(truth["right"]), "--fps", "30",
-                     "--out", str(tmp_path / "poses.csv"), "--quiet"]) == 0
+    assert cli.main(["track", str(truth["left"]), str(truth["right"]), "--fps", "30", "--out", str(tmp_path / "poses.csv"), "--quiet"]) == 0
     u, v = truth["seed_px"]
     out = tmp_path / "rec"
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(truth["true_calibration"]), "--seed", f"{u + 3:.1f},{v - 2:.1f}",
-                     "--out", str(out), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "reconstruct",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--images",
+                str(truth["us"]),
+                "--calibration",
+                str(truth["true_calibration"]),
+                "--seed",
+                f"{u + 3:.1f},{v - 2:.1f}",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == summary["frames_with_pose"] == 10
     assert abs(summary["cylinder"]["diameter_mm"] - D_TRUE) < 0.1
@@ -280,22 +311,80 @@ def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
     assert data.ndim == 3 and data.max() > 100
     assert formats.read_ply(out / "points.ply")["x"].size > 100
     # The estimated calibration reconstructs the same tube.
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(tmp_path / "probe.yaml"), "--seed", f"{u:.1f},{v:.1f}",
-                     "--out", str(tmp_path / "rec2"), "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "reconstruct",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--images",
+                str(truth["us"]),
+                "--calibration",
+                str(tmp_path / "probe.yaml"),
+                "--seed",
+                f"{u:.1f},{v:.1f}",
+                "--out",
+                str(tmp_path / "rec2"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     d2 = json.loads((tmp_path / "rec2" / "summary.json").read_text())["cylinder"]["diameter_mm"]
     assert abs(d2 - D_TRUE) < 0.1
     # User errors: one line, exit 2.
     capsys.readouterr()
     good = ["--images", str(truth["us"]), "--calibration", str(truth["true_calibration"])]
     assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "nope.csv"), *good]) == 2
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["left"]),
-                     "--calibration", str(truth["true_calibration"])]) == 2
-    assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--calibration", str(tmp_path / "poses.csv")]) == 2
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "reconstruct",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--images",
+                str(truth["left"]),
+                "--calibration",
+                str(truth["true_calibration"]),
+            ]
+        )
+        == 2
+    )
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "reconstruct",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--images",
+                str(truth["us"]),
+                "--calibration",
+                str(tmp_path / "poses.csv"),
+            ]
+        )
+        == 2
+    )
     assert cli.main(["ultrasound", "reconstruct", "--poses", str(tmp_path / "poses.csv"), *good, "--time-offset", "100"]) == 2
-    assert cli.main(["ultrasound", "calibrate", "--poses", str(tmp_path / "poses.csv"), "--images", str(truth["us"]),
-                     "--spacing", "0.15,0.15", "--out", str(tmp_path / "x.yaml")]) == 2  # a sweep has no crossing
+    assert (
+        cli.main(
+            [
+                "ultrasound",
+                "calibrate",
+                "--poses",
+                str(tmp_path / "poses.csv"),
+                "--images",
+                str(truth["us"]),
+                "--spacing",
+                "0.15,0.15",
+                "--out",
+                str(tmp_path / "x.yaml"),
+            ]
+        )
+        == 2
+    )  # a sweep has no crossing
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 5 and all(line.startswith("error: ") for line in err)
 
@@ -306,14 +395,30 @@ def test_demo_writes_the_report_results_and_files(tmp_path):
     plan = experiment.Plan(n_acquisitions=1, n_frames=16, n_calibration=10, seed=3)
     path = experiment.main(tmp_path, plan=plan, jobs=1, progress=False)
     res = json.loads((tmp_path / "results.json").read_text())
-    for key in ("diameter_mm", "diameter_error_mm", "diameter_error_true_poses_mm",
-                "diameter_error_paper_classical_mm", "calibration_rms_mm", "n_acquisitions"):
+    for key in (
+        "diameter_mm",
+        "diameter_error_mm",
+        "diameter_error_true_poses_mm",
+        "diameter_error_paper_classical_mm",
+        "calibration_rms_mm",
+        "n_acquisitions",
+    ):
         assert key in res and res[key] is not None, key
     assert res["n_acquisitions"] == 1
     assert abs(res["diameter_mm"] - D_TRUE) < 0.06 and res["diameter_error_mm"] < 0.06
     assert res["calibration_rms_mm"] < 0.5
-    for name in ("report.md", "reconstruction.png", "residuals.png", "calibration.png", "frames.png", "diameters.png",
-                 "sweep.seq.nrrd", "volume.nrrd", "points.ply", "probe.yaml"):
+    for name in (
+        "report.md",
+        "reconstruction.png",
+        "residuals.png",
+        "calibration.png",
+        "frames.png",
+        "diameters.png",
+        "sweep.seq.nrrd",
+        "volume.nrrd",
+        "points.ply",
+        "probe.yaml",
+    ):
         assert (tmp_path / name).is_file(), name
     assert "15.999" in path.read_text()
     assert len(formats.read_sequence(tmp_path / "sweep.seq.nrrd")["images"]) == 16

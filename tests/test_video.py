@@ -38,8 +38,25 @@ def folders(tmp_path_factory):
 def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsys):
     root, truth = folders
     out = tmp_path / "poses.csv"
-    assert cli.main(["track", str(root / "L"), str(root / "R"), "--out", str(out), "--jsonl", str(tmp_path / "p.jsonl"),
-                     "--video", str(tmp_path / "axes.mp4"), "--detector", "classical", "--quiet"]) == 0
+    assert (
+        cli.main(
+            [
+                "track",
+                str(root / "L"),
+                str(root / "R"),
+                "--out",
+                str(out),
+                "--jsonl",
+                str(tmp_path / "p.jsonl"),
+                "--video",
+                str(tmp_path / "axes.mp4"),
+                "--detector",
+                "classical",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     cap = cv2.VideoCapture(str(tmp_path / "axes.mp4"))  # both views side by side, one frame a pair
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(truth) and int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 2 * 1280
     assert "10 frames" in capsys.readouterr().out
@@ -154,8 +171,13 @@ def test_openigtlink_client_receives_the_tracked_poses(folders, tmp_path):
                     time.sleep(0.005)
 
         out = tmp_path / "poses.csv"
-        summary = track_stream(mp.MarkerPose(mp.StereoRig.default(), detector="classical"), open_stereo(str(root / "L"), str(root / "R")),
-                               out, progress=False, send=send)
+        summary = track_stream(
+            mp.MarkerPose(mp.StereoRig.default(), detector="classical"),
+            open_stereo(str(root / "L"), str(root / "R")),
+            out,
+            progress=False,
+            send=send,
+        )
     finally:
         done.set()
         listener.join(timeout=2)

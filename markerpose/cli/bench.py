@@ -12,7 +12,14 @@ def cmd_bench(args):
         from ..experiments import sequence
 
         out = args.out or "markerpose-sequence"
-        conf = {"frames": args.frames, "threads": args.threads, "passes": args.passes, "pace": not args.no_pace, "preset": args.preset, **seed}
+        conf = {
+            "frames": args.frames,
+            "threads": args.threads,
+            "passes": args.passes,
+            "pace": not args.no_pace,
+            "preset": args.preset,
+            **seed,
+        }
         res = sequence.main(conf, out, progress=not args.quiet)
         print(sequence.report(res))
         print(f"Wrote {out}/: report.md, results.json, sequence.png")
@@ -27,7 +34,14 @@ def cmd_bench(args):
         return
     from ..experiments import bench
 
-    conf = {"pairs": args.pairs, "blurred_pairs": args.blurred_pairs, "empty_pairs": args.empty_pairs, "repeats": args.repeats, "threads": args.threads, "configs": args.configs}
+    conf = {
+        "pairs": args.pairs,
+        "blurred_pairs": args.blurred_pairs,
+        "empty_pairs": args.empty_pairs,
+        "repeats": args.repeats,
+        "threads": args.threads,
+        "configs": args.configs,
+    }
     res = bench.main(conf, args.json, progress=not args.quiet)
     print(bench.report(res))
 
@@ -41,17 +55,29 @@ def register(sub) -> None:
     b.add_argument("--threads", type=int, help="torch threads (default: all cores)")
     b.add_argument("--configs", nargs="*", help="preset names (default: all available)")
     b.add_argument("--json", help="also write the figures as JSON")
-    b.add_argument("--sequence", action="store_true", help="instead: a rendered 60 frames/s stereo video (still, by hand, fast, gone, dark), tracked and detected")
+    b.add_argument(
+        "--sequence",
+        action="store_true",
+        help="instead: a rendered 60 frames/s stereo video (still, by hand, fast, gone, dark), tracked and detected",
+    )
     b.add_argument("--frames", type=int, default=240, help="--sequence: frames (default 240: four seconds)")
-    b.add_argument("--jumps", action="store_true",
-                   help="instead: the marker put down elsewhere between two frames, tracked with and without the search near the prediction")
+    b.add_argument(
+        "--jumps",
+        action="store_true",
+        help="instead: the marker put down elsewhere between two frames, tracked with and without the search near the prediction",
+    )
     b.add_argument("--trials", type=int, default=120, help="--jumps: trials (default 120; --threads, --seed and --out apply too)")
     b.add_argument("--seed", type=int, help="--sequence / --jumps: seed of the rendering (default 0 / 11)")
     b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
-    b.add_argument("--passes", type=int, default=2,
-                   help="--sequence: passes over the sequence per method, in alternating order (default 2; the statistics pool them)")
-    b.add_argument("--no-pace", action="store_true",
-                   help="--sequence: hand the frames over back to back instead of at the stream's 60 frames/s")
+    b.add_argument(
+        "--passes",
+        type=int,
+        default=2,
+        help="--sequence: passes over the sequence per method, in alternating order (default 2; the statistics pool them)",
+    )
+    b.add_argument(
+        "--no-pace", action="store_true", help="--sequence: hand the frames over back to back instead of at the stream's 60 frames/s"
+    )
     b.add_argument("--out", help="--sequence / --jumps: output folder (default markerpose-sequence / markerpose-jumps)")
     b.add_argument("--quiet", action="store_true")
     b.set_defaults(func=cmd_bench)

@@ -56,19 +56,25 @@ def cmd_calibrate(args):
     out = Path(args.out)
     cal.rig.save(out)
     s = cal.summary()
-    print(f"wrote {out}: {s['pairs_used']} pairs used ({len(s['pairs_rejected'])} rejected: {s['pairs_rejected'][:10]}); "
-          f"RMS reprojection error left {s['rms_left_px']:.3f} px, right {s['rms_right_px']:.3f} px, stereo {s['rms_stereo_px']:.3f} px; "
-          f"baseline {s['baseline_mm']:.2f} mm")
+    print(
+        f"wrote {out}: {s['pairs_used']} pairs used ({len(s['pairs_rejected'])} rejected: {s['pairs_rejected'][:10]}); "
+        f"RMS reprojection error left {s['rms_left_px']:.3f} px, right {s['rms_right_px']:.3f} px, stereo {s['rms_stereo_px']:.3f} px; "
+        f"baseline {s['baseline_mm']:.2f} mm"
+    )
     if args.coverage:
         print(f"wrote {plot_coverage(cal, args.coverage)}: where the grid was seen in each image")
     if args.rendered:
         c = check(truth, cal)
-        print("against the rig that rendered the images: focal lengths within "
-              f"{100 * max(c['f_left_rel_error'], c['f_right_rel_error']):.4f} %, principal points within "
-              f"{max(c['c_left_px_error'], c['c_right_px_error']):.2f} px, baseline within {c['baseline_mm_error']:.4f} mm, "
-              f"rotation within {c['R_deg_error']:.4f}°")
+        print(
+            "against the rig that rendered the images: focal lengths within "
+            f"{100 * max(c['f_left_rel_error'], c['f_right_rel_error']):.4f} %, principal points within "
+            f"{max(c['c_left_px_error'], c['c_right_px_error']):.2f} px, baseline within {c['baseline_mm_error']:.4f} mm, "
+            f"rotation within {c['R_deg_error']:.4f}°"
+        )
     if max(s["rms_left_px"], s["rms_right_px"]) > 0.5:
-        print("warning: RMS reprojection error above 0.5 px: check focus, motion blur, a flat print and the --grid/--spacing", file=sys.stderr)
+        print(
+            "warning: RMS reprojection error above 0.5 px: check focus, motion blur, a flat print and the --grid/--spacing", file=sys.stderr
+        )
 
 
 def register(sub) -> None:
@@ -88,6 +94,8 @@ def register(sub) -> None:
     cb.add_argument("--diameter", type=float, default=None, help=argparse.SUPPRESS)
     cb.add_argument("--out", default="rig.yaml", help="rig file to write (default rig.yaml)")
     cb.add_argument("--coverage", help="also a plot of where the grid was seen in each image (PNG)")
-    cb.add_argument("--rendered", type=int, metavar="N", help="instead of LEFT RIGHT: N rendered pairs of the built-in rig, checked against it")
+    cb.add_argument(
+        "--rendered", type=int, metavar="N", help="instead of LEFT RIGHT: N rendered pairs of the built-in rig, checked against it"
+    )
     cb.add_argument("--seed", type=int, default=0, help="--rendered: seed of the poses and the noise")
     cb.set_defaults(func=cmd_calibrate)

@@ -128,9 +128,15 @@ def tracker(args):
 
 
 def add_set_arg(p) -> None:
-    p.add_argument("--set", dest="settings", action="append", type=setting, metavar="STAGE.KEY=VALUE",
-                   help="a stage setting over the preset (README: stage settings), e.g. track.lost_change=0 or "
-                        "match.max_fits=5; also threads=N, backend=NAME, detector=NAME; repeatable")
+    p.add_argument(
+        "--set",
+        dest="settings",
+        action="append",
+        type=setting,
+        metavar="STAGE.KEY=VALUE",
+        help="a stage setting over the preset (README: stage settings), e.g. track.lost_change=0 or "
+        "match.max_fits=5; also threads=N, backend=NAME, detector=NAME; repeatable",
+    )
 
 
 def add_rig_arg(p) -> None:

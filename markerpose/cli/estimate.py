@@ -30,8 +30,7 @@ def cmd_estimate(args):
     if est is None:
         print(dumps({"found": False}, None))
         return EXIT_NOT_FOUND
-    print(dumps({"found": True, "T_left_marker": est.T, "points3d": est.points3d, "centers": est.centers,
-                 "residual_px": est.residual_px}))
+    print(dumps({"found": True, "T_left_marker": est.T, "points3d": est.points3d, "centers": est.centers, "residual_px": est.residual_px}))
     return 0
 
 

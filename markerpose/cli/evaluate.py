@@ -24,7 +24,9 @@ _DECODING_LABEL = {
 def _print_detection(res: dict) -> None:
     """Per test set and decoding: detection, IDs, accuracy, false positives, time; then
     whether the candidates held the centres at all."""
-    print("| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |")
+    print(
+        "| test set | views | IDs from | detected (all 3 within 8 px, right IDs) | ID accuracy | median px | p95 px | false positives | s/image |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     diag = []
     for name in next(iter(res.values())):
@@ -48,7 +50,9 @@ def _print_by_ring_size(res: dict) -> None:
     for best in best_modes:
         sizes = {name: {b["bin"]: b for b in r["by_ring_size"]} for name, r in res[best].items() if r["n_views"]}
         bins = sorted({b for s in sizes.values() for b in s}, key=lambda b: float(b.split("-")[0]))
-        print(f"\n{_DECODING_LABEL[best]}, single view: detected by the outer ring's apparent diameter in network-input px (x4 at 1280 px wide; views)")
+        print(
+            f"\n{_DECODING_LABEL[best]}, single view: detected by the outer ring's apparent diameter in network-input px (x4 at 1280 px wide; views)"
+        )
         print("| diameter | " + " | ".join(sizes) + " |")
         print("|---|" + "---|" * len(sizes))
         for b in bins:
@@ -70,7 +74,9 @@ def _print_speed(tk, weights) -> dict:
     print("\n| network width | parameters | forward pass, stereo pair (2 x 320x240), ms | second look, one 640x480 view, ms |")
     print("|---|---|---|---|")
     for w, r in sp.items():
-        print(f"| {_width_label(w)}{' (paper)' if w == 1.0 else ''}{' (shipped)' if w == shipped else ''} | {r['params']:,} | {r['pair_ms']:.1f} | {r['look_ms']:.1f} |")
+        print(
+            f"| {_width_label(w)}{' (paper)' if w == 1.0 else ''}{' (shipped)' if w == shipped else ''} | {r['params']:,} | {r['pair_ms']:.1f} | {r['look_ms']:.1f} |"
+        )
     return {_width_label(k): v for k, v in sp.items()}
 
 
@@ -80,8 +86,9 @@ def cmd_eval_keypoints(args):
     unknown = sorted(set(args.decodings or ()) - set(tk.DECODINGS))
     if unknown:
         raise SystemExit(f"unknown --decodings {unknown}; choose from {sorted(tk.DECODINGS)}")
-    res = tk.evaluate(args.weights, args.data, args.sets, args.workers, decodings=tuple(args.decodings or tk.DECODINGS),
-                      second_look=args.second_look)
+    res = tk.evaluate(
+        args.weights, args.data, args.sets, args.workers, decodings=tuple(args.decodings or tk.DECODINGS), second_look=args.second_look
+    )
     _print_detection(res)
     _print_by_ring_size(res)
     if args.speed:
@@ -94,7 +101,9 @@ def cmd_eval_ellipses(args):
     from ..train import ellipses as te
 
     res = te.evaluate(args.weights, args.data, args.sets, args.workers)
-    print("| test set | patches | IoU | centre fit | found | median px (true ellipse centre) | p95 px | median px (projected 3D centre) | p95 px |")
+    print(
+        "| test set | patches | IoU | centre fit | found | median px (true ellipse centre) | p95 px | median px (projected 3D centre) | p95 px |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for name, r in res.items():
         for fit in ("ellipse", "moments", "subpixel"):
@@ -162,9 +171,17 @@ def _register_networks(esub) -> None:
 def _register_pipeline(esub) -> None:
     ep = esub.add_parser("pipeline", help="end to end on held-out stereo pairs: detection, centres, pose, per configuration")
     ep.add_argument("--pairs", type=int, default=200, help="pairs per set")
-    ep.add_argument("--sets", nargs="*", help="standard, dark_0.0625, blur_25, marker_free (the default), far (0.8-1.6 m), and realism (the nine realism_<effect> sets: shadow, light_gradient, defocus, gamma, jpeg, resample, toner, occluded_border, ring_object)")
+    ep.add_argument(
+        "--sets",
+        nargs="*",
+        help="standard, dark_0.0625, blur_25, marker_free (the default), far (0.8-1.6 m), and realism (the nine realism_<effect> sets: shadow, light_gradient, defocus, gamma, jpeg, resample, toner, occluded_border, ring_object)",
+    )
     ep.add_argument("--configs", nargs="*", help="preset names (default: all available)")
-    ep.add_argument("--single-view", action="store_true", help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs")
+    ep.add_argument(
+        "--single-view",
+        action="store_true",
+        help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs",
+    )
     ep.add_argument("--workers", type=int, default=1, help="processes running sets at once (one torch thread each; figures unchanged)")
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")

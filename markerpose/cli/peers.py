@@ -26,7 +26,12 @@ def register(sub) -> None:
     pe.add_argument("--out", default="markerpose-peers", help="output folder (default: markerpose-peers)")
     pe.add_argument("--quick", action="store_true", help="6 scenes per level instead of 40 (a few minutes)")
     pe.add_argument("--pairs", type=positive_int, help="scenes per darkness / blur level (default 40; --quick 6)")
-    pe.add_argument("--systems", nargs="+", choices=("markerpose", "apriltag", "aruco", "charuco", "stag"), help="systems to run (default: all installed)")
+    pe.add_argument(
+        "--systems",
+        nargs="+",
+        choices=("markerpose", "apriltag", "aruco", "charuco", "stag"),
+        help="systems to run (default: all installed)",
+    )
     pe.add_argument("--seed", type=int, default=0)
     pe.add_argument("--jobs", type=positive_int, help="processes (default: up to 2)")
     pe.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -41,8 +41,10 @@ def cmd_render(args):
     print(f"wrote {out}/left.png, right.png, truth.json")
     if args.repeat > 1:
         # The first call also builds each camera's undistortion grid (cached afterwards).
-        print(f"render time per 1280x1024 stereo pair: median {np.median(times[1:]):.3f} s over {args.repeat - 1} "
-              f"(first call {times[0]:.3f} s, builds the cached ray grid)")
+        print(
+            f"render time per 1280x1024 stereo pair: median {np.median(times[1:]):.3f} s over {args.repeat - 1} "
+            f"(first call {times[0]:.3f} s, builds the cached ray grid)"
+        )
 
 
 def register(sub) -> None:

@@ -53,9 +53,11 @@ def cmd_track(args):
             send.close()
         for sink in sinks:
             sink.close()
-    print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
-          f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
-          f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else ""))
+    print(
+        f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
+        f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
+        f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else "")
+    )
 
 
 def register(sub) -> None:
@@ -67,10 +69,21 @@ def register(sub) -> None:
     k.add_argument("--jsonl", help="also one JSON object a frame")
     k.add_argument("--video", help="also a video (mp4) of both views side by side with the marker's axes drawn")
     k.add_argument("--show", action="store_true", help="a live window with both views and the axes (q stops; needs a display)")
-    k.add_argument("--fps", type=float, default=60.0, help="frame rate of image folders, for timestamp_s (videos and cameras give their own; default 60)")
+    k.add_argument(
+        "--fps",
+        type=float,
+        default=60.0,
+        help="frame rate of image folders, for timestamp_s (videos and cameras give their own; default 60)",
+    )
     add_preset_args(k)
-    k.add_argument("--igtl", type=int, nargs="?", const=18944, metavar="PORT",
-                   help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages (port default 18944; the igtl extra)")
+    k.add_argument(
+        "--igtl",
+        type=int,
+        nargs="?",
+        const=18944,
+        metavar="PORT",
+        help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages (port default 18944; the igtl extra)",
+    )
     k.add_argument("--igtl-name", default="MarkerToTracker", help="the TRANSFORM's device name (default MarkerToTracker)")
     k.add_argument("--igtl-public", action="store_true", help="listen on the network interface, not only on 127.0.0.1")
     k.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -12,7 +12,9 @@ def _need_torch():
 
     for name in ("torch", "onnx"):
         if importlib.util.find_spec(name) is None:
-            raise ValueError(f"training needs {name}: pip install -e \".[train]\" (on a CPU machine, torch from the CPU index first; see the README)")
+            raise ValueError(
+                f'training needs {name}: pip install -e ".[train]" (on a CPU machine, torch from the CPU index first; see the README)'
+            )
 
 
 def _train(module, args, keys: tuple, **export_kw):
@@ -30,7 +32,7 @@ def _quantize(args):
     import importlib.util
 
     if importlib.util.find_spec("onnx") is None:
-        raise ValueError("--int8 needs onnx: pip install -e \".[train]\"")
+        raise ValueError('--int8 needs onnx: pip install -e ".[train]"')
     from ..train import keypoints
 
     src, dest = args.int8
@@ -52,8 +54,14 @@ def cmd_train_keypoints(args):
         dest = keypoints.export(args.retune, args.export, data_dir=args.data, val_size=args.val_size, negatives=args.val_negatives)
         print(f"exported the weights to {dest} and {dest.with_suffix('.onnx')} ({(time.perf_counter() - t0) / 60:.1f} min)")
         return
-    _train(keypoints, args, ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window") + _TRAIN_KEYS, data_dir=args.data, val_size=args.val_size,
-           negatives=args.val_negatives)
+    _train(
+        keypoints,
+        args,
+        ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window") + _TRAIN_KEYS,
+        data_dir=args.data,
+        val_size=args.val_size,
+        negatives=args.val_negatives,
+    )
 
 
 def cmd_train_ellipses(args):
@@ -83,16 +91,46 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
 def _register_keypoints(tsub) -> None:
     tk = tsub.add_parser("keypoints", help="stage 1: the SuperPoint-like centre + ID network")
     tk.add_argument("--width", type=float, default=1.0, help="layer-width multiplier (1 = the paper's network)")
-    tk.add_argument("--stem-width", type=float, default=None, help="multiplier of the first four convolutions, at full and half resolution (default: --width)")
+    tk.add_argument(
+        "--stem-width",
+        type=float,
+        default=None,
+        help="multiplier of the first four convolutions, at full and half resolution (default: --width)",
+    )
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
-    tk.add_argument("--retune", metavar="CHECKPOINT", help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set")
-    tk.add_argument("--int8", nargs=2, metavar=("SRC", "DEST"), help="no training: write an int8 copy of the .onnx weights SRC to DEST, calibrated on rendered training images")
+    tk.add_argument(
+        "--retune",
+        metavar="CHECKPOINT",
+        help="no training: export CHECKPOINT (with --export) with its decoding thresholds tuned afresh on the validation set",
+    )
+    tk.add_argument(
+        "--int8",
+        nargs=2,
+        metavar=("SRC", "DEST"),
+        help="no training: write an int8 copy of the .onnx weights SRC to DEST, calibrated on rendered training images",
+    )
     tk.add_argument("--int8-images", type=int, default=256, help="training images that calibrate --int8's activations")
-    tk.add_argument("--val-negatives", type=int, default=None, help="marker-free validation images the export tunes the false-positive budget on (default 3000)")
-    tk.add_argument("--window", type=int, nargs=2, default=[192, 144], metavar=("W", "H"),
-                    help="training windows of the 320x240 images, multiples of 8 (default 192 144; 320 240: whole images)")
-    tk.add_argument("--small-boost", type=float, default=1.0, help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)")
+    tk.add_argument(
+        "--val-negatives",
+        type=int,
+        default=None,
+        help="marker-free validation images the export tunes the false-positive budget on (default 3000)",
+    )
+    tk.add_argument(
+        "--window",
+        type=int,
+        nargs=2,
+        default=[192, 144],
+        metavar=("W", "H"),
+        help="training windows of the 320x240 images, multiples of 8 (default 192 144; 320 240: whole images)",
+    )
+    tk.add_argument(
+        "--small-boost",
+        type=float,
+        default=1.0,
+        help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)",
+    )
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)
 

@@ -16,17 +16,27 @@ def cmd_ultrasound_demo(args):
     cmd = "markerpose ultrasound demo" + (" --quick" if args.quick else "") + f" --out {args.out}"
     if args.acquisitions is not None:
         cmd += f" --acquisitions {args.acquisitions}"
-    path = experiment.main(args.out, quick=args.quick, seed=args.seed, jobs=args.jobs, acquisitions=args.acquisitions,
-                           progress=not args.quiet, command=cmd)
+    path = experiment.main(
+        args.out, quick=args.quick, seed=args.seed, jobs=args.jobs, acquisitions=args.acquisitions, progress=not args.quiet, command=cmd
+    )
     print(f"wrote {path} and the plots and files beside it ({time.perf_counter() - t0:.0f} s)")
 
 
 def cmd_ultrasound_reconstruct(args):
     from ..ultrasound.recording import reconstruct_recording
 
-    s = reconstruct_recording(args.poses, args.images, args.calibration, args.out, seed_px=args.seed, fps=args.fps,
-                              time_offset_s=args.time_offset, max_gap_s=args.max_gap, voxel_mm=args.voxel_mm,
-                              progress=not args.quiet)
+    s = reconstruct_recording(
+        args.poses,
+        args.images,
+        args.calibration,
+        args.out,
+        seed_px=args.seed,
+        fps=args.fps,
+        time_offset_s=args.time_offset,
+        max_gap_s=args.max_gap,
+        voxel_mm=args.voxel_mm,
+        progress=not args.quiet,
+    )
     print(f"{s['frames_with_pose']} of {s['frames']} frames with a pose; wrote {', '.join(s['files'])} into {args.out}")
     if "cylinder" in s:
         c = s["cylinder"]
@@ -36,12 +46,15 @@ def cmd_ultrasound_reconstruct(args):
 def cmd_ultrasound_calibrate(args):
     from ..ultrasound.recording import calibrate_recording
 
-    _, rep = calibrate_recording(args.poses, args.images, args.spacing, out=args.out, fps=args.fps,
-                                 time_offset_s=args.time_offset, max_gap_s=args.max_gap)
+    _, rep = calibrate_recording(
+        args.poses, args.images, args.spacing, out=args.out, fps=args.fps, time_offset_s=args.time_offset, max_gap_s=args.max_gap
+    )
     skipped = f" ({rep['no_pose']} without a pose, {rep['no_crossing']} without a clear crossing)" if rep["used"] < rep["frames"] else ""
     worst = max(rep["errors_mm"].items(), key=lambda kv: kv[1])
-    print(f"calibrated from {rep['used']} of {rep['frames']} frames{skipped}: RMS {rep['rms_mm']:.3f} mm "
-          f"(worst {worst[1]:.3f} mm, {worst[0]}); wrote {args.out}")
+    print(
+        f"calibrated from {rep['used']} of {rep['frames']} frames{skipped}: RMS {rep['rms_mm']:.3f} mm "
+        f"(worst {worst[1]:.3f} mm, {worst[0]}); wrote {args.out}"
+    )
 
 
 def cmd_ultrasound_simulate(args):
@@ -53,21 +66,25 @@ def cmd_ultrasound_simulate(args):
     u, v = t["seed_px"]
     o, c = Path(args.out), Path(t["calibration"])
     sx, sy = t["spacing"]
-    print(f"wrote a sweep ({t['camera_frames']} stereo pairs at 30 frames/s, {t['us_frames']} ultrasound frames) and a "
-          f"cross-wire calibration session into {o}; the tube (diameter {t['diameter_mm']} mm) is at {u:.0f},{v:.0f} px "
-          f"on the first ultrasound frame. Next:\n"
-          f"  markerpose track {c / 'left'} {c / 'right'} --fps 1 --out {c / 'poses.csv'}\n"
-          f"  markerpose ultrasound calibrate --poses {c / 'poses.csv'} --images {c / 'us'} --spacing {sx},{sy} --out {o / 'probe.yaml'}\n"
-          f"  markerpose track {t['left']} {t['right']} --fps 30 --out {o / 'poses.csv'}\n"
-          f"  markerpose ultrasound reconstruct --poses {o / 'poses.csv'} --images {t['us']} "
-          f"--calibration {o / 'probe.yaml'} --seed {u:.0f},{v:.0f} --out {o / 'reconstruction'}")
+    print(
+        f"wrote a sweep ({t['camera_frames']} stereo pairs at 30 frames/s, {t['us_frames']} ultrasound frames) and a "
+        f"cross-wire calibration session into {o}; the tube (diameter {t['diameter_mm']} mm) is at {u:.0f},{v:.0f} px "
+        f"on the first ultrasound frame. Next:\n"
+        f"  markerpose track {c / 'left'} {c / 'right'} --fps 1 --out {c / 'poses.csv'}\n"
+        f"  markerpose ultrasound calibrate --poses {c / 'poses.csv'} --images {c / 'us'} --spacing {sx},{sy} --out {o / 'probe.yaml'}\n"
+        f"  markerpose track {t['left']} {t['right']} --fps 30 --out {o / 'poses.csv'}\n"
+        f"  markerpose ultrasound reconstruct --poses {o / 'poses.csv'} --images {t['us']} "
+        f"--calibration {o / 'probe.yaml'} --seed {u:.0f},{v:.0f} --out {o / 'reconstruction'}"
+    )
 
 
 def _add_clock_args(p) -> None:
     """How the ultrasound frames' times meet the cameras' (reconstruct, calibrate)."""
     p.add_argument("--fps", type=float, help="frame rate of the ultrasound frames when there is no timestamps.csv")
     p.add_argument("--time-offset", type=float, default=0.0, help="seconds added to the ultrasound times to reach the cameras' clock")
-    p.add_argument("--max-gap", type=float, default=0.2, help="no pose is interpolated across a tracking gap longer than this, s (default 0.2)")
+    p.add_argument(
+        "--max-gap", type=float, default=0.2, help="no pose is interpolated across a tracking gap longer than this, s (default 0.2)"
+    )
 
 
 def _register_demo(usub) -> None:
@@ -82,7 +99,9 @@ def _register_demo(usub) -> None:
 
 
 def _register_reconstruct(usub) -> None:
-    ur = usub.add_parser("reconstruct", help="a recorded sweep: poses.csv from markerpose track + ultrasound frames → sequence, volume, tube fit")
+    ur = usub.add_parser(
+        "reconstruct", help="a recorded sweep: poses.csv from markerpose track + ultrasound frames → sequence, volume, tube fit"
+    )
     ur.add_argument("--poses", required=True, help="poses.csv written by markerpose track")
     ur.add_argument("--images", required=True, help="folder of ultrasound frames (sorted by name) with timestamps.csv (file,timestamp_s)")
     ur.add_argument("--calibration", required=True, help="probe calibration YAML (T_marker_image, spacing, image_size)")
@@ -95,17 +114,26 @@ def _register_reconstruct(usub) -> None:
 
 
 def _register_calibrate(usub) -> None:
-    uc = usub.add_parser("calibrate", help="probe calibration from a recorded cross-wire session (poses.csv + ultrasound frames) → probe.yaml")
+    uc = usub.add_parser(
+        "calibrate", help="probe calibration from a recorded cross-wire session (poses.csv + ultrasound frames) → probe.yaml"
+    )
     uc.add_argument("--poses", required=True, help="poses.csv written by markerpose track for the session")
-    uc.add_argument("--images", required=True, help="folder of ultrasound frames showing the wire crossing, with timestamps.csv (file,timestamp_s)")
-    uc.add_argument("--spacing", required=True, type=pixel, metavar="SX,SY", help="pixel size in mm (lateral, depth), as the scanner reports it")
+    uc.add_argument(
+        "--images", required=True, help="folder of ultrasound frames showing the wire crossing, with timestamps.csv (file,timestamp_s)"
+    )
+    uc.add_argument(
+        "--spacing", required=True, type=pixel, metavar="SX,SY", help="pixel size in mm (lateral, depth), as the scanner reports it"
+    )
     uc.add_argument("--out", default="probe.yaml", help="calibration file to write (default probe.yaml)")
     _add_clock_args(uc)
     uc.set_defaults(func=cmd_ultrasound_calibrate)
 
 
 def _register_simulate(usub) -> None:
-    usim = usub.add_parser("simulate", help="write a simulated recording (a sweep and a cross-wire session: stereo and ultrasound frames) to try calibrate and reconstruct on")
+    usim = usub.add_parser(
+        "simulate",
+        help="write a simulated recording (a sweep and a cross-wire session: stereo and ultrasound frames) to try calibrate and reconstruct on",
+    )
     usim.add_argument("--out", default="markerpose-us-recording", help="output folder (default: markerpose-us-recording)")
     usim.add_argument("--frames", type=int, default=30, help="ultrasound frames (15 frames/s; default 30)")
     usim.add_argument("--seed", type=int, default=0)

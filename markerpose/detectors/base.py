@@ -63,8 +63,9 @@ class NeuralDetector(Detector):
 
     ids = "stereo"
 
-    def __init__(self, conf: dict, rig: StereoRig, marker: Marker, refiner: Refiner, threads: int | None = None,
-                 backend: str = "onnxruntime"):
+    def __init__(
+        self, conf: dict, rig: StereoRig, marker: Marker, refiner: Refiner, threads: int | None = None, backend: str = "onnxruntime"
+    ):
         super().__init__(conf, rig, marker, refiner)
         self.ids = conf["match"]["method"]
         self.proposer = propose.NeuralProposer(conf["propose"], marker, self.ids, threads, backend)
@@ -110,8 +111,11 @@ class NeuralDetector(Detector):
         else:
             p, s, sets = layout_orders(cand, self.marker.centers2d)
         if not len(p):
-            frame.failed(f"no triple of the {len(cand)} stage-1 candidates has the marker's layout" if len(cand) >= 3 else
-                         f"stage 1 found {len(cand)} ring candidate{'s' * (len(cand) != 1)}, fewer than three")
+            frame.failed(
+                f"no triple of the {len(cand)} stage-1 candidates has the marker's layout"
+                if len(cand) >= 3
+                else f"stage 1 found {len(cand)} ring candidate{'s' * (len(cand) != 1)}, fewer than three"
+            )
             return []
         # With evidence, every order of a triple, not only the most marker-like one: at a
         # steep tilt a wrong order can have the larger layout ratio, and its rings the

@@ -32,8 +32,10 @@ class ClassicalDetector(Detector):
             frame.failed(f"no pair of marker-like ring triples ({counts}) agrees with the epipolar geometry")
             return
         il, ir, cl, cr = pair
-        found = [frame.timed("refine", self.refiner.triple, frame, v, tri, cost, cam)
-                 for v, tri, cost, cam in zip(views, (il, ir), (cl, cr), self.rig.cameras)]
+        found = [
+            frame.timed("refine", self.refiner.triple, frame, v, tri, cost, cam)
+            for v, tri, cost, cam in zip(views, (il, ir), (cl, cr), self.rig.cameras)
+        ]
         for det, view in zip(found, verify.VIEWS):
             if not det.refined.all():
                 frame.failed(f"the blurred-ring fit and the edge fit disagree in the {view} view")

@@ -44,11 +44,14 @@ class StereoDetector(NeuralDetector):
         """Stage 1's candidates of both views (from the look ``zoom``) matched by the
         marker's 3D shape, each triple refined in turn, then the transfer fallback."""
         m = self.conf["match"]
-        triples = frame.timed("match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d,
-                              m["epipolar_tol"], m["shape_tol"], m["max_triples"])
+        triples = frame.timed(
+            "match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d, m["epipolar_tol"], m["shape_tol"], m["max_triples"]
+        )
         if not triples:
-            frame.failed(f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
-                         "matches across the views with the marker's 3D shape")
+            frame.failed(
+                f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "
+                "matches across the views with the marker's 3D shape"
+            )
         gates = self.gates(frame, zoom)
         for pl, pr, s in triples:
             found = self.fit(frame, frame.grays, list(self.rig.cameras), [(pl, s), (pr, s)], *gates)
@@ -111,7 +114,9 @@ class StereoDetector(NeuralDetector):
             return ring_diameter(pts, self.marker) * look_size(zoom)[0] / gray.shape[1] < MASK_GATE_MIN_PX
 
         blur = (lambda gray, pts: bool(evidence(gray, pts) >= m["blur_min_evidence"])) if m["blur_min_evidence"] else None
-        mask = (lambda gray, pts: small(gray, pts) or bool(evidence(gray, pts) >= m["mask_min_evidence"])) if m["mask_min_evidence"] else None
+        mask = (
+            (lambda gray, pts: small(gray, pts) or bool(evidence(gray, pts) >= m["mask_min_evidence"])) if m["mask_min_evidence"] else None
+        )
         return blur, mask
 
     def transferred(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
@@ -122,8 +127,17 @@ class StereoDetector(NeuralDetector):
         on the image's edges (or, failing that, refined at the predicted centres). Sources
         whose ring evidence is under ``transfer_min_evidence`` are skipped."""
         m, cams, mk, grays = self.conf["match"], self.rig.cameras, self.marker, frame.grays
-        loose = frame.timed("match", stereo_triples, self.rig, cand[0], cand[1], mk.points3d,
-                            m["transfer_epipolar_tol"], m["transfer_shape_tol"], m["transfer_attempts"])
+        loose = frame.timed(
+            "match",
+            stereo_triples,
+            self.rig,
+            cand[0],
+            cand[1],
+            mk.points3d,
+            m["transfer_epipolar_tol"],
+            m["transfer_shape_tol"],
+            m["transfer_attempts"],
+        )
         if not loose:  # no sign of the marker in both views (the common case without it): stop
             return
         sources = transfer_sources(loose, cand, mk.centers2d, m["view_triples"])
@@ -134,7 +148,9 @@ class StereoDetector(NeuralDetector):
             for view in (0, 1):
                 idx = [k for k, (a, _, _) in enumerate(sources) if a == view]
                 if idx:
-                    ev = frame.timed("verify", self.proposer.evidence, grays[view], np.stack([sources[k][1] for k in idx]), zoom, frame.looked)
+                    ev = frame.timed(
+                        "verify", self.proposer.evidence, grays[view], np.stack([sources[k][1] for k in idx]), zoom, frame.looked
+                    )
                     keep[idx] = ev >= gate
             sources = [u for u, k in zip(sources, keep) if k]
         for a, pts, s in sources[: m["transfer_sources"]]:
@@ -158,8 +174,19 @@ class StereoDetector(NeuralDetector):
                 # together: the marker's motion blurs both views or neither), when its
                 # coarse search finds blur, and with ring evidence (blur_gate).
                 ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
-                guided = frame.timed("refine", self.refiner.from_ellipses, frame, [grays[b]], [cams[b]], [ellipses], s,
-                                     det_a.blur_px > 0, 0.0, None, blur_gate)[0]
+                guided = frame.timed(
+                    "refine",
+                    self.refiner.from_ellipses,
+                    frame,
+                    [grays[b]],
+                    [cams[b]],
+                    [ellipses],
+                    s,
+                    det_a.blur_px > 0,
+                    0.0,
+                    None,
+                    blur_gate,
+                )[0]
                 if guided is not None:
                     yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
                 det_b = self.fit(frame, [grays[b]], [cams[b]], [(pred, s)], blur_gate)

@@ -46,7 +46,12 @@ def _pairs(n: int, seed: int, blur: float = 0.0):
     rig, marker = StereoRig.default(), Marker()
     frames = []
     while len(frames) < n:
-        T = look_at_pose([rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(400, 750)], rng.uniform(0, 45), rng.uniform(0, 360), rng.uniform(0, 360))
+        T = look_at_pose(
+            [rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(400, 750)],
+            rng.uniform(0, 45),
+            rng.uniform(0, 360),
+            rng.uniform(0, 360),
+        )
         im = Imaging(alpha=rng.uniform(0.5, 1.0), motion_blur=blur, motion_angle=rng.uniform(0, 180))
         f = render_stereo(rig, T, marker, im, seed=rng)
         if all(v.in_image.all() for v in f.views):
@@ -61,8 +66,12 @@ def inconsistent_pairs(frames: list) -> list[tuple[str, np.ndarray, np.ndarray]]
         left, right = f.images
         shifted = np.empty_like(right)
         shifted[:, 40:], shifted[:, :40] = right[:, :-40], right[:, :1]
-        out += [("left view twice", left, left), ("right view twice", right, right), ("views swapped", right, left),
-                ("right view shifted 40 px", left, shifted)]
+        out += [
+            ("left view twice", left, left),
+            ("right view twice", right, right),
+            ("views swapped", right, left),
+            ("right view shifted 40 px", left, shifted),
+        ]
     if len(frames) >= 2:
         out.append(("two different frames", frames[0].images[0], frames[1].images[1]))
     return out
@@ -153,17 +162,28 @@ def report(res: dict) -> str:
         st = ", ".join(f"{k} {v:.1f}" for k, v in r["stages_ms"].items() if k != "total")
         free = f"{r['marker_free_ms']:.1f}" + (f" ({r['false_poses']} false poses)" if r["false_poses"] else "")
         blur = f"{r.get('blur_25_ms', float('nan')):.1f} ({r.get('blur_25_found', float('nan')):.2f})"
-        lines.append(f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} | {blur} | {free} |")
+        lines.append(
+            f"| {name} | {r['median_ms']:.1f} | {r['fps']:.1f} | {r['speed_vs_reference']:.2f}x | {st} | {r['found']:.2f} | {blur} | {free} |"
+        )
     kinds = list(dict.fromkeys(k for r in res["configs"].values() for k in r.get("inconsistent", {})))
     if kinds:
         runs = res["conf"]["repeats"] - 1
-        lines += ["", f"Inconsistent pairs (no marker pose explains them): the worst time of {runs} runs per pair, ms "
-                  "(poses returned, where any; each kind is built from the first two pairs).", "",
-                  "| configuration | " + " | ".join(kinds) + " | worst |", "|---|" + "---|" * (len(kinds) + 1)]
+        lines += [
+            "",
+            f"Inconsistent pairs (no marker pose explains them): the worst time of {runs} runs per pair, ms "
+            "(poses returned, where any; each kind is built from the first two pairs).",
+            "",
+            "| configuration | " + " | ".join(kinds) + " | worst |",
+            "|---|" + "---|" * (len(kinds) + 1),
+        ]
         for name, r in res["configs"].items():
             inc = r.get("inconsistent", {})
-            cells = [f"{inc[k]['worst_ms']:.0f}" + (f" ({inc[k]['poses']} poses)" if inc[k]["poses"] else "") if k in inc else "—" for k in kinds]
-            lines.append(f"| {name} | " + " | ".join(cells) + f" | {max((v['worst_ms'] for v in inc.values()), default=float('nan')):.0f} |")
+            cells = [
+                f"{inc[k]['worst_ms']:.0f}" + (f" ({inc[k]['poses']} poses)" if inc[k]["poses"] else "") if k in inc else "—" for k in kinds
+            ]
+            lines.append(
+                f"| {name} | " + " | ".join(cells) + f" | {max((v['worst_ms'] for v in inc.values()), default=float('nan')):.0f} |"
+            )
     return "\n".join(lines)
 
 

@@ -61,8 +61,15 @@ def _poses(conf: dict) -> list[np.ndarray]:
     rng = np.random.default_rng(conf["seed"])
     lo, hi = conf["distance"]
     dx, dy = conf["offset"]
-    return [look_at_pose([rng.uniform(-dx, dx), rng.uniform(-dy, dy), rng.uniform(lo, hi)], rng.uniform(0, conf["tilt"]),
-                         rng.uniform(0, 360), rng.uniform(0, conf["roll"])) for _ in range(int(conf["pairs"]))]
+    return [
+        look_at_pose(
+            [rng.uniform(-dx, dx), rng.uniform(-dy, dy), rng.uniform(lo, hi)],
+            rng.uniform(0, conf["tilt"]),
+            rng.uniform(0, 360),
+            rng.uniform(0, conf["roll"]),
+        )
+        for _ in range(int(conf["pairs"]))
+    ]
 
 
 def along_c0_c1(rig: StereoRig, marker: Marker, T_left_marker: np.ndarray) -> list[float]:
@@ -97,8 +104,12 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
                     est = tr.estimate(*frame.images)
                     errors[name][L].append(None if est is None else float(np.linalg.norm(est.points3d[1] - est.points3d[0]) - true))
                 bar.update()
-    res = {"conf": {**c, "lengths": lengths}, "true_mm": true, "summary": {name: [_summary(L, errors[name][L]) for L in lengths] for name in names},
-           "errors": {name: {str(L): v for L, v in e.items()} for name, e in errors.items()}}
+    res = {
+        "conf": {**c, "lengths": lengths},
+        "true_mm": true,
+        "summary": {name: [_summary(L, errors[name][L]) for L in lengths] for name in names},
+        "errors": {name: {str(L): v for L, v in e.items()} for name, e in errors.items()},
+    }
     if out is not None:
         write_json(out / "results.json", res)
         (out / "report.md").write_text(report(res))
@@ -110,9 +121,24 @@ def _summary(length: float, errs: list) -> dict:
     e = np.array([v for v in errs if v is not None], np.float64)
     found = len(e) / len(errs)
     if not len(e):
-        return {"length_px": length, "found": found, "mean_mm": None, "sd_mm": None, "median_mm": None, "p95_abs_mm": None, "max_abs_mm": None}
-    return {"length_px": length, "found": found, "mean_mm": float(e.mean()), "sd_mm": float(e.std(ddof=1)) if len(e) > 1 else 0.0,
-            "median_mm": float(np.median(e)), "p95_abs_mm": float(np.percentile(np.abs(e), 95)), "max_abs_mm": float(np.abs(e).max())}
+        return {
+            "length_px": length,
+            "found": found,
+            "mean_mm": None,
+            "sd_mm": None,
+            "median_mm": None,
+            "p95_abs_mm": None,
+            "max_abs_mm": None,
+        }
+    return {
+        "length_px": length,
+        "found": found,
+        "mean_mm": float(e.mean()),
+        "sd_mm": float(e.std(ddof=1)) if len(e) > 1 else 0.0,
+        "median_mm": float(np.median(e)),
+        "p95_abs_mm": float(np.percentile(np.abs(e), 95)),
+        "max_abs_mm": float(np.abs(e).max()),
+    }
 
 
 def report(res: dict) -> str:
@@ -122,12 +148,16 @@ def report(res: dict) -> str:
     lines = [
         f"# Distance c0-c1 ({res['true_mm']:g} mm) under motion blur along it: {c['pairs']} poses per blur length",
         "",
-        (f"Each pose ({c['distance'][0]:g}-{c['distance'][1]:g} mm, tilt up to {c['tilt']:g}°, roll in [0, {c['roll']:g})°, "
-         f"α {c['alpha']:g}) rendered at every blur length, the blur along the image direction of c0 -> c1 in each view. "
-         "Error = the triangulated distance c0-c1 minus the marker's, over the pairs a configuration found: mean ± standard "
-         "deviation, and the 95th percentile and the largest of its size."),
+        (
+            f"Each pose ({c['distance'][0]:g}-{c['distance'][1]:g} mm, tilt up to {c['tilt']:g}°, roll in [0, {c['roll']:g})°, "
+            f"α {c['alpha']:g}) rendered at every blur length, the blur along the image direction of c0 -> c1 in each view. "
+            "Error = the triangulated distance c0-c1 minus the marker's, over the pairs a configuration found: mean ± standard "
+            "deviation, and the 95th percentile and the largest of its size."
+        ),
         "",
-        "| blur (px) | " + " | ".join(f"`{n}` found | `{n}` error, mean ± sd (mm) | `{n}` error size, p95 / largest (mm)" for n in names) + " |",
+        "| blur (px) | "
+        + " | ".join(f"`{n}` found | `{n}` error, mean ± sd (mm) | `{n}` error size, p95 / largest (mm)" for n in names)
+        + " |",
         "|---|" + "---|---|---|" * len(names),
     ]
     for k, L in enumerate(c["lengths"]):
@@ -137,7 +167,11 @@ def report(res: dict) -> str:
             if s["mean_mm"] is None:
                 cells += [f"{100 * s['found']:.0f} %", "—", "—"]
             else:
-                cells += [f"{100 * s['found']:.0f} %", f"{s['mean_mm']:+.4f} ± {s['sd_mm']:.4f}", f"{s['p95_abs_mm']:.4f} / {s['max_abs_mm']:.4f}"]
+                cells += [
+                    f"{100 * s['found']:.0f} %",
+                    f"{s['mean_mm']:+.4f} ± {s['sd_mm']:.4f}",
+                    f"{s['p95_abs_mm']:.4f} / {s['max_abs_mm']:.4f}",
+                ]
         lines.append(f"| {L:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

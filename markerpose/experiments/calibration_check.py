@@ -29,8 +29,12 @@ def rendered_pairs(rig: StereoRig, grid: CircleGrid, n: int = 21, seed: int = 0,
     pairs, poses = [], []
     while len(pairs) < n:
         z = rng.uniform(380, 750)
-        T = look_at_pose([rng.uniform(-0.12, 0.12) * z - 0.12 * (z - 560), rng.uniform(-0.12, 0.12) * z, z],
-                         rng.uniform(0, 45), rng.uniform(0, 360), rng.uniform(0, 360))
+        T = look_at_pose(
+            [rng.uniform(-0.12, 0.12) * z - 0.12 * (z - 560), rng.uniform(-0.12, 0.12) * z, z],
+            rng.uniform(0, 45),
+            rng.uniform(0, 360),
+            rng.uniform(0, 360),
+        )
         T[:3, 3] -= T[:3, :3] @ c
         X = grid.points3d @ T[:3, :3].T + T[:3, 3]
         uv = rig.project(X)

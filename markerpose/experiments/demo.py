@@ -88,8 +88,12 @@ def report_markdown(results: dict, conf: dict, render_s: float) -> str:
         f"took {render_s:.2f} s each (median). Errors are |estimate − reference| (10 mm, 5°, 25 mm, 40 mm).",
         "",
     ]
-    lines += _metric_table("Table 1 — displacement, 19 pairs x 3 centres = 57 distances", "displacement", "metrics", results, "displacement", "mm")
-    lines += [""] + _distance_table("Table 2 — centre distances over the 20 displacement frames (mm)", "displacement", results, "displacement")
+    lines += _metric_table(
+        "Table 1 — displacement, 19 pairs x 3 centres = 57 distances", "displacement", "metrics", results, "displacement", "mm"
+    )
+    lines += [""] + _distance_table(
+        "Table 2 — centre distances over the 20 displacement frames (mm)", "displacement", results, "displacement"
+    )
     lines += [""] + _metric_table("Table 3 — rotation, 6 pairs of consecutive frames", "rotation", "metrics", results, "rotation", "°")
     lines += [""] + _distance_table("Table 4 — centre distances over the 7 rotation frames (mm)", "rotation", results, "rotation")
     lines += [""] + _absolute_table(results) + [""]

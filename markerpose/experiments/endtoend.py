@@ -43,7 +43,12 @@ SETS = {
 # The realism sets: the standard set's conditions with one effect of real recordings each
 # (markerpose.synth.realism); `--sets realism` names them all. Not among the default sets.
 REALISM = tuple(f"realism_{e}" for e in realism.EFFECTS)
-SETS.update({name: {"seed": 3100 + k, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "effect": e} for k, (name, e) in enumerate(zip(REALISM, realism.EFFECTS))})
+SETS.update(
+    {
+        name: {"seed": 3100 + k, "alpha": (0.25, 1.0), "blur": (0.0, 9.0), "effect": e}
+        for k, (name, e) in enumerate(zip(REALISM, realism.EFFECTS))
+    }
+)
 
 default_conf = {
     "pairs": 200,  # per set
@@ -104,7 +109,9 @@ def marker_free_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker, rng: n
     T[:3, 3] = [0.0, 3000.0, 1000.0]  # ~70° above both cameras' axes, in front of them
     ratio = marker.inner_radius / marker.outer_radius
     for _ in range(n):
-        bgs = tuple(clutter_background(cam.image_size, rng, ring_distractors=int(rng.integers(3, 11)), ring_ratio=ratio) for cam in rig.cameras)
+        bgs = tuple(
+            clutter_background(cam.image_size, rng, ring_distractors=int(rng.integers(3, 11)), ring_ratio=ratio) for cam in rig.cameras
+        )
         alpha, blur = _draw(rng, spec["alpha"]), _draw(rng, spec["blur"])
         angle = rng.uniform(0, 180)
         frame = render_stereo(rig, T, marker, Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle), bgs, seed=rng)
@@ -199,7 +206,9 @@ def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0)
     views = {name: [] for name in trackers}
     conds = []
     free = SETS[set_name].get("marker_free", False)
-    bar = tqdm(pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress, position=position)
+    bar = tqdm(
+        pairs(set_name, c["pairs"], rig, marker), total=c["pairs"], desc=set_name, unit="pair", disable=not progress, position=position
+    )
     for frame, cond in bar:
         conds.append(cond)
         for name, tr in trackers.items():
@@ -287,7 +296,12 @@ def by_condition(rows, conds) -> list[dict]:
             sel = np.nonzero((v >= lo) & (v < hi))[0]
             if len(sel):
                 s = summarize([rows[i] for i in sel])
-                out.append({"bin": f"{key} {lo}-{hi}", **{k: s[k] for k in ("pairs", "detected", "center_median_px", "center3d_median_px", "t_median_mm", "r_median_deg")}})
+                out.append(
+                    {
+                        "bin": f"{key} {lo}-{hi}",
+                        **{k: s[k] for k in ("pairs", "detected", "center_median_px", "center3d_median_px", "t_median_mm", "r_median_deg")},
+                    }
+                )
     return out
 
 
@@ -301,7 +315,8 @@ def report(res: dict) -> str:
             lines += [
                 f"**{set_name}** ({first['pairs']} pairs without the marker; any output is a false positive)",
                 "",
-                "| configuration | false poses (pairs) |" + (f" false detections (`MarkerPose.detect`, {first['single_views']} views) |" if views else ""),
+                "| configuration | false poses (pairs) |"
+                + (f" false detections (`MarkerPose.detect`, {first['single_views']} views) |" if views else ""),
                 "|---|---|" + ("---|" if views else ""),
             ]
             for name, s in per.items():
@@ -322,11 +337,17 @@ def report(res: dict) -> str:
                 f"{s['r_median_deg']:.4f} / {s['r_p95_deg']:.4f} |"
             )
         if any("returned_wrong" in s for s in per.values()):
-            lines += ["", "Returned although a centre is beyond the tolerance (wrong poses, counted as not detected): "
-                      + "; ".join(f"{name} {100 * s['returned_wrong']:.2f} %" for name, s in per.items() if "returned_wrong" in s)]
+            lines += [
+                "",
+                "Returned although a centre is beyond the tolerance (wrong poses, counted as not detected): "
+                + "; ".join(f"{name} {100 * s['returned_wrong']:.2f} %" for name, s in per.items() if "returned_wrong" in s),
+            ]
         if any("single_view_detected" in s for s in per.values()):
-            lines += ["", f"Each view alone (`MarkerPose.detect`, {first['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
-                      + "; ".join(f"{name} {100 * s['single_view_detected']:.2f} %" for name, s in per.items())]
+            lines += [
+                "",
+                f"Each view alone (`MarkerPose.detect`, {first['single_views']} views; all three centres within {res['conf']['tolerance_px']:g} px, right IDs): "
+                + "; ".join(f"{name} {100 * s['single_view_detected']:.2f} %" for name, s in per.items()),
+            ]
         lines.append("")
         # By distance and tilt: detection; centre median vs the ellipse centre / vs the
         # projected 3D centre (they differ by the perspective bias, which grows with tilt).
@@ -348,6 +369,18 @@ def report(res: dict) -> str:
 
 
 __all__ = [
-    "SETS", "by_condition", "default_conf", "evaluate_marker_free", "evaluate_pair", "evaluate_views", "main",
-    "marker_free_pairs", "pairs", "random_pairs", "report", "run_set", "summarize", "summarize_marker_free",
+    "SETS",
+    "by_condition",
+    "default_conf",
+    "evaluate_marker_free",
+    "evaluate_pair",
+    "evaluate_views",
+    "main",
+    "marker_free_pairs",
+    "pairs",
+    "random_pairs",
+    "report",
+    "run_set",
+    "summarize",
+    "summarize_marker_free",
 ]

@@ -70,9 +70,16 @@ def trials(conf: dict, rig: StereoRig, marker: Marker, progress: bool = True):
             T[0, 3] += 700.0
         first = render_stereo(rig, T_prior, marker, Imaging(alpha=alpha), bgs, seed=rng)
         second = render_stereo(rig, T, marker, imaging, bgs, seed=rng)
-        truth = {"trial": i, "jump_mm": float(jump), "turn_deg": float(np.degrees(rotation_angle(T_prior[:3, :3], T[:3, :3]))),
-                 "blur_px": blur, "alpha": alpha, "empty": empty,
-                 "visible": not empty and all(v.in_image.all() for v in second.views), "T": T}
+        truth = {
+            "trial": i,
+            "jump_mm": float(jump),
+            "turn_deg": float(np.degrees(rotation_angle(T_prior[:3, :3], T[:3, :3]))),
+            "blur_px": blur,
+            "alpha": alpha,
+            "empty": empty,
+            "visible": not empty and all(v.in_image.all() for v in second.views),
+            "T": T,
+        }
         yield first.images, second.images, truth
 
 
@@ -96,9 +103,13 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-jump
             est = tracker.track(*second) if prior is not None else None
             dt = 1000 * (time.perf_counter() - t0)
             how = None if est is None else "stage 1" if est.source == "detected" else "search" if "search" in tracker.timings else "prior"
-            row[name] = {"prior": prior is not None, "ms": dt if prior is not None else None, "how": how,
-                         "source": None if est is None else est.source,
-                         "t_mm": None if est is None else float(np.linalg.norm(est.t - T[:3, 3]))}
+            row[name] = {
+                "prior": prior is not None,
+                "ms": dt if prior is not None else None,
+                "how": how,
+                "source": None if est is None else est.source,
+                "t_mm": None if est is None else float(np.linalg.norm(est.t - T[:3, 3])),
+            }
         rows.append(row)
     res = {"conf": c, "summary": {name: summarize(rows, name) for name in CONFIGS}, "trials": rows}
     if out_dir is not None:
@@ -120,11 +131,16 @@ def summarize(rows: list[dict], name: str) -> dict:
     vis = [r for r in rows if r["visible"]]
 
     def part(sel):
-        return {"n": len(sel), "search": sum(r[name]["how"] == "search" for r in sel),
-                "found": sum(r[name]["source"] is not None for r in sel), "median_ms": _median([r[name]["ms"] for r in sel])}
+        return {
+            "n": len(sel),
+            "search": sum(r[name]["how"] == "search" for r in sel),
+            "found": sum(r[name]["source"] is not None for r in sel),
+            "median_ms": _median([r[name]["ms"] for r in sel]),
+        }
 
     return {
-        "trials": len(rows), "visible": len(vis),
+        "trials": len(rows),
+        "visible": len(vis),
         "found": sum(r[name]["source"] is not None for r in vis),
         **{how: sum(r[name]["how"] == how for r in vis) for how in ("prior", "search", "stage 1")},
         "wrong_poses": sum(r[name]["t_mm"] is not None and r[name]["t_mm"] > 1.0 for r in rows if not r["empty"]),
@@ -147,33 +163,63 @@ def report(res: dict) -> str:
     names = list(CONFIGS)
     first = s[names[0]]
     lines = [
-        f"# Jumps: the marker put down elsewhere between two frames ({first['trials']} of {c['trials']} trials)", "",
-        "(A trial counts when both settings found the marker in its first pair.)", "",
-        (f"Each trial: a pair at a random pose (the prior), then a pair where the marker moved by up to {c['max_jump']:g} mm and "
-         f"turned by up to {c['max_turn']:g}° about a random axis (both uniform), motion blur 0–15 px, α 0.0625–0.8, six ring-like decoys "
-         "per view, a new scene each trial; one trial in six with the marker out of view in the second pair. `track()` with the default settings (`search`) and with "
-         "`track={\"shift_margin\": 0}` (`no search`: stage 1 near the prediction, then in the whole images), alternating, "
-         "on the same pairs; the time is the second pair's."), "",
-        "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),
+        f"# Jumps: the marker put down elsewhere between two frames ({first['trials']} of {c['trials']} trials)",
+        "",
+        "(A trial counts when both settings found the marker in its first pair.)",
+        "",
+        (
+            f"Each trial: a pair at a random pose (the prior), then a pair where the marker moved by up to {c['max_jump']:g} mm and "
+            f"turned by up to {c['max_turn']:g}° about a random axis (both uniform), motion blur 0–15 px, α 0.0625–0.8, six ring-like decoys "
+            "per view, a new scene each trial; one trial in six with the marker out of view in the second pair. `track()` with the default settings (`search`) and with "
+            '`track={"shift_margin": 0}` (`no search`: stage 1 near the prediction, then in the whole images), alternating, '
+            "on the same pairs; the time is the second pair's."
+        ),
+        "",
+        "| | " + " | ".join(names) + " |",
+        "|---|" + "---|" * len(names),
         "| pairs with the marker in view: found | " + " | ".join(f"{s[n]['found']} of {s[n]['visible']}" for n in names) + " |",
-        "| … by the prior / the search / stage 1 | " + " | ".join(f"{s[n]['prior']} / {s[n]['search']} / {s[n]['stage 1']}" for n in names) + " |",
-        "| wrong poses (> 1 mm) / poses without the marker | " + " | ".join(f"{s[n]['wrong_poses']} / {s[n]['false_poses']}" for n in names) + " |",
-        "| translation error, median, mm | " + " | ".join("—" if s[n]["t_median_mm"] is None else f"{s[n]['t_median_mm']:.4f}" for n in names) + " |",
+        "| … by the prior / the search / stage 1 | "
+        + " | ".join(f"{s[n]['prior']} / {s[n]['search']} / {s[n]['stage 1']}" for n in names)
+        + " |",
+        "| wrong poses (> 1 mm) / poses without the marker | "
+        + " | ".join(f"{s[n]['wrong_poses']} / {s[n]['false_poses']}" for n in names)
+        + " |",
+        "| translation error, median, mm | "
+        + " | ".join("—" if s[n]["t_median_mm"] is None else f"{s[n]['t_median_mm']:.4f}" for n in names)
+        + " |",
         "| time of the second pair, median (marker in view), ms | " + " | ".join(_ms(s[n]["median_ms"]) for n in names) + " |",
-        "", "By how far the marker jumped (pairs with it in view): found by the search, of n; median ms.", "",
-        "| jump, mm | n | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names),
+        "",
+        "By how far the marker jumped (pairs with it in view): found by the search, of n; median ms.",
+        "",
+        "| jump, mm | n | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
     ]
     for key in first["by_jump"]:
-        lines.append(f"| {key} | {first['by_jump'][key]['n']} | "
-                     + " | ".join(f"{s[n]['by_jump'][key]['search']}, {_ms(s[n]['by_jump'][key]['median_ms'])} ms" for n in names) + " |")
-    lines += ["", "By how much it turned (the rotation between the prior and the truth; jumps under 45 mm): found by the search, of n; median ms.", "",
-              "| turn, ° | n | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+        lines.append(
+            f"| {key} | {first['by_jump'][key]['n']} | "
+            + " | ".join(f"{s[n]['by_jump'][key]['search']}, {_ms(s[n]['by_jump'][key]['median_ms'])} ms" for n in names)
+            + " |"
+        )
+    lines += [
+        "",
+        "By how much it turned (the rotation between the prior and the truth; jumps under 45 mm): found by the search, of n; median ms.",
+        "",
+        "| turn, ° | n | " + " | ".join(names) + " |",
+        "|---|---|" + "---|" * len(names),
+    ]
     for key in first["by_turn"]:
-        lines.append(f"| {key} | {first['by_turn'][key]['n']} | "
-                     + " | ".join(f"{s[n]['by_turn'][key]['search']}, {_ms(s[n]['by_turn'][key]['median_ms'])} ms" for n in names) + " |")
+        lines.append(
+            f"| {key} | {first['by_turn'][key]['n']} | "
+            + " | ".join(f"{s[n]['by_turn'][key]['search']}, {_ms(s[n]['by_turn'][key]['median_ms'])} ms" for n in names)
+            + " |"
+        )
     e = {n: s[n]["empty"] for n in names}
-    lines += ["", f"Without the marker ({first['empty']['n']} pairs): median " + ", ".join(f"{_ms(e[n]['median_ms'])} ms ({n})" for n in names)
-              + " (the search, stage 1 near the prediction, then both whole looks)."]
+    lines += [
+        "",
+        f"Without the marker ({first['empty']['n']} pairs): median "
+        + ", ".join(f"{_ms(e[n]['median_ms'])} ms ({n})" for n in names)
+        + " (the search, stage 1 near the prediction, then both whole looks).",
+    ]
     return "\n".join(lines) + "\n"
 
 

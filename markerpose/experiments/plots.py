@@ -105,7 +105,10 @@ def plot_accuracy(per_config: dict, path: Path) -> Path:
     bins = [b["bin"] for b in per_config[names[0]]["by_condition"]]
     x = np.arange(len(bins))
     width = 0.8 / len(names)
-    for ax, key, label in ((axes[0], "t_median_mm", "translation error, median (mm)"), (axes[1], "r_median_deg", "rotation error, median (°)")):
+    for ax, key, label in (
+        (axes[0], "t_median_mm", "translation error, median (mm)"),
+        (axes[1], "r_median_deg", "rotation error, median (°)"),
+    ):
         for k, name in enumerate(names):
             v = np.array([b[key] for b in per_config[name]["by_condition"]], float)
             ax.bar(x + (k - (len(names) - 1) / 2) * width, np.where(np.isfinite(v), v, np.nan), width, label=name)

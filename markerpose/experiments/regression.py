@@ -90,8 +90,10 @@ def compare(a: str, b: str, tol: float = 1e-9) -> bool:
         why = sum(x != y for x, y in zip(ma["why"], mb["why"]))
         ok = outcome == 0 and source == 0 and dT <= tol and dC <= tol
         same &= ok
-        print(f"{'ok  ' if ok else 'DIFF'} {key}: {len(fa)} calls, found {int(fa.sum())}/{int(fb.sum())}, outcome differs {outcome}, "
-              f"source differs {source}, why differs {why}, max |dT| {dT:.2e}, max |dcenters| {dC:.2e}")
+        print(
+            f"{'ok  ' if ok else 'DIFF'} {key}: {len(fa)} calls, found {int(fa.sum())}/{int(fb.sum())}, outcome differs {outcome}, "
+            f"source differs {source}, why differs {why}, max |dT| {dT:.2e}, max |dcenters| {dC:.2e}"
+        )
     return same
 
 

@@ -45,7 +45,13 @@ from .robot import PAPER, RobotScene, evaluate, render_sequences
 HEADLINE = ("default", "paper", "neural-layout-rigid", "neural-classical-refine", "paper-classical", "classical")
 
 # Table 5 of the paper: displacement MAE / RMS / max (mm) of MarkerPose per α.
-PAPER_LIGHTING = {1.0: (0.0461, 0.0544, 0.1164), 0.5: (0.0451, 0.0539, 0.1352), 0.25: (0.0476, 0.0557, 0.1404), 0.125: (0.0528, 0.0603, 0.1313), 0.0625: (0.0568, 0.0723, 0.2130)}
+PAPER_LIGHTING = {
+    1.0: (0.0461, 0.0544, 0.1164),
+    0.5: (0.0451, 0.0539, 0.1352),
+    0.25: (0.0476, 0.0557, 0.1404),
+    0.125: (0.0528, 0.0603, 0.1313),
+    0.0625: (0.0568, 0.0723, 0.2130),
+}
 
 default_conf = {
     "trials": 8,  # seeded robot-path placements
@@ -60,8 +66,38 @@ default_conf = {
 QUICK = {"trials": 2, "pairs": 6, "alphas": (1.0, 0.25, 0.0625)}  # a few minutes
 
 # Two-sided 95 % quantiles of Student's t, df = 1..30 (beyond: the normal's 1.96).
-_T95 = (12.706, 4.303, 3.182, 2.776, 2.571, 2.447, 2.365, 2.306, 2.262, 2.228, 2.201, 2.179, 2.160, 2.145, 2.131,
-        2.120, 2.110, 2.101, 2.093, 2.086, 2.080, 2.074, 2.069, 2.064, 2.060, 2.056, 2.052, 2.048, 2.045, 2.042)
+_T95 = (
+    12.706,
+    4.303,
+    3.182,
+    2.776,
+    2.571,
+    2.447,
+    2.365,
+    2.306,
+    2.262,
+    2.228,
+    2.201,
+    2.179,
+    2.160,
+    2.145,
+    2.131,
+    2.120,
+    2.110,
+    2.101,
+    2.093,
+    2.086,
+    2.080,
+    2.074,
+    2.069,
+    2.064,
+    2.060,
+    2.056,
+    2.052,
+    2.048,
+    2.045,
+    2.042,
+)
 
 
 def mean_ci(values) -> dict:
@@ -169,7 +205,10 @@ def _ci_tables(per_trial: list) -> dict:
     for key in ("table2", "table4"):
         out[key] = {d: {m: mean_ci([t[key][d][m] for t in per_trial]) for m in ("mae", "rms", "max")} for d in ("d01", "d02")}
     out["table5"] = {
-        a: {**{m: mean_ci([t["table5"][a][m] for t in per_trial]) for m in ("mae", "rms", "max")}, "failed": int(sum(t["table5"][a]["failed"] for t in per_trial))}
+        a: {
+            **{m: mean_ci([t["table5"][a][m] for t in per_trial]) for m in ("mae", "rms", "max")},
+            "failed": int(sum(t["table5"][a]["failed"] for t in per_trial)),
+        }
         for a in per_trial[0]["table5"]
     }
     return out
@@ -235,7 +274,14 @@ def report(res: dict) -> str:
     ]
 
     def metric_table(title, key, paper_key, unit):
-        L.extend([f"**{title}**", "", f"| Method | MAE ({unit}) | RMS ({unit}) | max ({unit}) | failed measurements, all trials |", "|---|---|---|---|---|"])
+        L.extend(
+            [
+                f"**{title}**",
+                "",
+                f"| Method | MAE ({unit}) | RMS ({unit}) | max ({unit}) | failed measurements, all trials |",
+                "|---|---|---|---|---|",
+            ]
+        )
         for who, v in PAPER[paper_key].items():
             L.append(f"| {who} — paper, real images | " + " | ".join(f"{x:.4f}" for x in v) + " | |")
         for name in names:
@@ -263,26 +309,42 @@ def report(res: dict) -> str:
     L.append("|---|---|" + "---|" * len(names))
     for a in T[names[0]]["table5"]:
         p = PAPER_LIGHTING.get(float(a))
-        cells = [_ci(T[nm]["table5"][a]["mae"]) + (f" ({T[nm]['table5'][a]['failed']} of {57 * n} failed)" if T[nm]["table5"][a]["failed"] else "") for nm in names]
+        cells = [
+            _ci(T[nm]["table5"][a]["mae"])
+            + (f" ({T[nm]['table5'][a]['failed']} of {57 * n} failed)" if T[nm]["table5"][a]["failed"] else "")
+            for nm in names
+        ]
         L.append(f"| {float(a):g} | {' / '.join(f'{x:.4f}' for x in p) if p else '—'} | " + " | ".join(cells) + " |")
     L.append("")
 
     lv = res["levels"]
-    for kind, title in (("alpha", "Detection versus darkness α (Fig. 10)"), ("blur", "Detection versus motion blur, kernel length in px (Fig. 10)")):
-        L.extend([f"**{title}** — % of pairs with all six centres within {c['tolerance_px']:g} px and the right IDs [95 % Wilson interval]; translation error median (mm)", ""])
+    for kind, title in (
+        ("alpha", "Detection versus darkness α (Fig. 10)"),
+        ("blur", "Detection versus motion blur, kernel length in px (Fig. 10)"),
+    ):
+        L.extend(
+            [
+                f"**{title}** — % of pairs with all six centres within {c['tolerance_px']:g} px and the right IDs [95 % Wilson interval]; translation error median (mm)",
+                "",
+            ]
+        )
         L.append(f"| {'α' if kind == 'alpha' else 'blur (px)'} | " + " | ".join(names) + " |")
         L.append("|---|" + "---|" * len(names))
         for v, per in lv[kind].items():
-            L.append(f"| {float(v):g} | " + " | ".join(f"{_pct(per[nm]['detection'])}; {_f(per[nm]['t_median_mm'])}" for nm in names) + " |")
+            L.append(
+                f"| {float(v):g} | " + " | ".join(f"{_pct(per[nm]['detection'])}; {_f(per[nm]['t_median_mm'])}" for nm in names) + " |"
+            )
         L.append("")
 
     std = lv["alpha"]["1.0"]
-    L.extend([
-        f"**Absolute accuracy at α = 1** ({std[names[0]]['pairs']} random pairs in the working volume; failures count as inf)",
-        "",
-        "| Method | detected | centre median / p95 (px) | translation median / p95 (mm) | rotation median / p95 (°) | t ≤ 0.1 mm | t ≤ 1 mm | R ≤ 0.1° | R ≤ 1° |",
-        "|---|---|---|---|---|---|---|---|---|",
-    ])
+    L.extend(
+        [
+            f"**Absolute accuracy at α = 1** ({std[names[0]]['pairs']} random pairs in the working volume; failures count as inf)",
+            "",
+            "| Method | detected | centre median / p95 (px) | translation median / p95 (mm) | rotation median / p95 (°) | t ≤ 0.1 mm | t ≤ 1 mm | R ≤ 0.1° | R ≤ 1° |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+    )
     for nm in names:
         s = std[nm]
         L.append(
@@ -300,11 +362,13 @@ def report(res: dict) -> str:
             x = std[nm]["by_condition"][i]
             cells.append(f"{_f(x['t_median_mm'])} / {_f(x['r_median_deg'])} / {x['detected']:.2f}")
         L.append(f"| {b} | {std[names[0]]['by_condition'][i]['pairs']} | " + " | ".join(cells) + " |")
-    L.extend([
-        "",
-        "Plots: displacement.png and rotation.png (trial 0, like Figs. 7 and 9), detection.png (Fig. 10), accuracy.png.",
-        "",
-    ])
+    L.extend(
+        [
+            "",
+            "Plots: displacement.png and rotation.png (trial 0, like Figs. 7 and 9), detection.png (Fig. 10), accuracy.png.",
+            "",
+        ]
+    )
     return "\n".join(L)
 
 

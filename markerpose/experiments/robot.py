@@ -86,7 +86,9 @@ class Sequence:
     frames: list = field(default_factory=list)
 
 
-def render_sequences(rig: StereoRig, scene: RobotScene, marker: Marker, imaging: Imaging, seed=0, progress: bool = True, which=("displacement", "rotation")):
+def render_sequences(
+    rig: StereoRig, scene: RobotScene, marker: Marker, imaging: Imaging, seed=0, progress: bool = True, which=("displacement", "rotation")
+):
     """Render the displacement and rotation sequences (or those in ``which``) over one
     static cluttered lab background. The background and the noise depend on ``seed``
     only, so the same seed at another ``imaging`` gives the same scene, darker or blurred.
@@ -122,7 +124,13 @@ def error_stats(err) -> dict:
     if not ok.any():
         return {"mae": np.nan, "rms": np.nan, "max": np.nan, "n": 0, "failed": int(e.size)}
     a = np.abs(e[ok])
-    return {"mae": float(a.mean()), "rms": float(np.sqrt((a**2).mean())), "max": float(a.max()), "n": int(ok.sum()), "failed": int((~ok).sum())}
+    return {
+        "mae": float(a.mean()),
+        "rms": float(np.sqrt((a**2).mean())),
+        "max": float(a.max()),
+        "n": int(ok.sum()),
+        "failed": int((~ok).sum()),
+    }
 
 
 def evaluate(tracker, seqs, scene: RobotScene, marker: Marker, name: str = "", progress: bool = True) -> dict:

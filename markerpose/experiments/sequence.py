@@ -118,8 +118,11 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
         raise ValueError(f"passes must be >= 1, got {c['passes']}")
     rig, marker = StereoRig.default(), Marker()
     opts = {} if c["threads"] is None else {"threads": int(c["threads"])}
-    runners = {"track": MarkerPose(rig, marker, preset=c["preset"], **opts), "estimate": MarkerPose(rig, marker, preset=c["preset"], **opts),
-               "paper": MarkerPose(rig, marker, preset="paper", **opts)}
+    runners = {
+        "track": MarkerPose(rig, marker, preset=c["preset"], **opts),
+        "estimate": MarkerPose(rig, marker, preset=c["preset"], **opts),
+        "paper": MarkerPose(rig, marker, preset="paper", **opts),
+    }
     calls = {"track": runners["track"].track, "estimate": runners["estimate"].estimate, "paper": runners["paper"].estimate}
     # The images and the truth only (a rendered frame also holds its ring masks).
     frames, rows = [], []
@@ -141,10 +144,16 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
                 est = calls[m](*images)
                 dt = 1000 * (time.perf_counter() - t0)
                 if p == 0:
-                    rows[k][m] = {"ms": 0.0, "ms_passes": [], "found": est is not None, "source": None if est is None else est.source,
-                                  "t_mm": None if est is None else float(np.linalg.norm(est.t - T[:3, 3])),
-                                  "r_deg": None if est is None else float(np.degrees(rotation_angle(nearest_rotation(est.R), T[:3, :3]))),
-                                  "t": None if est is None else est.t.tolist(), "R": None if est is None else nearest_rotation(est.R).tolist()}
+                    rows[k][m] = {
+                        "ms": 0.0,
+                        "ms_passes": [],
+                        "found": est is not None,
+                        "source": None if est is None else est.source,
+                        "t_mm": None if est is None else float(np.linalg.norm(est.t - T[:3, 3])),
+                        "r_deg": None if est is None else float(np.degrees(rotation_angle(nearest_rotation(est.R), T[:3, :3]))),
+                        "t": None if est is None else est.t.tolist(),
+                        "R": None if est is None else nearest_rotation(est.R).tolist(),
+                    }
                 rows[k][m]["ms_passes"].append(dt)
                 rows[k][m]["ms"] = float(np.mean(rows[k][m]["ms_passes"]))
     res = {"conf": c, "summary": {m: summarize(rows, m) for m in METHODS}, "frames": rows}
@@ -188,18 +197,24 @@ def summarize(rows: list[dict], m: str) -> dict:
         seg_rows = [r for r in rows[1:] if r["segment"] == s]
         if seg_rows:
             v = [r for r in seg_rows if r["visible"]]
-            by_seg[s] = {"median_ms": float(np.median(_passes(seg_rows, m))),
-                         "detected": float(np.mean([r[m]["found"] for r in v])) if v else None}
+            by_seg[s] = {
+                "median_ms": float(np.median(_passes(seg_rows, m))),
+                "detected": float(np.mean([r[m]["found"] for r in v])) if v else None,
+            }
     return {
-        "median_ms": float(np.median(ms)), "p99_ms": float(np.percentile(ms, 99)), "max_ms": float(ms.max()),
+        "median_ms": float(np.median(ms)),
+        "p99_ms": float(np.percentile(ms, 99)),
+        "max_ms": float(ms.max()),
         "fps": float(1000 / np.median(ms)),
         "detected": len(found) / max(len(vis), 1),
         "tracked_share": float(np.mean([r[m]["source"] == "tracked" for r in found])) if found else 0.0,
-        "t_median_mm": float(np.median(t_err)), "t_p95_mm": float(np.percentile(t_err, 95)),
+        "t_median_mm": float(np.median(t_err)),
+        "t_p95_mm": float(np.percentile(t_err, 95)),
         "r_median_deg": float(np.median(r_err)),
         "wrong_poses": int(np.sum(t_err > 1.0)) if found else 0,
         "false_poses": sum(r[m]["found"] for r in rows if not r["visible"]),
-        "jitter_mm": jitter_t, "jitter_deg": jitter_r,
+        "jitter_mm": jitter_t,
+        "jitter_deg": jitter_r,
         "frames_to_reacquire": reacquire,
         "by_segment": by_seg,
     }
@@ -214,12 +229,19 @@ def report(res: dict) -> str:
     c, s = res["conf"], res["summary"]
     n = len(res["frames"])
     lines = [
-        f"# Sequence benchmark: {n} stereo frames at {c['fps']:g} frames/s", "",
-        "Segments: " + ", ".join(f"{name} ({int(round(f * n))} frames)" for name, f in SEGMENTS)
-        + f". `track` is `MarkerPose(rig, preset=\"{c.get('preset', 'default')}\").track`; `estimate` is the same preset detecting every frame cold;"
-        " `paper` is `MarkerPose(rig, preset=\"paper\").estimate`. All three on the same frames, each as a live stream "
-        + (f"(a frame handed over every {1000 / c['fps']:.1f} ms, or as soon as the method is free)" if c.get("pace", True) else "(back to back)")
-        + f"; {c.get('passes', 1)} pass(es) per method in alternating order, the latencies of all passes pooled.", "",
+        f"# Sequence benchmark: {n} stereo frames at {c['fps']:g} frames/s",
+        "",
+        "Segments: "
+        + ", ".join(f"{name} ({int(round(f * n))} frames)" for name, f in SEGMENTS)
+        + f'. `track` is `MarkerPose(rig, preset="{c.get("preset", "default")}").track`; `estimate` is the same preset detecting every frame cold;'
+        ' `paper` is `MarkerPose(rig, preset="paper").estimate`. All three on the same frames, each as a live stream '
+        + (
+            f"(a frame handed over every {1000 / c['fps']:.1f} ms, or as soon as the method is free)"
+            if c.get("pace", True)
+            else "(back to back)"
+        )
+        + f"; {c.get('passes', 1)} pass(es) per method in alternating order, the latencies of all passes pooled.",
+        "",
         "| method | median ms | p99 ms | max ms | FPS | speed vs paper | detected | tracked share | translation error median / p95 (mm) "
         "| rotation error median (°) | static jitter: origin RMS (mm) / rotation RMS (°) | wrong poses (> 1 mm) | false poses | frames to re-acquire |",
         "|" + "---|" * 14,
@@ -231,9 +253,15 @@ def report(res: dict) -> str:
             f"| {m} | {r['median_ms']:.1f} | {r['p99_ms']:.1f} | {r['max_ms']:.1f} | {r['fps']:.1f} | {ref / r['median_ms']:.2f}x | "
             f"{100 * r['detected']:.1f} % | {100 * r['tracked_share']:.0f} % | {_f(r['t_median_mm'], 4)} / {_f(r['t_p95_mm'], 4)} | "
             f"{_f(r['r_median_deg'], 4)} | {_f(r['jitter_mm'], 4)} / {_f(r['jitter_deg'], 4)} | {r['wrong_poses']} | {r['false_poses']} | "
-            f"{_f(r['frames_to_reacquire'], 0) if r['frames_to_reacquire'] is not None else 'never'} |")
-    lines += ["", "By segment: median ms per frame (detected share of the frames where the marker is fully in both views).", "",
-              "| segment | " + " | ".join(METHODS) + " |", "|---|" + "---|" * len(METHODS)]
+            f"{_f(r['frames_to_reacquire'], 0) if r['frames_to_reacquire'] is not None else 'never'} |"
+        )
+    lines += [
+        "",
+        "By segment: median ms per frame (detected share of the frames where the marker is fully in both views).",
+        "",
+        "| segment | " + " | ".join(METHODS) + " |",
+        "|---|" + "---|" * len(METHODS),
+    ]
     for seg, _ in SEGMENTS:
         cells = []
         for m in METHODS:

@@ -88,18 +88,38 @@ def scenes(conf: dict, rig: StereoRig) -> list[dict]:
         rng = np.random.default_rng([conf["seed"], 31, k])
         for i in range(conf["pairs"]):
             T, cond = random_pose(rng, rig)
-            out.append({"kind": kind, "level": float(value), "T": T, "alpha": alpha, "blur": blur,
-                        "angle": float(rng.uniform(0, 180)), "seed": [conf["seed"], 32, k, i], **cond})
+            out.append(
+                {
+                    "kind": kind,
+                    "level": float(value),
+                    "T": T,
+                    "alpha": alpha,
+                    "blur": blur,
+                    "angle": float(rng.uniform(0, 180)),
+                    "seed": [conf["seed"], 32, k, i],
+                    **cond,
+                }
+            )
     rng = np.random.default_rng([conf["seed"], 33])
     for p in range(conf["jitter_poses"]):
         T, cond = random_pose(rng, rig, distance=(450.0, 600.0), tilt=(15.0, 40.0))
         for r in range(conf["jitter_repeats"]):
             # The same background (bg_seed) every repeat; fresh sensor noise (seed).
-            out.append({"kind": "jitter", "level": float(p), "T": T, "alpha": 1.0, "blur": 0.0, "angle": 0.0,
-                        "bg_seed": [conf["seed"], 34, p], "seed": [conf["seed"], 35, p, r], **cond})
+            out.append(
+                {
+                    "kind": "jitter",
+                    "level": float(p),
+                    "T": T,
+                    "alpha": 1.0,
+                    "blur": 0.0,
+                    "angle": 0.0,
+                    "bg_seed": [conf["seed"], 34, p],
+                    "seed": [conf["seed"], 35, p, r],
+                    **cond,
+                }
+            )
     for i in range(conf["marker_free"]):
-        out.append({"kind": "free", "level": 0.0, "T": None, "alpha": 1.0, "blur": 0.0, "angle": 0.0,
-                    "seed": [conf["seed"], 36, i]})
+        out.append({"kind": "free", "level": 0.0, "T": None, "alpha": 1.0, "blur": 0.0, "angle": 0.0, "seed": [conf["seed"], 36, i]})
     return out
 
 
@@ -215,8 +235,9 @@ def _ok(r: dict | None, conf: dict) -> bool:
 
 def _flip(r: dict | None, conf: dict) -> bool:
     """A wrong pose whose other IPPE solution is right: the planar ambiguity."""
-    return bool(r and r["pose"] and not _ok(r, conf)
-                and any(t <= conf["tolerance_mm"] and a <= conf["tolerance_deg"] for t, a in r.get("alt", [])))
+    return bool(
+        r and r["pose"] and not _ok(r, conf) and any(t <= conf["tolerance_mm"] and a <= conf["tolerance_deg"] for t, a in r.get("alt", []))
+    )
 
 
 def _pct(values, q) -> float | None:
@@ -269,8 +290,15 @@ def _bins(rows: list[tuple[dict, dict]], key: str, edges, conf: dict) -> list[di
     out = []
     for lo, hi in itertools.pairwise(edges):
         sel = [r for sc, r in rows if lo <= sc[key] < hi and _ok(r, conf)]
-        out.append({"lo": lo, "hi": hi, "n": len(sel), "t_err_median_mm": _pct([r["t_err"] for r in sel], 50),
-                    "r_err_median_deg": _pct([r["r_err"] for r in sel], 50)})
+        out.append(
+            {
+                "lo": lo,
+                "hi": hi,
+                "n": len(sel),
+                "t_err_median_mm": _pct([r["t_err"] for r in sel], 50),
+                "r_err_median_deg": _pct([r["r_err"] for r in sel], 50),
+            }
+        )
     return out
 
 
@@ -301,8 +329,10 @@ def summarize(results: list[tuple[dict, dict]], conf: dict) -> dict:
             m["by_tilt"] = _bins(std, "tilt", TILT_BINS, conf)
             every = [r[name][mode] for sc, r in results if sc["kind"] in ("alpha", "blur")]
             m["all_levels"] = level_stats(every, conf)
-            groups = [[r[name][mode] for sc, r in results if sc["kind"] == "jitter" and sc["level"] == p]
-                      for p in sorted({sc["level"] for sc, _ in results if sc["kind"] == "jitter"})]
+            groups = [
+                [r[name][mode] for sc, r in results if sc["kind"] == "jitter" and sc["level"] == p]
+                for p in sorted({sc["level"] for sc, _ in results if sc["kind"] == "jitter"})
+            ]
             m["jitter"] = jitter_stats(groups, conf)
             free = [r[name] for sc, r in results if sc["kind"] == "free"]
             m["false_poses"] = {"k": int(sum(bool(f[mode]["pose"]) for f in free)), "n": len(free)}
@@ -433,8 +463,13 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
         )
     comp = comparison(summary)
     if comp:
-        L += ["", "## markerpose against the best peer on each metric", "",
-              "| metric | markerpose | best peer | its value | ratio |", "|---|---|---|---|---|"]
+        L += [
+            "",
+            "## markerpose against the best peer on each metric",
+            "",
+            "| metric | markerpose | best peer | its value | ratio |",
+            "|---|---|---|---|---|",
+        ]
         for c in comp:
             a, b = c["markerpose"], c["peer"]
             if c["metric"].startswith("detection"):
@@ -446,23 +481,46 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
                 vals = (_f(a, nd), _f(b, nd))
                 ratio = "—" if not a or not b else (f"markerpose {b / a:.1f}× better" if b >= a else f"peer {a / b:.1f}× better")
             L.append(f"| {c['metric']} | {vals[0]} | {systems.LABELS[c['best_peer']]}, {c['mode']} | {vals[1]} | {ratio} |")
-    for kind, vals, title in (("alpha", alphas, "Detection versus darkness α"), ("blur", ["0.0"] + blurs, "Detection versus motion blur (px)")):
-        L += ["", f"## {title}", "", "| system | mode | " + " | ".join(f"{float(v):g}" for v in vals) + " |",
-              "|---|---|" + "---|" * len(vals)]
+    for kind, vals, title in (
+        ("alpha", alphas, "Detection versus darkness α"),
+        ("blur", ["0.0"] + blurs, "Detection versus motion blur (px)"),
+    ):
+        L += [
+            "",
+            f"## {title}",
+            "",
+            "| system | mode | " + " | ".join(f"{float(v):g}" for v in vals) + " |",
+            "|---|---|" + "---|" * len(vals),
+        ]
         for name, mode, m in _rows(summary):
             L.append(f"| {systems.LABELS[name]} | {mode} | " + " | ".join(_det(m[kind][v]) for v in vals) + " |")
-    L += ["", "## Errors by distance and tilt (standard level, detections)", "",
-          "Position error median (mm) / rotation error median (°) per bin.", ""]
+    L += [
+        "",
+        "## Errors by distance and tilt (standard level, detections)",
+        "",
+        "Position error median (mm) / rotation error median (°) per bin.",
+        "",
+    ]
     for key, title in (("by_distance", "distance (mm)"), ("by_tilt", "tilt (°)")):
         first = next(iter(_rows(summary)))[2][key]
-        L += ["| system | mode | " + " | ".join(f"{title} {b['lo']:g}–{min(b['hi'], 800 if key == 'by_distance' else 60):g}" for b in first) + " |",
-              "|---|---|" + "---|" * len(first)]
+        L += [
+            "| system | mode | "
+            + " | ".join(f"{title} {b['lo']:g}–{min(b['hi'], 800 if key == 'by_distance' else 60):g}" for b in first)
+            + " |",
+            "|---|---|" + "---|" * len(first),
+        ]
         for name, mode, m in _rows(summary):
-            L.append(f"| {systems.LABELS[name]} | {mode} | " + " | ".join(
-                f"{_f(b['t_err_median_mm'])} / {_f(b['r_err_median_deg'], 2)} (n={b['n']})" for b in m[key]) + " |")
+            L.append(
+                f"| {systems.LABELS[name]} | {mode} | "
+                + " | ".join(f"{_f(b['t_err_median_mm'])} / {_f(b['r_err_median_deg'], 2)} (n={b['n']})" for b in m[key])
+                + " |"
+            )
         L.append("")
-    L += ["Plots: `detection.png` (detection versus darkness and blur), `accuracy.png` (errors versus distance and "
-          "tilt), `jitter-speed.png` (static jitter and time per frame).", ""]
+    L += [
+        "Plots: `detection.png` (detection versus darkness and blur), `accuracy.png` (errors versus distance and "
+        "tilt), `jitter-speed.png` (static jitter and time per frame).",
+        "",
+    ]
     return "\n".join(L)
 
 
@@ -490,8 +548,15 @@ def plots(summary: dict, out: Path) -> list[Path]:
     for ax, kind, xlabel in ((axes[0], "alpha", "darkness α (exposure scale)"), (axes[1], "blur", "motion blur length (px)")):
         for name, mode, m in _rows(summary):
             xs = sorted(m[kind], key=float)
-            ax.plot([float(x) for x in xs], [100 * m[kind][x]["detection"]["p"] for x in xs], _STYLE[mode], marker="o", ms=4,
-                    color=_COLORS[name], label=_line_label(name, mode))
+            ax.plot(
+                [float(x) for x in xs],
+                [100 * m[kind][x]["detection"]["p"] for x in xs],
+                _STYLE[mode],
+                marker="o",
+                ms=4,
+                color=_COLORS[name],
+                label=_line_label(name, mode),
+            )
         ax.set_xlabel(xlabel)
         ax.grid(alpha=0.3)
     axes[0].set_xscale("log")
@@ -506,7 +571,10 @@ def plots(summary: dict, out: Path) -> list[Path]:
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharey="row")
     for col, key, xlabel in ((0, "by_distance", "distance (mm)"), (1, "by_tilt", "tilt (°)")):
-        for row, metric, ylabel in ((0, "t_err_median_mm", "position error, median (mm)"), (1, "r_err_median_deg", "rotation error, median (°)")):
+        for row, metric, ylabel in (
+            (0, "t_err_median_mm", "position error, median (mm)"),
+            (1, "r_err_median_deg", "rotation error, median (°)"),
+        ):
             ax = axes[row, col]
             for name, mode, m in _rows(summary):
                 b = m[key]
@@ -566,15 +634,16 @@ def plan(quick: bool = False, **overrides) -> dict:
     return conf
 
 
-def main(conf: dict, out_dir: str | Path = "markerpose-peers", jobs: int | None = None, command: str = "markerpose peers",
-         progress: bool = True) -> dict:
+def main(
+    conf: dict, out_dir: str | Path = "markerpose-peers", jobs: int | None = None, command: str = "markerpose peers", progress: bool = True
+) -> dict:
     """Run the comparison; write report.md, results.json and the plots into ``out_dir``."""
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     skipped = systems.missing([n for n in conf["systems"] if n in systems.PEERS])
     for name, pkg in skipped.items():
-        print(f"skipping {name}: its detector is not installed (pip install {pkg}, or pip install -e \".[peers]\")")
+        print(f'skipping {name}: its detector is not installed (pip install {pkg}, or pip install -e ".[peers]")')
     conf = {**conf, "systems": tuple(n for n in conf["systems"] if n not in skipped)}
     results = run(conf, jobs=jobs, progress=progress)
     summary = summarize(results, conf)

@@ -158,7 +158,9 @@ class AprilTag(System):
 
     def __init__(self):
         super().__init__()
-        self.detector = _apriltag_detector(families="tag36h11", nthreads=1, quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25)
+        self.detector = _apriltag_detector(
+            families="tag36h11", nthreads=1, quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25
+        )
 
     def make_target(self):
         return targets.apriltag_target(self.tag_id)
@@ -266,7 +268,7 @@ def make(name: str, rig=None) -> System:
         raise ValueError(f"unknown system {name!r}; known: {list(SYSTEMS)}")
     gone = missing([name])
     if gone:
-        raise ImportError(f"{name} needs the package {gone[name]}: pip install {gone[name]} (or pip install -e \".[peers]\")")
+        raise ImportError(f'{name} needs the package {gone[name]}: pip install {gone[name]} (or pip install -e ".[peers]")')
     return PEER_CLASSES[name]()
 
 

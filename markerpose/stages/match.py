@@ -115,8 +115,14 @@ def stereo_triples(
     if not len(n):
         return []
     T = np.column_stack([A[n], B[n], C])
-    distinct = ((I[T[:, 0]] != I[T[:, 1]]) & (I[T[:, 0]] != I[T[:, 2]]) & (I[T[:, 1]] != I[T[:, 2]])
-                & (J[T[:, 0]] != J[T[:, 1]]) & (J[T[:, 0]] != J[T[:, 2]]) & (J[T[:, 1]] != J[T[:, 2]]))
+    distinct = (
+        (I[T[:, 0]] != I[T[:, 1]])
+        & (I[T[:, 0]] != I[T[:, 2]])
+        & (I[T[:, 1]] != I[T[:, 2]])
+        & (J[T[:, 0]] != J[T[:, 1]])
+        & (J[T[:, 0]] != J[T[:, 2]])
+        & (J[T[:, 1]] != J[T[:, 2]])
+    )
     T = T[distinct]
     pl, pr = cl[I[T], :2], cr[J[T], :2]  # (M, 3, 2)
     front = (signed_areas(pl) < 0) & (signed_areas(pr) < 0)  # not the marker seen from behind
@@ -158,7 +164,9 @@ def best_per_set(scores: np.ndarray, sets: np.ndarray) -> np.ndarray:
     return order[np.sort(first)]
 
 
-def view_triples(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int | None = 1, top: int = 8) -> list[tuple[np.ndarray, float]]:
+def view_triples(
+    cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, max_triples: int | None = 1, top: int = 8
+) -> list[tuple[np.ndarray, float]]:
     """Triples of one view's candidates named by the marker's 2D layout, best first: each
     set of candidates in its order of highest score (:func:`layout_orders`).
 
@@ -241,4 +249,15 @@ def pair_triples(rig: StereoRig, left: tuple, right: tuple, epipolar_tol: float 
     return None if best is None else best[1:]
 
 
-__all__ = ["METHODS", "best_per_set", "default_conf", "layout_orders", "pair_triples", "side_lengths", "stereo_triples", "transfer", "transfer_sources", "view_triples"]
+__all__ = [
+    "METHODS",
+    "best_per_set",
+    "default_conf",
+    "layout_orders",
+    "pair_triples",
+    "side_lengths",
+    "stereo_triples",
+    "transfer",
+    "transfer_sources",
+    "view_triples",
+]

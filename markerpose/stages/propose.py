@@ -65,8 +65,10 @@ class NeuralProposer:
         weights = conf["weights"]
         if conf["int8"]:
             if weights is not None:
-                raise ValueError("propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
-                                 "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8")
+                raise ValueError(
+                    "propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
+                    "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8"
+                )
             weights = int8_weights("keypoints")
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
@@ -75,7 +77,9 @@ class NeuralProposer:
         zoom = float(self.conf["second_look"])
         return (1.0, zoom) if zoom > 1 else (1.0,)
 
-    def candidates(self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None) -> list[np.ndarray]:
+    def candidates(
+        self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None
+    ) -> list[np.ndarray]:
         """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first.
         A look with ``zoom`` > 1 given the ``previous`` look's candidates looks only near
         its best ones (``second_look_near``). ``kept``: the call's stage-1 inputs
@@ -84,8 +88,9 @@ class NeuralProposer:
         near = None
         if zoom > 1 and previous is not None and c["second_look_near"]:
             near = [p[: int(c["second_look_near"]), :2] for p in previous]
-        return self.net.candidates(grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]),
-                                   kept=kept)
+        return self.net.candidates(
+            grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]), kept=kept
+        )
 
     def near(self, grays: list[np.ndarray], points: list, half: int, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look

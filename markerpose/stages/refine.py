@@ -98,8 +98,17 @@ class Refiner:
             if self.conf["method"] == "none":
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
-            centers, ok, ellipses, blur = classical.refine_points(gray, pts, self.marker, subpixel=self.conf["subpixel"], conf=conf,
-                                                                  camera=cam, with_blur=True, noise=frame.noises([gray])[0], limits=limits)
+            centers, ok, ellipses, blur = classical.refine_points(
+                gray,
+                pts,
+                self.marker,
+                subpixel=self.conf["subpixel"],
+                conf=conf,
+                camera=cam,
+                with_blur=True,
+                noise=frame.noises([gray])[0],
+                limits=limits,
+            )
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur))
         return out
 
@@ -124,9 +133,16 @@ class Refiner:
             seeds = {k: self.layout_ellipses(points[k][0]) for k in seen}
             views = [k for k in seen if seeds[k] is not None]
             if views:
-                fits = classical.refine_ellipses_views([grays[k] for k in views], [seeds[k] for k in views], self.marker,
-                                                       {**conf, "blur_fit_unrefined": False}, [cameras[k] for k in views],
-                                                       frame.noises([grays[k] for k in views]), with_blur=True, limits=limits)
+                fits = classical.refine_ellipses_views(
+                    [grays[k] for k in views],
+                    [seeds[k] for k in views],
+                    self.marker,
+                    {**conf, "blur_fit_unrefined": False},
+                    [cameras[k] for k in views],
+                    frame.noises([grays[k] for k in views]),
+                    with_blur=True,
+                    limits=limits,
+                )
                 for k, (centers, ok, ellipses, blur) in zip(views, fits):
                     if ok.all():
                         out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
@@ -137,17 +153,32 @@ class Refiner:
         refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
-            fits = classical.refine_ellipses_views([grays[k] for k in seen], [f[2] for f in refined], self.marker, conf,
-                                                   [cameras[k] for k in seen], frame.noises([grays[k] for k in seen]), with_blur=True,
-                                                   limits=limits)
+            fits = classical.refine_ellipses_views(
+                [grays[k] for k in seen],
+                [f[2] for f in refined],
+                self.marker,
+                conf,
+                [cameras[k] for k in seen],
+                frame.noises([grays[k] for k in seen]),
+                with_blur=True,
+                limits=limits,
+            )
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
             ellipses, blur = None, 0.0
             if fit is not None:
                 c2, ok2, ellipses, blur = fit
                 if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                    c3, ok3, e3, b3 = classical.refine_points(grays[k], centers, self.marker, conf=conf, camera=cameras[k], with_blur=True,
-                                                              noise=frame.noises([grays[k]])[0], limits=limits)
+                    c3, ok3, e3, b3 = classical.refine_points(
+                        grays[k],
+                        centers,
+                        self.marker,
+                        conf=conf,
+                        camera=cameras[k],
+                        with_blur=True,
+                        noise=frame.noises([grays[k]])[0],
+                        limits=limits,
+                    )
                     c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
                     ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
                     ok2 = ok2 | ok3
@@ -157,8 +188,18 @@ class Refiner:
             out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
         return out
 
-    def from_ellipses(self, frame: Frame, grays: list, cameras: list, ellipses: list, score: float, blur_unrefined: bool = True,
-                      first_tol: float = 0.0, noises: list | None = None, blur_gate=None) -> list:
+    def from_ellipses(
+        self,
+        frame: Frame,
+        grays: list,
+        cameras: list,
+        ellipses: list,
+        score: float,
+        blur_unrefined: bool = True,
+        first_tol: float = 0.0,
+        noises: list | None = None,
+        blur_gate=None,
+    ) -> list:
         """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
         all views in one batch: per view a Detection when all three refine, else None.
         ``blur_unrefined=False``: no blur fit when the edge fit found none of the rings (a
@@ -169,8 +210,16 @@ class Refiner:
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
-        fits = classical.refine_ellipses_views(grays, ellipses, self.marker, conf, cameras, frame.noises(grays) if noises is None else noises,
-                                               with_blur=True, limits=classical.BlurLimits(frame.blur_fits, blur_gate))
+        fits = classical.refine_ellipses_views(
+            grays,
+            ellipses,
+            self.marker,
+            conf,
+            cameras,
+            frame.noises(grays) if noises is None else noises,
+            with_blur=True,
+            limits=classical.BlurLimits(frame.blur_fits, blur_gate),
+        )
         return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
 
     def triple(self, frame: Frame, view: tuple, tri: tuple, cost: float, camera) -> Detection:
@@ -178,8 +227,9 @@ class Refiner:
         refined: sub-pixel edges and the blur fit with ``subpixel``, else the paper's
         contour ellipses."""
         gray, noise, rings = view[:3]
-        return classical.refine_triple(gray, rings, tri, cost, self.marker, self.conf["subpixel"], self.classical, noise, camera,
-                                       classical.BlurLimits(frame.blur_fits))
+        return classical.refine_triple(
+            gray, rings, tri, cost, self.marker, self.conf["subpixel"], self.classical, noise, camera, classical.BlurLimits(frame.blur_fits)
+        )
 
 
 __all__ = ["METHODS", "Refiner", "default_conf"]

@@ -47,8 +47,14 @@ def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: 
                 centers[i] = measured[i] - perspective_bias(cam, Ts[i], marker.centers2d, marker.outer_radius)
             X = triangulate(rig, centers[0], centers[1])
     T = pose_from_points(X, marker.points3d, conf["pose"])
-    return Estimate(T=T, points3d=X, centers=centers, detections=(det_left, det_right),
-                    residual_px=reprojection_rms(rig, marker, T, centers), source=source)
+    return Estimate(
+        T=T,
+        points3d=X,
+        centers=centers,
+        detections=(det_left, det_right),
+        residual_px=reprojection_rms(rig, marker, T, centers),
+        source=source,
+    )
 
 
 def reprojection_rms(rig, marker: Marker, T_left_marker: np.ndarray, centers: np.ndarray) -> float:

@@ -68,8 +68,18 @@ def predict(history: list) -> np.ndarray:
 def _fill_ellipse(img: np.ndarray, centre, axes, angle: float, scale: float, value: int) -> None:
     """Fill an ellipse (``centre`` and full ``axes`` in full-resolution px, ``angle``) into
     ``img`` drawn at 1/``scale``, to 1/16 px (OpenCV's fixed point)."""
-    cv2.ellipse(img, (round(centre[0] / scale * 16), round(centre[1] / scale * 16)),
-                (max(1, round(axes[0] / scale * 8)), max(1, round(axes[1] / scale * 8))), angle, 0, 360, value, -1, cv2.LINE_8, 4)
+    cv2.ellipse(
+        img,
+        (round(centre[0] / scale * 16), round(centre[1] / scale * 16)),
+        (max(1, round(axes[0] / scale * 8)), max(1, round(axes[1] / scale * 8))),
+        angle,
+        0,
+        360,
+        value,
+        -1,
+        cv2.LINE_8,
+        4,
+    )
 
 
 def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, rings: list | None = None) -> tuple:
@@ -79,6 +89,7 @@ def appearance(camera, T: np.ndarray, marker, scale: float, origin: np.ndarray, 
     mask 1 on the plate, 0 off it (what lies there is not the marker's: a masked
     correlation ignores it). ``rings``: the rings' outer ellipses under ``T`` if known
     (:func:`~markerpose.geometry.ring_ellipses`)."""
+
     def px(points3d):
         cam = points3d @ T[:3, :3].T + T[:3, 3]
         return (camera.project(cam) - origin) / scale
@@ -116,8 +127,17 @@ def _ring(axes: tuple, angle: float, rho: float, scale: float, pad: float) -> np
     return out.astype(np.float32)
 
 
-def shift(gray: np.ndarray, camera, T: np.ndarray, marker, margin: float, rings: list | None = None, cell_px: float = 8.0,
-          ring_cells: int = 3, min_ring: float = 0.3) -> tuple | None:
+def shift(
+    gray: np.ndarray,
+    camera,
+    T: np.ndarray,
+    marker,
+    margin: float,
+    rings: list | None = None,
+    cell_px: float = 8.0,
+    ring_cells: int = 3,
+    min_ring: float = 0.3,
+) -> tuple | None:
     """Where the rings of the marker that the prior puts at pose ``T`` (camera frame) lie in
     ``gray``. The marker's drawn appearance (:func:`appearance`) is correlated with the
     image around the prediction, both at a whole-pixel scale where a ring spans

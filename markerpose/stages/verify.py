@@ -40,8 +40,10 @@ VIEWS = ("left", "right")
 def _unrefined_reason(det: Detection, view: str) -> str:
     """Why a view's detection has rings that do not count as refined."""
     rings = ", ".join(f"c{i}" for i in np.nonzero(~det.refined)[0])
-    return (f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
-            "blurred-ring fit disagreed with it or could not run)")
+    return (
+        f"{rings} not refined in the {view} view (the sub-pixel edge fit failed, or under heavy blur the "
+        "blurred-ring fit disagreed with it or could not run)"
+    )
 
 
 def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -> str | None:

@@ -481,5 +481,16 @@ def look_at_pose(position: np.ndarray, tilt_deg: float = 0.0, tilt_axis_deg: flo
     return T
 
 
-__all__ = ["Imaging", "ViewTruth", "StereoFrame", "render_view", "render_stereo", "motion_kernel", "look_at_pose", "sensor_readout",
-           "expose", "plane_coords", "plate_bbox"]
+__all__ = [
+    "Imaging",
+    "ViewTruth",
+    "StereoFrame",
+    "render_view",
+    "render_stereo",
+    "motion_kernel",
+    "look_at_pose",
+    "sensor_readout",
+    "expose",
+    "plane_coords",
+    "plate_bbox",
+]

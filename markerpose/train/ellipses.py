@@ -52,6 +52,7 @@ TEST_SETS = {
     "blur_25": (2003, 300, {"alpha": (0.25, 1.0), "blur": 25.0, "p_occlude": 0.0}),
 }
 
+
 @dataclass
 class PatchSample:
     """One stage-2 sample: ``image`` (120, 120) uint8, ``target`` (120, 120) float32 coverage,
@@ -249,7 +250,12 @@ def by_condition(data: dict, res: dict, fits=("ellipse", "subpixel")) -> list[di
             sel = (cond[:, col] >= lo) & (cond[:, col] < hi)
             if not sel.any():
                 continue
-            row = {"bin": f"{name} {lo}-{hi}", "n": int(sel.sum()), "bias_median": float(np.median(bias[sel])), "bias_max": float(bias[sel].max())}
+            row = {
+                "bin": f"{name} {lo}-{hi}",
+                "n": int(sel.sum()),
+                "bias_median": float(np.median(bias[sel])),
+                "bias_max": float(bias[sel].max()),
+            }
             for f in fits:
                 row[f"{f}_median"] = float(np.median(res[f]["errors"][sel]))
                 row[f"{f}_median_3d"] = float(np.median(res[f]["errors_3d"][sel]))
@@ -275,7 +281,13 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/ellipses", resume
     data_dir = Path(data_dir)
     c["device"] = dev = c["device"] or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(c["seed"])
-    train = cached(data_dir / f"es_train_{c['seed']}_{c['train_size']}.npz", n=c["train_size"], seed=c["seed"], workers=c["workers"], desc="render train")
+    train = cached(
+        data_dir / f"es_train_{c['seed']}_{c['train_size']}.npz",
+        n=c["train_size"],
+        seed=c["seed"],
+        workers=c["workers"],
+        desc="render train",
+    )
     val = cached(data_dir / f"es_val_{c['val_size']}.npz", n=c["val_size"], seed=1, workers=c["workers"], desc="render val")
     net = es.build_network().to(dev)
     bce = torch.nn.BCEWithLogitsLoss()
@@ -298,10 +310,16 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/ellipses", resume
         return f"IoU {m['iou_mean']:.4f}  centre median {m['ellipse']['median_px']:.3f} px (fitEllipse), {m['subpixel']['median_px']:.3f} px (sub-pixel)  bce {m['bce']:.4f}"
 
     return fit(
-        net, batches, n // bs, loss_fn,
+        net,
+        batches,
+        n // bs,
+        loss_fn,
         lambda net: score(predict(net, val["image"], device=dev), val, fits=("ellipse", "subpixel")),
         lambda m: -m["subpixel"]["median_px"] - m["subpixel"]["p95_px"] / 3,
-        c, Path(out_dir), resume, describe,
+        c,
+        Path(out_dir),
+        resume,
+        describe,
     )
 
 

@@ -175,13 +175,11 @@ def _decode_views(bounds: tuple[int, int]) -> list:
     c = {**dec.default_conf, **(conf or {})}
     needs_image = c["verify"] or c["align"]
     return [
-        dec.decode(det[j], id_logits[j], conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None)
-        for j in range(*bounds)
+        dec.decode(det[j], id_logits[j], conf, image=images[j].astype(np.float32) / 255.0 if needs_image else None) for j in range(*bounds)
     ]
 
 
-def decode_all(det, id_logits, images, decode_conf: dict | None = None, desc: str | None = None,
-               workers: int | None = None) -> list:
+def decode_all(det, id_logits, images, decode_conf: dict | None = None, desc: str | None = None, workers: int | None = None) -> list:
     """:func:`~markerpose.keypoints.decode` of every image of a stack: the heads' logits
     and the (N, 240, 320) uint8 inputs (which ``verify`` looks at), as arrays or lists; a
     progress bar labelled ``desc`` when given. ``workers`` processes (default
@@ -210,8 +208,9 @@ def decode_all(det, id_logits, images, decode_conf: dict | None = None, desc: st
     return out
 
 
-def look_again(net, images: np.ndarray, preds: list, decode_conf: dict, device="cpu", desc: str | None = None,
-               zoomed: dict | None = None) -> list:
+def look_again(
+    net, images: np.ndarray, preds: list, decode_conf: dict, device="cpu", desc: str | None = None, zoomed: dict | None = None
+) -> list:
     """``preds`` with the views where nothing was found decoded again on their input
     enlarged ``decode_conf["second_look"]`` times (bilinear; the test sets are stored at
     320x240 only, so this sees less detail than KeypointNet's second look, which resizes
@@ -255,7 +254,11 @@ DECODINGS = {
 }
 LOOKS = ("layout_verify", "layout_verify_align")  # the variants also tuned and evaluated with a second look
 TUNING_GRID = {
-    "head": {"threshold": (0.01, 0.02, 0.05), "min_id_prob": (0.1, 0.2, 0.3), "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6)},
+    "head": {
+        "threshold": (0.01, 0.02, 0.05),
+        "min_id_prob": (0.1, 0.2, 0.3),
+        "min_score": (0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6),
+    },
     "layout": {"threshold": (0.01, 0.02, 0.05), "min_score": (0.05, 0.1, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.5, 0.6)},
     # The ring evidence (in [0, 1]) scales the scores down: a finer, lower grid. The
     # candidates' threshold is fixed at the lowest value tried, which won at both operating
@@ -265,8 +268,9 @@ TUNING_GRID = {
 TUNING_GRID["layout_verify_align"] = TUNING_GRID["layout_verify"]
 
 
-def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head", found: list | None = None,
-                  heads: tuple | None = None):
+def tune_decoding(
+    net, data: dict, max_false_positive=0.005, device="cpu", decoding: str = "head", found: list | None = None, heads: tuple | None = None
+):
     """The decoding thresholds (:data:`TUNING_GRID`) that detect the most views of ``data``
     (the validation set, with its marker-free views) with at most ``max_false_positive``
     false detections on its marker-free views.
@@ -290,7 +294,9 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
         if dc["ids"] == "layout":  # the scoring these thresholds hold for travels with them
             dc["ratio_full"] = dec.default_conf["ratio_full"]
         if dc.get("align"):
-            dc.update({k: dec.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power", "align_move_rule")})
+            dc.update(
+                {k: dec.default_conf[k] for k in ("align_top", "align_min_ratio", "align_orders", "align_cc_power", "align_move_rule")}
+            )
         # The best triple does not depend on min_score: decode once at the grid's lowest
         # (which spares aligning triples that cannot reach it), then threshold.
         every = decode_all(det, id_logits, data["image"], {**dc, "min_score": min(min_scores)}, desc=f"tune {decoding}")
@@ -307,8 +313,16 @@ def tune_decoding(net, data: dict, max_false_positive=0.005, device="cpu", decod
     return out if isinstance(max_false_positive, (tuple, list)) else out[0]
 
 
-def tune_second_look(net, data: dict, decode_conf: dict, zoom: float = 2.0, max_false_positive: float | None = None, device="cpu",
-                     first: list | None = None, zoomed: dict | None = None):
+def tune_second_look(
+    net,
+    data: dict,
+    decode_conf: dict,
+    zoom: float = 2.0,
+    max_false_positive: float | None = None,
+    device="cpu",
+    first: list | None = None,
+    zoomed: dict | None = None,
+):
     """The second look's ``look_min_score`` that detects the most views of ``data`` (the
     validation set with its marker-free views) with both looks together within
     ``max_false_positive`` (default :data:`SINGLE_VIEW_FP`), the first look decoded with
@@ -323,8 +337,15 @@ def tune_second_look(net, data: dict, decode_conf: dict, zoom: float = 2.0, max_
     if first is None:
         first = predict(net, data["image"], decode_conf, device=device)
     grid = TUNING_GRID["layout_verify"]["min_score"]
-    again = look_again(net, data["image"], first, {**decode_conf, "second_look": zoom, "look_min_score": min(grid)}, device, desc="tune second look",
-                       zoomed=zoomed)
+    again = look_again(
+        net,
+        data["image"],
+        first,
+        {**decode_conf, "second_look": zoom, "look_min_score": min(grid)},
+        device,
+        desc="tune second look",
+        zoomed=zoomed,
+    )
     best = None
     for ms in grid:
         m = score([f if f is not None else a if a is not None and a[1] >= ms else None for f, a in zip(first, again)], data)
@@ -451,7 +472,9 @@ def _batches(data: dict, idx: np.ndarray, rng, bs: int, window=None):
         yield np.stack(imgs), np.stack(dets), np.stack(ids)
 
 
-def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resume: bool = False, data_dir: str | Path = "runs/data") -> Path:
+def main(
+    conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resume: bool = False, data_dir: str | Path = "runs/data"
+) -> Path:
     """Train stage 1. Writes ``last.pt``, ``best.pt`` and ``history.json`` into ``out_dir``.
 
     Returns:
@@ -464,9 +487,22 @@ def main(conf: dict | None = None, out_dir: str | Path = "runs/keypoints", resum
     data_dir = Path(data_dir)
     c["device"] = c["device"] or ("cuda" if torch.cuda.is_available() else "cpu")
     torch.manual_seed(c["seed"])
-    train = cached(data_dir / f"kp_train_{c['seed']}_{c['train_size']}.npz", n=c["train_size"], seed=c["seed"], workers=c["workers"], desc="render train")
+    train = cached(
+        data_dir / f"kp_train_{c['seed']}_{c['train_size']}.npz",
+        n=c["train_size"],
+        seed=c["seed"],
+        workers=c["workers"],
+        desc="render train",
+    )
     if c["steep_size"]:
-        steep = cached(data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz", n=c["steep_size"], seed=c["seed"] + 100, conf=STEEP, workers=c["workers"], desc="render steep")
+        steep = cached(
+            data_dir / f"kp_steep_{c['seed']}_{c['steep_size']}.npz",
+            n=c["steep_size"],
+            seed=c["seed"] + 100,
+            conf=STEEP,
+            workers=c["workers"],
+            desc="render steep",
+        )
         train = {k: np.concatenate([train[k], steep[k]]) for k in train}
     val = cached(data_dir / f"kp_val_{c['val_size']}.npz", n=c["val_size"], seed=1, workers=c["workers"], desc="render val")
     net = kp.build_network(c["width"], c["stem_width"]).to(c["device"])
@@ -522,12 +558,20 @@ def validation_sets(data_dir: str | Path = "runs/data", val_size: int = 400, neg
     """The validation set (seed 1) joined with marker-free views (seed 2): what the
     decoding thresholds are tuned on. Never the test sets."""
     val = cached(Path(data_dir) / f"kp_val_{val_size}.npz", n=val_size, seed=1, workers=workers, desc="render val")
-    neg = cached(Path(data_dir) / f"kp_valneg_{negatives}.npz", n=negatives, seed=2, conf={"negative": True}, workers=workers, desc="render val negatives")
+    neg = cached(
+        Path(data_dir) / f"kp_valneg_{negatives}.npz",
+        n=negatives,
+        seed=2,
+        conf={"negative": True},
+        workers=workers,
+        desc="render val negatives",
+    )
     return {k: np.concatenate([val[k], neg[k]]) for k in val}
 
 
-def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400,
-           negatives: int | None = None) -> Path:
+def export(
+    checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "runs/data", val_size: int = 400, negatives: int | None = None
+) -> Path:
     """The inference part of a stage-1 checkpoint (weights, width, metrics), with decoding
     thresholds tuned on the validation set (:func:`tune_decoding`; ``val_size`` views and
     ``negatives`` marker-free ones, default :data:`VAL_NEGATIVES`) for every variant of
@@ -551,11 +595,15 @@ def export(checkpoint: str | Path, dest: str | Path, data_dir: str | Path = "run
         for stereo, (dc, m) in zip((False, True), tuned):
             key = kp.tuned_key(dc["ids"], dc.get("verify", False), stereo, dc.get("align", False))  # what KeypointNet looks up
             slim["decode"][key] = dc
-            print(f"decoding tuned on the validation set ({key}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+            print(
+                f"decoding tuned on the validation set ({key}): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}"
+            )
     for name in LOOKS:
         dc, m = tune_second_look(net, val, slim["decode"][name], first=firsts[name], zoomed=zoomed)
         slim["decode"][name + "_look"] = dc
-        print(f"second look tuned on the validation set ({name}_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}")
+        print(
+            f"second look tuned on the validation set ({name}_look): {dc} → detected {m['detected']:.3f}, false positives {m['false_positive']:.3f}"
+        )
     torch.save(slim, dest)
     to_onnx(dest)  # what inference loads: the same network and thresholds
     return dest
@@ -578,8 +626,14 @@ def quantize(src: str | Path, dest: str | Path, n: int = INT8_IMAGES, workers: i
     return quantize_onnx(src, dest, [x[i : i + 8] for i in range(0, len(x), 8)])
 
 
-def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/data", sets: list | None = None, workers: int = 2,
-             decodings=tuple(DECODINGS), second_look: float = 2.0) -> dict:
+def evaluate(
+    weights: str | Path | None = None,
+    data_dir: str | Path = "runs/data",
+    sets: list | None = None,
+    workers: int = 2,
+    decodings=tuple(DECODINGS),
+    second_look: float = 2.0,
+) -> dict:
     """Metrics of a stage-1 checkpoint on the held-out test sets (rendered once, cached),
     per decoding variant (:data:`DECODINGS`) and operating point (single view; ``_stereo``:
     the looser thresholds MarkerPose uses on stereo pairs): ``{variant: {set: metrics}}``.
@@ -605,10 +659,19 @@ def evaluate(weights: str | Path | None = None, data_dir: str | Path = "runs/dat
         diag = candidate_recall(det, id_logits, data, net.conf)
         for mode, dc in confs.items():
             t0 = time.perf_counter()
-            preds = look_again(net.runner, data["image"], decode_all(det, id_logits, data["image"], dc, desc=f"{name} {mode}"), dc,
-                               desc=f"{name} {mode} look")
-            res[mode][name] = {**score(preds, data), **diag, "seconds_per_image": (t_net + time.perf_counter() - t0) / n,
-                               "by_ring_size": by_ring_size(preds, data)}
+            preds = look_again(
+                net.runner,
+                data["image"],
+                decode_all(det, id_logits, data["image"], dc, desc=f"{name} {mode}"),
+                dc,
+                desc=f"{name} {mode} look",
+            )
+            res[mode][name] = {
+                **score(preds, data),
+                **diag,
+                "seconds_per_image": (t_net + time.perf_counter() - t0) / n,
+                "by_ring_size": by_ring_size(preds, data),
+            }
     return res
 
 
@@ -679,8 +742,39 @@ def speed(widths=(1.0, 0.5, 0.25), runs: int = 20) -> dict:
         net = kp.build_network(*(w if isinstance(w, tuple) else (w,))).eval()
         params = int(sum(p.numel() for p in net.parameters()))  # as trained and shipped
         fuse_batchnorm(net)  # as KeypointNet runs it
-        out[w] = {"pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)), "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)), "params": params}
+        out[w] = {
+            "pair_ms": median_ms(net, torch.rand(2, 1, h0, w0)),
+            "look_ms": median_ms(net, torch.rand(1, 1, 2 * h0, 2 * w0)),
+            "params": params,
+        }
     return out
 
 
-__all__ = ["make_targets", "DECODE_WORKERS", "DECODINGS", "LOOKS", "RING_SIZE_BINS", "SMALL_RING_PX", "TEST_SETS", "TUNING_GRID", "VAL_NEGATIVES", "by_ring_size", "cached", "candidate_recall", "decode_all", "default_conf", "epoch_order", "evaluate", "export", "generate", "look_again", "main", "predict", "score", "speed", "tune_decoding", "tune_second_look", "validation_sets"]
+__all__ = [
+    "make_targets",
+    "DECODE_WORKERS",
+    "DECODINGS",
+    "LOOKS",
+    "RING_SIZE_BINS",
+    "SMALL_RING_PX",
+    "TEST_SETS",
+    "TUNING_GRID",
+    "VAL_NEGATIVES",
+    "by_ring_size",
+    "cached",
+    "candidate_recall",
+    "decode_all",
+    "default_conf",
+    "epoch_order",
+    "evaluate",
+    "export",
+    "generate",
+    "look_again",
+    "main",
+    "predict",
+    "score",
+    "speed",
+    "tune_decoding",
+    "tune_second_look",
+    "validation_sets",
+]

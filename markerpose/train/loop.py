@@ -94,12 +94,21 @@ def fit(
             best = g
             torch.save(weights, out / "best.pt")
         torch.save(
-            {**weights, "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "epoch": epoch + 1, "history": history, "best": best},
+            {
+                **weights,
+                "optimizer": opt.state_dict(),
+                "scheduler": sched.state_dict(),
+                "epoch": epoch + 1,
+                "history": history,
+                "best": best,
+            },
             out / "last.pt",
         )
         write_json(out / "history.json", history)
     if not (out / "best.pt").is_file():  # e.g. resumed after the last epoch
-        torch.save({"state_dict": net.state_dict(), "conf": conf, "metrics": history[-1] if history else {}, **(extra or {})}, out / "best.pt")
+        torch.save(
+            {"state_dict": net.state_dict(), "conf": conf, "metrics": history[-1] if history else {}, **(extra or {})}, out / "best.pt"
+        )
     return out / "best.pt"
 
 
@@ -112,16 +121,16 @@ def export(checkpoint: str | Path, dest: str | Path, kind: str, keep: tuple = ()
     from ..nets import FORMAT
 
     ck = torch.load(checkpoint, map_location="cpu", weights_only=False)
-    slim = {"format": {"network": kind, "version": FORMAT}, "state_dict": {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()}}
+    slim = {
+        "format": {"network": kind, "version": FORMAT},
+        "state_dict": {k: v.float() if v.is_floating_point() else v for k, v in ck["state_dict"].items()},
+    }
     slim["metrics"] = {k: v for k, v in ck.get("metrics", {}).items() if isinstance(v, (int, float, str))}
     slim.update({k: ck[k] for k in keep if k in ck})
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     torch.save(slim, dest)
     return dest
-
-
-
 
 
 def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
@@ -142,7 +151,12 @@ def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
         raise ValueError(f"{weights} is not an exported markerpose weights file (`markerpose train ... --export`)") from exc
     ckpt = load_checkpoint(weights, kind)
     if kind == "keypoints":
-        net, shape, outputs, dynamic = kp.build_network(float(ckpt["width"]), ckpt.get("stem_width")), (1, 1, 240, 320), ("det", "ids"), True
+        net, shape, outputs, dynamic = (
+            kp.build_network(float(ckpt["width"]), ckpt.get("stem_width")),
+            (1, 1, 240, 320),
+            ("det", "ids"),
+            True,
+        )
     else:
         net, shape, outputs, dynamic = es.build_network(), (1, 1, es.PATCH, es.PATCH), ("logits",), False
     net.eval()
@@ -151,4 +165,6 @@ def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
     meta = {k: v for k, v in ckpt.items() if k not in ("state_dict", "format")}
     dest = Path(dest) if dest is not None else weights.with_suffix(".onnx")
     return export_onnx(net, dest, shape, kind, meta, outputs, dynamic_hw=dynamic)
+
+
 __all__ = ["export", "fit", "to_onnx"]

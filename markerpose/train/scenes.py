@@ -64,8 +64,9 @@ def scaled_camera(full_size, f: float, dist, size=INPUT_SIZE) -> tuple[Camera, f
     return Camera(K, np.asarray(dist, np.float64), (w, h)), 1.0 / (sx * sy)
 
 
-def random_imaging(rng, alpha: float, blur: float, px_scale: float = 1.0, binning: float = 1.0,
-                   psf=(0.3, 2.5), vignetting: float = 0.5) -> Imaging:
+def random_imaging(
+    rng, alpha: float, blur: float, px_scale: float = 1.0, binning: float = 1.0, psf=(0.3, 2.5), vignetting: float = 0.5
+) -> Imaging:
     """Random light, optics, print and sensor (noise-free expectation; add noise with
     :func:`~markerpose.synth.sensor_readout` using its ``full_well`` and ``read_noise``).
 
@@ -138,7 +139,9 @@ def occluders(shape, rng, near: np.ndarray | None, scale: float) -> tuple[np.nda
             ang = rng.uniform(0, 2 * np.pi)
             L = rng.uniform(2, 6) * scale
             p0 = c + L * np.array([np.cos(ang), np.sin(ang)])
-            cv2.line(layer, tuple(int(v) for v in c), tuple(int(v) for v in p0), 1.0, max(2, int(rng.uniform(0.4, 1.1) * scale)), cv2.LINE_AA)
+            cv2.line(
+                layer, tuple(int(v) for v in c), tuple(int(v) for v in p0), 1.0, max(2, int(rng.uniform(0.4, 1.1) * scale)), cv2.LINE_AA
+            )
             value = rng.uniform(0.3, 0.75)  # skin
         else:  # cable: a smooth curve
             t = np.linspace(0, 1, 30)[:, None]

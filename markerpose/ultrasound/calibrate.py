@@ -42,11 +42,11 @@ def calibrate_probe(poses: list, points_px, spacing, size=None) -> tuple[ProbeCa
     b = np.zeros(3 * len(use))
     for i, ((T, _), (x, y)) in enumerate(zip(use, xy)):
         Ri = T[:3, :3]
-        A[3 * i:3 * i + 3, 0:3] = x * Ri
-        A[3 * i:3 * i + 3, 3:6] = y * Ri
-        A[3 * i:3 * i + 3, 6:9] = Ri
-        A[3 * i:3 * i + 3, 9:12] = -np.eye(3)
-        b[3 * i:3 * i + 3] = -T[:3, 3]
+        A[3 * i : 3 * i + 3, 0:3] = x * Ri
+        A[3 * i : 3 * i + 3, 3:6] = y * Ri
+        A[3 * i : 3 * i + 3, 6:9] = Ri
+        A[3 * i : 3 * i + 3, 9:12] = -np.eye(3)
+        b[3 * i : 3 * i + 3] = -T[:3, 3]
     sol, *_ = np.linalg.lstsq(A, b, rcond=None)
     r1, r2 = sol[0:3], sol[3:6]
     R0 = nearest_rotation(np.column_stack([r1, r2, np.cross(r1, r2)]))

@@ -85,8 +85,7 @@ def _distances(points, point, direction):
     return np.linalg.norm(q, axis=1)
 
 
-def fit_cylinder(points: np.ndarray, direction_hint: np.ndarray | None = None, reject: float = 3.0,
-                 rounds: int = 3) -> CylinderFit:
+def fit_cylinder(points: np.ndarray, direction_hint: np.ndarray | None = None, reject: float = 3.0, rounds: int = 3) -> CylinderFit:
     """Fit a circular cylinder to (N, 3) points by least squares on the distance to the
     surface (a robust loss, then rounds of rejecting points beyond ``reject`` robust
     sigmas and refitting).
@@ -124,6 +123,7 @@ def fit_cylinder(points: np.ndarray, direction_hint: np.ndarray | None = None, r
     keep = np.ones(len(P), bool)
     x = x0
     for _ in range(max(rounds, 1)):
+
         def res(x, Q=P[keep]):
             pt, d, r = unpack(x)
             return _distances(Q, pt, d) - r
@@ -206,8 +206,9 @@ class Volume:
         return np.asarray(ijk, dtype=np.float64) @ self.directions.T + self.origin
 
 
-def compound(images: list, poses: list, calibration: ProbeCalibration, voxel_mm: float = 0.3,
-             fill_iterations: int = 3, progress: bool = False) -> Volume:
+def compound(
+    images: list, poses: list, calibration: ProbeCalibration, voxel_mm: float = 0.3, fill_iterations: int = 3, progress: bool = False
+) -> Volume:
     """Pixel-nearest-neighbour compounding of tracked frames into a volume, then hole
     filling: empty voxels take the mean of their filled neighbours (3×3×3), repeated
     ``fill_iterations`` times. The grid is aligned with the sweep (its principal axes), so

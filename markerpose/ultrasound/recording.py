@@ -92,9 +92,19 @@ def _load_gray(path: Path, size) -> np.ndarray:
     return im
 
 
-def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None, fps: float | None = None,
-                          time_offset_s: float = 0.0, max_gap_s: float = 0.2, voxel_mm: float = 0.3,
-                          search: RingSearch | None = None, progress: bool = True) -> dict:
+def reconstruct_recording(
+    poses_csv,
+    images,
+    calibration,
+    out_dir,
+    seed_px=None,
+    fps: float | None = None,
+    time_offset_s: float = 0.0,
+    max_gap_s: float = 0.2,
+    voxel_mm: float = 0.3,
+    search: RingSearch | None = None,
+    progress: bool = True,
+) -> dict:
     """Reconstruct a recorded sweep; writes ``sweep.seq.nrrd``, ``volume.nrrd`` and
     ``summary.json`` into ``out_dir`` (and, with ``seed_px``, ``points.ply`` and the
     cylinder fit in the summary).
@@ -128,9 +138,14 @@ def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None,
     formats.write_sequence(out / "sweep.seq.nrrd", frames, times, poses, calib.image_to_probe)
     vol = compound(frames, poses, calib, voxel_mm=voxel_mm, progress=progress)
     formats.write_volume(out / "volume.nrrd", vol.data, vol.origin, vol.directions)
-    summary = {"frames": len(frames), "frames_with_pose": n_posed, "volume_shape": list(vol.data.shape),
-               "voxel_mm": voxel_mm, "volume_filled_fraction": vol.filled,
-               "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"]}
+    summary = {
+        "frames": len(frames),
+        "frames_with_pose": n_posed,
+        "volume_shape": list(vol.data.shape),
+        "voxel_mm": voxel_mm,
+        "volume_filled_fraction": vol.filled,
+        "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"],
+    }
     if seed_px is not None:
         first = next(k for k, T in enumerate(poses) if T is not None)
         posed = list(range(first, len(frames)))
@@ -140,16 +155,30 @@ def reconstruct_recording(poses_csv, images, calibration, out_dir, seed_px=None,
             raise ValueError(f"the tube was not found from the seed {tuple(seed_px)}: {len(X)} points")
         fit = fit_cylinder(X, sweep_normal(poses, calib))
         formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx])
-        summary["cylinder"] = {"diameter_mm": fit.diameter, "radius_mm": fit.radius, "rms_mm": fit.rms,
-                               "axis_point_mm": fit.point, "axis_direction": fit.direction,
-                               "points": len(X), "inliers": int(fit.inliers.sum())}
+        summary["cylinder"] = {
+            "diameter_mm": fit.diameter,
+            "radius_mm": fit.radius,
+            "rms_mm": fit.rms,
+            "axis_point_mm": fit.point,
+            "axis_direction": fit.direction,
+            "points": len(X),
+            "inliers": int(fit.inliers.sum()),
+        }
         summary["files"].append("points.ply")
     formats.write_json(out / "summary.json", summary)
     return summary
 
 
-def calibrate_recording(poses_csv, images, spacing, out=None, fps: float | None = None, time_offset_s: float = 0.0,
-                        max_gap_s: float = 0.2, dynamic_range_db: float = 55.0) -> tuple[ProbeCalibration, dict]:
+def calibrate_recording(
+    poses_csv,
+    images,
+    spacing,
+    out=None,
+    fps: float | None = None,
+    time_offset_s: float = 0.0,
+    max_gap_s: float = 0.2,
+    dynamic_range_db: float = 55.0,
+) -> tuple[ProbeCalibration, dict]:
     """Probe calibration from a recorded cross-wire session: each ultrasound frame shows the
     wire crossing (found automatically, :func:`~markerpose.ultrasound.segment.point_target`)
     while the cameras track the probe. Frames without a pose or without a clear crossing
@@ -178,9 +207,15 @@ def calibrate_recording(poses_csv, images, spacing, out=None, fps: float | None 
     h, w = frames[0].shape
     calib, P, err = calibrate_probe(poses, pts, spacing, (w, h))
     used = [f.name for f, T, p in zip(files, poses, pts) if T is not None and p is not None]
-    report = {"frames": len(files), "used": len(used), "no_pose": sum(T is None for T in poses),
-              "no_crossing": sum(p is None for p in pts), "rms_mm": calib.rms_mm, "point_mm": P,
-              "errors_mm": dict(zip(used, err))}
+    report = {
+        "frames": len(files),
+        "used": len(used),
+        "no_pose": sum(T is None for T in poses),
+        "no_crossing": sum(p is None for p in pts),
+        "rms_mm": calib.rms_mm,
+        "point_mm": P,
+        "errors_mm": dict(zip(used, err)),
+    }
     if out is not None:
         calib.save(out)
     return calib, report

@@ -70,7 +70,7 @@ def _outer_peaks(prof: np.ndarray, thr: float) -> np.ndarray:
         if k < 3 or k > m - 4:
             continue
         x = np.arange(-3, 4)
-        a, b, _ = np.polyfit(x, prof[i, k - 3:k + 4], 2)
+        a, b, _ = np.polyfit(x, prof[i, k - 3 : k + 4], 2)
         off = -b / (2 * a) if a < 0 else 0.0
         out[i] = k + float(np.clip(off, -1.5, 1.5))
     return out
@@ -99,8 +99,9 @@ def ring_points(image: np.ndarray, center_px, spacing, search: RingSearch | None
     r = np.arange(s.min_radius_mm, s.max_radius_mm, step_mm)
     half = s.n_rays // 2
     sec = np.deg2rad(s.sector_deg)
-    phis = np.concatenate([np.linspace(np.pi / 2 - sec, np.pi / 2 + sec, half),
-                           np.linspace(-np.pi / 2 - sec, -np.pi / 2 + sec, s.n_rays - half)])
+    phis = np.concatenate(
+        [np.linspace(np.pi / 2 - sec, np.pi / 2 + sec, half), np.linspace(-np.pi / 2 - sec, -np.pi / 2 + sec, s.n_rays - half)]
+    )
     mx = (c[0] + np.cos(phis)[:, None] * r[None, :] / sx).astype(np.float32)
     my = (c[1] + np.sin(phis)[:, None] * r[None, :] / sy).astype(np.float32)
     prof = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -145,8 +146,7 @@ def sweep_points(images, seed_px, spacing, search: RingSearch | None = None, pro
     return out
 
 
-def point_target(image: np.ndarray, smooth_px: float = 1.0, dynamic_range_db: float = 55.0,
-                 max_size_px: int = 40) -> np.ndarray | None:
+def point_target(image: np.ndarray, smooth_px: float = 1.0, dynamic_range_db: float = 55.0, max_size_px: int = 40) -> np.ndarray | None:
     """Sub-pixel position (u, v) of the brightest compact echo (a wire crossing): the
     amplitude-weighted centroid of the connected bright region around the maximum, the
     8-bit log image mapped back to amplitude with ``dynamic_range_db``. None when nothing

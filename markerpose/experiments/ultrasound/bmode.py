@@ -226,8 +226,14 @@ def simulate_bmode(
         d = np.asarray(cyl.direction, dtype=np.float64)
         d = d / np.linalg.norm(d)
         q0, qx, qy = (v - (v @ d) * d for v in (o - np.asarray(cyl.point, dtype=np.float64), ex, ey))
-        r2 = (np.float32(q0 @ q0) + np.float32(2 * q0 @ qx) * xs + np.float32(2 * q0 @ qy) * ys
-              + np.float32(qx @ qx) * xs * xs + np.float32(qy @ qy) * ys * ys + np.float32(2 * qx @ qy) * xs * ys)
+        r2 = (
+            np.float32(q0 @ q0)
+            + np.float32(2 * q0 @ qx) * xs
+            + np.float32(2 * q0 @ qy) * ys
+            + np.float32(qx @ qx) * xs * xs
+            + np.float32(qy @ qy) * ys * ys
+            + np.float32(2 * qx @ qy) * xs * ys
+        )
         inside = r2 < cyl.radius**2
         scatter[inside] = layer.inside.scatter
         atten[inside] = layer.inside.attenuation

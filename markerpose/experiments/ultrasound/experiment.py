@@ -67,8 +67,7 @@ def _image_error_mm(T_est, T_true, calib: ProbeCalibration) -> float:
     return float(np.linalg.norm((T_est[:3, :3] - T_true[:3, :3]) @ c + T_est[:3, 3] - T_true[:3, 3]))
 
 
-def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: StereoRig | None = None,
-                keep: bool = False) -> dict:
+def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: StereoRig | None = None, keep: bool = False) -> dict:
     """One seeded acquisition: calibration session, sweep, segmentation, diameters.
 
     Returns a dict of figures (and, with ``keep``, the frames, poses and points for the
@@ -123,8 +122,12 @@ def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: Ste
     seed_px = centre + rng.normal(0.0, 0.5, 2) / np.asarray(tr.spacing)
     points = sweep_points(images, seed_px, tr.spacing)
 
-    out = {"seed": int(seed), "n_frames": plan.n_frames, "n_calibration": plan.n_calibration,
-           "segmented_frames": int(sum(len(p) > 0 for p in points))}
+    out = {
+        "seed": int(seed),
+        "n_frames": plan.n_frames,
+        "n_calibration": plan.n_calibration,
+        "segmented_frames": int(sum(len(p) > 0 for p in points)),
+    }
     fits = {}
     runs = {"floor": ("true", true_cal)} | {s: (s, calibs[s]) for s in SOURCES}
     for name, (src, cal) in runs.items():
@@ -160,9 +163,18 @@ def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: Ste
             out[f"image_error_{key}_max_mm"] = float(np.max(errs)) if errs else None
     out["seconds"] = time.perf_counter() - t0
     if keep:
-        out["_data"] = {"images": images, "times": times, "poses": poses, "points": points, "fits": fits,
-                        "calibrations": calibs, "true_calibration": true_cal, "calibration_errors": cal_err,
-                        "stereo": stereo_keep, "seed_px": seed_px}
+        out["_data"] = {
+            "images": images,
+            "times": times,
+            "poses": poses,
+            "points": points,
+            "fits": fits,
+            "calibrations": calibs,
+            "true_calibration": true_cal,
+            "calibration_errors": cal_err,
+            "stereo": stereo_keep,
+            "seed_px": seed_px,
+        }
     return out
 
 
@@ -194,9 +206,15 @@ def summarize(results: list[dict]) -> dict:
             continue
         e = d - TRUE_DIAMETER_MM
         half = float(stats.t.ppf(0.975, len(e) - 1) * e.std(ddof=1) / np.sqrt(len(e))) if len(e) > 1 else None
-        out[key] = {"n": len(d), "diameter_mean_mm": float(d.mean()), "diameter_sd_mm": float(d.std(ddof=1)) if len(d) > 1 else None,
-                    "bias_mm": float(e.mean()), "bias_ci95_mm": half, "abs_error_mean_mm": float(np.abs(e).mean()),
-                    "abs_error_max_mm": float(np.abs(e).max())}
+        out[key] = {
+            "n": len(d),
+            "diameter_mean_mm": float(d.mean()),
+            "diameter_sd_mm": float(d.std(ddof=1)) if len(d) > 1 else None,
+            "bias_mm": float(e.mean()),
+            "bias_ci95_mm": half,
+            "abs_error_mean_mm": float(np.abs(e).mean()),
+            "abs_error_max_mm": float(np.abs(e).max()),
+        }
     return out
 
 
@@ -204,8 +222,12 @@ __all__ = ["PAPER", "SOURCES", "TRUE_DIAMETER_MM", "Plan", "acquisition", "run",
 
 
 # --- the demo: report, plots, files ---------------------------------------------------
-_LABEL = {"markerpose": "MarkerPose (default, track)", "paper-classical": "paper's classical configuration",
-          "true_poses": "true poses", "floor": "true poses and true calibration"}
+_LABEL = {
+    "markerpose": "MarkerPose (default, track)",
+    "paper-classical": "paper's classical configuration",
+    "true_poses": "true poses",
+    "floor": "true poses and true calibration",
+}
 
 
 def _f(x, nd=3, signed=False):
@@ -218,8 +240,13 @@ def _paired(results, a, b):
     """Mean and 95 % CI half-width of diameter_a − diameter_b over acquisitions."""
     from scipy import stats
 
-    d = np.array([r[f"diameter_{a}_mm"] - r[f"diameter_{b}_mm"] for r in results
-                  if r.get(f"diameter_{a}_mm") is not None and r.get(f"diameter_{b}_mm") is not None])
+    d = np.array(
+        [
+            r[f"diameter_{a}_mm"] - r[f"diameter_{b}_mm"]
+            for r in results
+            if r.get(f"diameter_{a}_mm") is not None and r.get(f"diameter_{b}_mm") is not None
+        ]
+    )
     if len(d) < 2:
         return (float(d.mean()) if len(d) else None), None
     return float(d.mean()), float(stats.t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / np.sqrt(len(d)))
@@ -232,16 +259,20 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
         "",
         f"Command: `{command}` ({seconds:.0f} s on this machine).",
         "",
-        (f"{n} seeded acquisitions, each a cross-wire calibration ({plan.n_calibration} images) and a hand-held "
-        f"sweep of {plan.n_frames} frames along a tube of outer diameter {TRUE_DIAMETER_MM} mm (exact, the paper's "
-        "caliper value), in water, rendered for the stereo rig and simulated as B-mode frames. The tube's wall "
-        "is segmented from one seed, the points are placed in 3D by each pose source with the calibration it "
-        "produced itself, and a cylinder is fitted by least squares."),
+        (
+            f"{n} seeded acquisitions, each a cross-wire calibration ({plan.n_calibration} images) and a hand-held "
+            f"sweep of {plan.n_frames} frames along a tube of outer diameter {TRUE_DIAMETER_MM} mm (exact, the paper's "
+            "caliper value), in water, rendered for the stereo rig and simulated as B-mode frames. The tube's wall "
+            "is segmented from one seed, the points are placed in 3D by each pose source with the calibration it "
+            "produced itself, and a cylinder is fitted by least squares."
+        ),
         "",
         "## Diameter",
         "",
-        ("| pose source | diameter (mean ± sd), mm | error (bias) [95 % CI], mm | mean abs. error, mm | fit RMS, mm | "
-        "tube axis: position error, mm | calibration RMS, mm | pose error at the image (median), mm |"),
+        (
+            "| pose source | diameter (mean ± sd), mm | error (bias) [95 % CI], mm | mean abs. error, mm | fit RMS, mm | "
+            "tube axis: position error, mm | calibration RMS, mm | pose error at the image (median), mm |"
+        ),
         "|---|---|---|---|---|---|---|---|",
     ]
     for key in ("markerpose", "paper-classical", "true_poses", "floor"):
@@ -257,13 +288,17 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
         img = [c for c in img if c is not None]
         ci = f" [±{s['bias_ci95_mm']:.4f}]" if s["bias_ci95_mm"] is not None else ""
         sd = f" ± {s['diameter_sd_mm']:.4f}" if s["diameter_sd_mm"] is not None else ""
-        lines.append(f"| {_LABEL[key]} | {s['diameter_mean_mm']:.4f}{sd} | {s['bias_mm']:+.4f}{ci} | "
-                     f"{s['abs_error_mean_mm']:.4f} | {_f(np.mean(fit_rms) if fit_rms else None, 4)} | "
-                     f"{_f(np.mean(axis) if axis else None, 4)} | {_f(np.mean(cal) if cal else None)} | "
-                     f"{_f(np.median(img) if img else (0.0 if key == 'true_poses' else None), 4)} |")
+        lines.append(
+            f"| {_LABEL[key]} | {s['diameter_mean_mm']:.4f}{sd} | {s['bias_mm']:+.4f}{ci} | "
+            f"{s['abs_error_mean_mm']:.4f} | {_f(np.mean(fit_rms) if fit_rms else None, 4)} | "
+            f"{_f(np.mean(axis) if axis else None, 4)} | {_f(np.mean(cal) if cal else None)} | "
+            f"{_f(np.median(img) if img else (0.0 if key == 'true_poses' else None), 4)} |"
+        )
     lines += [
-        (f"| the paper (real data, 94 frames, caliper {PAPER['caliper_mm']} mm) | {PAPER['diameter_mm']:.3f} | "
-        f"{PAPER['diameter_mm'] - PAPER['caliper_mm']:+.3f} | {PAPER['error_mm']:.2f} | – | – | – | – |"),
+        (
+            f"| the paper (real data, 94 frames, caliper {PAPER['caliper_mm']} mm) | {PAPER['diameter_mm']:.3f} | "
+            f"{PAPER['diameter_mm'] - PAPER['caliper_mm']:+.3f} | {PAPER['error_mm']:.2f} | – | – | – | – |"
+        ),
         "",
         "## Where the error comes from (paired over the same acquisitions)",
         "",
@@ -272,22 +307,25 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
     ]
     floor = summary.get("floor")
     if floor:
-        lines.append(f"| segmentation (true poses, true calibration − truth) | {floor['bias_mm']:+.4f} | "
-                     f"±{_f(floor['bias_ci95_mm'], 4)} |")
-    for label, a, b in (("calibration (calibration from true poses − true calibration)", "true_poses", "floor"),
-                        ("tracking, MarkerPose (its poses and calibration − true poses)", "markerpose", "true_poses"),
-                        ("tracking, paper's classical (its poses and calibration − true poses)", "paper-classical", "true_poses")):
+        lines.append(f"| segmentation (true poses, true calibration − truth) | {floor['bias_mm']:+.4f} | ±{_f(floor['bias_ci95_mm'], 4)} |")
+    for label, a, b in (
+        ("calibration (calibration from true poses − true calibration)", "true_poses", "floor"),
+        ("tracking, MarkerPose (its poses and calibration − true poses)", "markerpose", "true_poses"),
+        ("tracking, paper's classical (its poses and calibration − true poses)", "paper-classical", "true_poses"),
+    ):
         m, h = _paired(results, a, b)
         lines.append(f"| {label} | {_f(m, 4, True)} | ±{_f(h, 4)} |")
     found = [r.get("found_markerpose") for r in results]
     lines += [
         "",
-        (f"MarkerPose found the marker in {100 * np.mean(found):.1f} % of the sweep frames; the paper's classical "
-        f"configuration in {100 * np.mean([r.get('found_paper-classical') for r in results]):.1f} %. "
-        "\"Pose error at the image\" is how far a pose puts the ultrasound image's centre from where the true "
-        "pose puts it (the lever arm of the probe multiplies rotation errors). The diameter is nearly blind to "
-        "pose errors shared by neighbouring frames (they move the whole tube); the fit RMS (how thick the "
-        "reconstructed wall is) and the axis position (where the tube is in the tracker frame) are not."),
+        (
+            f"MarkerPose found the marker in {100 * np.mean(found):.1f} % of the sweep frames; the paper's classical "
+            f"configuration in {100 * np.mean([r.get('found_paper-classical') for r in results]):.1f} %. "
+            '"Pose error at the image" is how far a pose puts the ultrasound image\'s centre from where the true '
+            "pose puts it (the lever arm of the probe multiplies rotation errors). The diameter is nearly blind to "
+            "pose errors shared by neighbouring frames (they move the whole tube); the fit RMS (how thick the "
+            "reconstructed wall is) and the axis position (where the tube is in the tracker frame) are not."
+        ),
         "",
         "## Figures",
         "",
@@ -306,10 +344,12 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
         "",
         "## Limits of the simulation",
         "",
-        ("One speed of sound everywhere (a real tube wall shifts the echoes behind it), no slice thickness, no "
-        "reverberation, a lateral resolution that does not change with depth; the marker views are rendered "
-        "with the package's renderer (sharp, evenly lit). The paper's 0.18 mm was measured on real images and "
-        "includes what is not simulated here."),
+        (
+            "One speed of sound everywhere (a real tube wall shifts the echoes behind it), no slice thickness, no "
+            "reverberation, a lateral resolution that does not change with depth; the marker views are rendered "
+            "with the package's renderer (sharp, evenly lit). The paper's 0.18 mm was measured on real images and "
+            "includes what is not simulated here."
+        ),
     ]
     return "\n".join(lines) + "\n"
 
@@ -422,9 +462,16 @@ def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
     return paths
 
 
-def main(out_dir: str | Path = "markerpose-ultrasound", quick: bool = False, seed: int = 0, jobs: int | None = None,
-         acquisitions: int | None = None, progress: bool = True, command: str | None = None,
-         plan: Plan | None = None) -> Path:
+def main(
+    out_dir: str | Path = "markerpose-ultrasound",
+    quick: bool = False,
+    seed: int = 0,
+    jobs: int | None = None,
+    acquisitions: int | None = None,
+    progress: bool = True,
+    command: str | None = None,
+    plan: Plan | None = None,
+) -> Path:
     """Run the experiment and write report.md, results.json, plots and files into
     ``out_dir`` (``plan`` overrides ``quick``, ``seed`` and ``acquisitions``). Returns the
     report's path."""

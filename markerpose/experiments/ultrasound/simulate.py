@@ -71,8 +71,7 @@ class ProbeSetup:
     def T_left_phantom(self) -> np.ndarray:
         """Where the phantom sits in the left camera frame: chosen so that the marker of
         the nominal mid-sweep pose is at ``distance_mm``, tilted by ``tilt_deg``."""
-        T_left_marker = look_at_pose(np.array([-10.0, -15.0, self.distance_mm]), tilt_deg=self.tilt_deg,
-                                     tilt_axis_deg=20.0, roll_deg=10.0)
+        T_left_marker = look_at_pose(np.array([-10.0, -15.0, self.distance_mm]), tilt_deg=self.tilt_deg, tilt_axis_deg=20.0, roll_deg=10.0)
         T_phantom_marker = self.nominal_image_pose() @ invert(self.T_marker_image())
         return T_left_marker @ invert(T_phantom_marker)
 
@@ -89,9 +88,17 @@ def _smooth_noise(t: np.ndarray, rng: np.random.Generator, amplitude: float, fre
     return out * amplitude / max(np.sqrt(np.mean(out**2)), 1e-12)
 
 
-def sweep_poses(setup: ProbeSetup, rng: np.random.Generator, n_frames: int = 94, length_mm: float = 56.0,
-                fps: float = 15.0, tremor_mm: float = 0.3, tremor_deg: float = 0.7,
-                yaw_deg: float = 4.0, times: np.ndarray | None = None) -> tuple[np.ndarray, list]:
+def sweep_poses(
+    setup: ProbeSetup,
+    rng: np.random.Generator,
+    n_frames: int = 94,
+    length_mm: float = 56.0,
+    fps: float = 15.0,
+    tremor_mm: float = 0.3,
+    tremor_deg: float = 0.7,
+    yaw_deg: float = 4.0,
+    times: np.ndarray | None = None,
+) -> tuple[np.ndarray, list]:
     """A hand-held sweep along the tube: times (s) and T_phantom_image per frame.
 
     The probe moves along the axis at constant speed with a constant yaw (the cross-sections
@@ -118,8 +125,14 @@ def sweep_poses(setup: ProbeSetup, rng: np.random.Generator, n_frames: int = 94,
     return t, poses
 
 
-def calibration_poses(setup: ProbeSetup, rng: np.random.Generator, n: int = 30, point=(0.0, 0.0, 0.0),
-                      max_angle_deg: float = 15.0, elevation_sigma_mm: float = 0.15) -> list:
+def calibration_poses(
+    setup: ProbeSetup,
+    rng: np.random.Generator,
+    n: int = 30,
+    point=(0.0, 0.0, 0.0),
+    max_angle_deg: float = 15.0,
+    elevation_sigma_mm: float = 0.15,
+) -> list:
     """Probe poses that bring the wire crossing at ``point`` (phantom frame) into the image
     at varied pixels and angles: T_phantom_image per image. The operator aligns the plane
     with the crossing only to within ``elevation_sigma_mm``."""
@@ -156,8 +169,15 @@ def _write_session(out: Path, rig, marker_poses: list, us_images: list, times_ca
             w.writerow([name, f"{t:.6f}"])
 
 
-def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera_fps: float = 30.0,
-                              us_fps: float = 15.0, calibration_frames: int = 12, progress: bool = True) -> dict:
+def write_simulated_recording(
+    out_dir,
+    n_frames: int = 20,
+    seed: int = 0,
+    camera_fps: float = 30.0,
+    us_fps: float = 15.0,
+    calibration_frames: int = 12,
+    progress: bool = True,
+) -> dict:
     """A recording as a user's rig would produce it, from the simulation:
     - the sweep: ``left/`` and ``right/`` camera frames at ``camera_fps``, ``us/``
       ultrasound frames with ``timestamps.csv`` at ``us_fps`` (half a camera frame late:
@@ -188,14 +208,32 @@ def write_simulated_recording(out_dir, n_frames: int = 20, seed: int = 0, camera
     cal = calibration_poses(setup, rng, calibration_frames)
     cw = crosswire_phantom()
     t_cal = np.arange(calibration_frames, dtype=np.float64)
-    _write_session(out / "calibration", rig, [setup.marker_pose(T) for T in cal],
-                   [simulate_bmode(cw, T, setup.transducer, rng) for T in cal], t_cal, t_cal, rng, progress)
+    _write_session(
+        out / "calibration",
+        rig,
+        [setup.marker_pose(T) for T in cal],
+        [simulate_bmode(cw, T, setup.transducer, rng) for T in cal],
+        t_cal,
+        t_cal,
+        rng,
+        progress,
+    )
     ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(out / "probe_true.yaml")
     seed_px = invert(us_poses[0])[:3, 3][:2] / np.asarray(setup.transducer.spacing)
-    return {"seed_px": seed_px, "diameter_mm": TRUE_DIAMETER_MM, "camera_fps": camera_fps, "us_frames": n_frames,
-            "camera_frames": n_cam, "left": out / "left", "right": out / "right", "us": out / "us",
-            "calibration": out / "calibration", "true_calibration": out / "probe_true.yaml",
-            "spacing": setup.transducer.spacing, "T_phantom_image": us_poses}
+    return {
+        "seed_px": seed_px,
+        "diameter_mm": TRUE_DIAMETER_MM,
+        "camera_fps": camera_fps,
+        "us_frames": n_frames,
+        "camera_frames": n_cam,
+        "left": out / "left",
+        "right": out / "right",
+        "us": out / "us",
+        "calibration": out / "calibration",
+        "true_calibration": out / "probe_true.yaml",
+        "spacing": setup.transducer.spacing,
+        "T_phantom_image": us_poses,
+    }
 
 
 __all__ = ["ProbeSetup", "calibration_poses", "sweep_poses", "write_simulated_recording"]
