@@ -77,7 +77,7 @@ default_conf: dict = {
     "fill_tol": 0.12,  # |contour area / ellipse area - 1|
     "ratio_tol": 0.15,  # |inner/outer diameter ratio - marker's|
     "concentric_tol": 0.08,  # centre distance / outer major axis (plus 1 px)
-    "shape_tol": 0.3,  # outer vs inner log-shape distance (plus 1.5 / inner minor axis px)
+    "ring_shape_tol": 0.3,  # outer vs inner log-shape distance (plus 1.5 / inner minor axis px)
     "hole_candidates": True,  # rings whose outer contour is merged: outer ellipse from the hole
     "contrast_frac": 0.6,  # fraction of rays where the band is darker than hole and surround
     "nms_frac": 0.3,  # duplicates: centre distance < this * outer minor semi-axis
@@ -471,7 +471,7 @@ def _ring_from_pair(outer, inner, rho, max_outer, c) -> Ring | None:
         return None
     # Same shape (axis ratio, orientation), after the half-pixel contour insets.
     dshape = np.linalg.norm(_log_shape(_inset(rect_o, 1.0)) - _log_shape(_inset(rect_i, -1.0)))
-    shape_tol = c["shape_tol"] + 1.5 / max(min(rect_i[1]), 1.0)
+    shape_tol = c["ring_shape_tol"] + 1.5 / max(min(rect_i[1]), 1.0)
     if dshape > shape_tol:
         return None
     cost = ((ratio - rho) / c["ratio_tol"]) ** 2 + (dc / (c["concentric_tol"] * major + 1.0)) ** 2 + (dshape / shape_tol) ** 2

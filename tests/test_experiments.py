@@ -191,8 +191,9 @@ def test_cli_render_then_estimate_with_the_default_pipeline(tmp_path, capsys):
     # string, and true).
     for bad, says in (
         (["track.nope=1"], "unknown track setting"),
-        (["solve.bias_correction=False"], "expected true or false"),
-        (["match.max_fits=many"], "expected a finite number"),
+        (["solve.bias_correction=False"], "solve.bias_correction must be true or false, got 'False'"),
+        (["match.max_fits=many"], "match.max_fits must be a whole number >= 1, got 'many'"),
+        (["propose.threshold=NaN"], "propose.threshold must be a number in [0, 1], got nan"),
         (["track=1"], "expected track.KEY=VALUE"),
         (["threads.x=1"], "threads takes a value"),
         (["stagex.y=1"], "unknown stage 'stagex'"),
@@ -315,7 +316,7 @@ def test_sequence_methods_run_as_paced_streams_in_alternating_passes(monkeypatch
     monkeypatch.setattr(mp.MarkerPose, "estimate", logged)
     monkeypatch.setattr(sq.time, "sleep", waits.append)
     res = sq.main({"frames": 40, "passes": 2, "fps": 20.0, "preset": "default-no-second-look"}, out_dir=None, progress=False)
-    assert '`MarkerPose(rig, preset="default-no-second-look").track`' in sq.report(res)
+    assert "the `default-no-second-look` configuration's `track()`" in sq.report(res)
     assert [r["frame"] for r in res["frames"]] == list(range(40))
     assert all(r[m]["found"] and len(r[m]["ms_passes"]) == 2 for r in res["frames"] for m in sq.METHODS)
     assert all(r[m]["ms"] == pytest.approx(np.mean(r[m]["ms_passes"])) for r in res["frames"] for m in sq.METHODS)
@@ -329,7 +330,11 @@ def test_sequence_methods_run_as_paced_streams_in_alternating_passes(monkeypatch
     waits.clear()
     sq.main({"frames": 40, "passes": 1, "pace": False, "preset": "default-no-second-look"}, out_dir=None, progress=False)
     assert waits == []
-    for bad, what in (({"passes": 0}, "passes"), ({"preset": "no-such"}, "unknown preset"), ({"block": 10}, "unknown sequence settings")):
+    for bad, what in (
+        ({"passes": 0}, "passes"),
+        ({"preset": "no-such"}, "unknown configuration"),
+        ({"block": 10}, "unknown sequence settings"),
+    ):
         with pytest.raises(ValueError, match=what):
             sq.main({"frames": 40, **bad}, out_dir=None, progress=False)
 

@@ -8,6 +8,7 @@ from markerpose import decode as dec
 from markerpose import evidence as evidence_mod
 from markerpose import geometry as geo
 from markerpose import keypoints as kp
+from markerpose.experiments.configs import build
 from markerpose.nets import default_weights
 from markerpose.train import keypoints as tk
 
@@ -270,7 +271,7 @@ def test_neural_pipeline_is_none_or_right():
     from markerpose.synth import Imaging, look_at_pose, render_stereo
 
     rig = mp.StereoRig.default()
-    tracker = mp.MarkerPose(rig, preset="neural-classical-refine")
+    tracker = build("neural-classical-refine", rig)
     coarse = mp.MarkerPose(rig, refine={"method": "none"})
     for seed, (x, tilt, roll) in enumerate(((10, 25, 200), (-20, 10, 30), (30, 40, 100))):
         T = look_at_pose([x, 5, 520], tilt, 10, roll)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose.experiments.configs import build
 from markerpose.frame import Frame
 from markerpose.nets import default_weights
 from markerpose.stages.match import layout_orders
@@ -106,7 +107,7 @@ def test_layout_seeds_fit_the_edges_without_the_masks(rig, monkeypatch):
         A = conic[:2, :2] / -(conic[2, 2] - conic[:2, 2] @ np.linalg.solve(conic[:2, :2], conic[:2, 2]))
         axes = 2 / np.sqrt(np.linalg.eigvalsh(A))  # the true ellipse's axes, major first (ideal px)
         np.testing.assert_allclose(sorted([w, h], reverse=True), axes, rtol=0.05)
-    masks_first = mp.MarkerPose(rig, preset="default-masks-first").estimate(*f.images)
+    masks_first = build("default-masks-first", rig).estimate(*f.images)
 
     def no_net(*a, **k):
         raise AssertionError("EllipSegNet run although the layout's seeds fitted")
@@ -130,7 +131,7 @@ def test_every_id_mode_on_a_clean_marker(rig, ids):
         assert _ok_or_none(est, f)
         return
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05
-    with pytest.raises(ValueError, match="ids"):
+    with pytest.raises(ValueError, match=r"match.method must be one of"):
         mp.MarkerPose(rig, match={"method": "magic"})
 
 
@@ -138,7 +139,7 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     """Where the mask's ellipse cannot seed the edge fit, the classical ring fit near the
     point takes over; where that fails too, no pose (not one from a mask's centre)."""
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
-    tr = mp.MarkerPose(rig, preset="default-masks-first")  # every edge fit seeded by a mask
+    tr = build("default-masks-first", rig)  # every edge fit seeded by a mask
     real = tr.refiner.net
 
     def poor(grays, points, marker, with_ellipses=False):  # masks 5 px off, no ellipse
@@ -163,7 +164,7 @@ def test_second_look_finds_a_marker_beyond_the_working_volume(rig):
     """At 1.9 m (rings ~6 px at stage 1's 320x240 input) the first pass finds no marker;
     the second look at 640x480 does, in the pair and in one view, to the usual accuracy."""
     f = render_stereo(rig, look_at_pose([-40, 20, 1900], 50, 30, 120), imaging=Imaging(alpha=0.6), seed=2)
-    off = mp.MarkerPose(rig, preset="default-no-second-look")
+    off = build("default-no-second-look", rig)
     assert off.estimate(*f.images) is None and off.detect(f.images[0]) is None
     on = mp.MarkerPose(rig)
     est = on.estimate(*f.images)
@@ -348,7 +349,7 @@ def test_single_view_detect_without_the_edge_fit(rig, preset):
     their single views decode one triple (as the paper does) instead of finding nothing."""
     f = render_stereo(rig, look_at_pose([0, 0, 520], 25, 60, 0), seed=38)
     for view in (0, 1):
-        det = mp.MarkerPose(rig, preset=preset).detect(f.images[view], view=view)
+        det = build(preset, rig).detect(f.images[view], view=view)
         assert det is not None
         assert np.linalg.norm(det.centers - f.views[view].outer_centers, axis=1).max() < 1.0
 

@@ -107,19 +107,32 @@ def test_image_size_must_match_the_calibration(rig, detector):
 def test_bad_configuration(rig):
     with pytest.raises(ValueError, match="weights not found"):
         mp.MarkerPose(rig, propose={"weights": "/nonexistent/keypoints.pt"})
-    with pytest.raises(ValueError, match="unknown refine method"):
+    with pytest.raises(ValueError, match=r"refine.method must be one of \[.*got 'magic'"):
         mp.MarkerPose(rig, refine={"method": "magic"})
-    with pytest.raises(ValueError, match="unknown detector"):
+    with pytest.raises(ValueError, match=r"detector must be one of \['neural', 'classical'\], got 'magic'"):
         mp.MarkerPose(rig, detector="magic")
-    with pytest.raises(ValueError, match="unknown pose"):
+    with pytest.raises(ValueError, match="solve.pose must be one of"):
         mp.MarkerPose(rig, solve={"pose": "best"})
     with pytest.raises(ValueError, match="unknown option 'speed'"):
         mp.MarkerPose(rig, speed=3)
     # A flat option of earlier releases says where it went.
     with pytest.raises(ValueError, match=r"unknown option 'bias_correction' \(now solve="):
         mp.MarkerPose(rig, bias_correction=False)
-    with pytest.raises(ValueError, match=r"unknown verify setting\(s\) \['plate'\]"):
+    with pytest.raises(ValueError, match=r"unknown verify setting 'plate'"):
         mp.MarkerPose(rig, verify={"plate": 1})
+    # Every stage setting is checked against its rule, not only its name.
+    for stage, bad, what in (
+        ("propose", {"threshold": float("nan")}, r"propose.threshold must be a number in \[0, 1\], got nan"),
+        ("match", {"max_fits": 0}, r"match.max_fits must be a whole number >= 1, got 0"),
+        ("verify", {"epipolar_tol": -1}, r"verify.epipolar_tol must be a number > 0"),
+        ("track", {"lost_block": 2.5}, r"track.lost_block must be a whole number >= 1"),
+        ("refine", {"blur_fit": "yes"}, r"refine.blur_fit must be true or false"),
+        ("match", {"method": "magic"}, r"match.method must be one of \['stereo', 'layout', 'head'\]"),
+    ):
+        with pytest.raises(ValueError, match=what):
+            mp.MarkerPose(rig, **{stage: bad})
+    with pytest.raises(ValueError, match="threads must be a whole number >= 1"):
+        mp.MarkerPose(rig, threads=0)
     with pytest.raises(ValueError, match="takes a dict"):
         mp.MarkerPose(rig, solve="paper")
     with pytest.raises(ValueError, match="unknown preset 'best'"):

@@ -53,7 +53,9 @@ def register(sub) -> None:
     b.add_argument("--empty-pairs", type=int, default=4, help="marker-free pairs (time while the marker is out of view)")
     b.add_argument("--repeats", type=int, default=3, help="passes over the pairs (the first warms up)")
     b.add_argument("--threads", type=int, help="torch threads (default: all cores)")
-    b.add_argument("--configs", nargs="*", help="preset names (default: all available)")
+    b.add_argument(
+        "--configs", nargs="*", help="configuration names: presets or ablations, markerpose.experiments.configs (default: all available)"
+    )
     b.add_argument("--json", help="also write the figures as JSON")
     b.add_argument(
         "--sequence",
@@ -68,7 +70,11 @@ def register(sub) -> None:
     )
     b.add_argument("--trials", type=int, default=120, help="--jumps: trials (default 120; --threads, --seed and --out apply too)")
     b.add_argument("--seed", type=int, help="--sequence / --jumps: seed of the rendering (default 0 / 11)")
-    b.add_argument("--preset", default="default", help="--sequence: the preset of track and estimate (default: default)")
+    b.add_argument(
+        "--preset",
+        default="default",
+        help="--sequence: the configuration (a preset or an ablation) of track and estimate (default: default)",
+    )
     b.add_argument(
         "--passes",
         type=int,

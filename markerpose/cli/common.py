@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
 EXIT_NOT_FOUND = 1
 EXIT_BAD_INPUT = 2
 
@@ -77,27 +75,10 @@ def setting(text: str) -> tuple[str, str | None, object]:
     return (stage, key, value) if dot else (stage, None, value)
 
 
-def _checked(stage: str, key: str, value, default):
-    """``value`` if it has the type of the setting's ``default``, else ``ValueError``: a
-    switch takes true or false (JSON's; ``False`` would be a string, and true), a number a
-    number, a name a string; a setting whose default is None takes anything."""
-    if isinstance(default, bool):
-        ok, want = isinstance(value, bool), "true or false"
-    elif isinstance(default, (int, float)):
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and np.isfinite(value)
-        want = "a finite number"
-    elif isinstance(default, str):
-        ok, want = isinstance(value, str), "a string"
-    else:  # None: a weights file, a budget, ...
-        return value
-    if not ok:
-        raise ValueError(f"--set {stage}.{key}: expected {want}, got {value!r}")
-    return value
-
-
 def overrides(settings: list | None) -> dict:
     """--set settings → MarkerPose's overrides: one dict per stage, and top-level keys;
-    ``ValueError`` (one line) for an unknown stage or setting, or a value of the wrong type."""
+    ``ValueError`` (one line) for an unknown stage. The values are checked where the API's
+    are, by :func:`markerpose.presets.resolve`."""
     from ..presets import default_conf
 
     out: dict = {}
@@ -112,9 +93,7 @@ def overrides(settings: list | None) -> dict:
             raise ValueError(f"--set {stage}{'.' + key if key else ''}: unknown stage {stage!r}; stages: {known}")
         if key is None:
             raise ValueError(f"--set {stage}: expected {stage}.KEY=VALUE")
-        if key not in default_conf[stage]:
-            raise ValueError(f"--set {stage}.{key}: unknown {stage} setting; known: {sorted(default_conf[stage])}")
-        out.setdefault(stage, {})[key] = _checked(stage, key, value, default_conf[stage][key])
+        out.setdefault(stage, {})[key] = value
     return out
 
 

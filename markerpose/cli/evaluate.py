@@ -176,7 +176,9 @@ def _register_pipeline(esub) -> None:
         nargs="*",
         help="standard, dark_0.0625, blur_25, marker_free (the default), far (0.8-1.6 m), and realism (the nine realism_<effect> sets: shadow, light_gradient, defocus, gamma, jpeg, resample, toner, occluded_border, ring_object)",
     )
-    ep.add_argument("--configs", nargs="*", help="preset names (default: all available)")
+    ep.add_argument(
+        "--configs", nargs="*", help="configuration names: presets or ablations, markerpose.experiments.configs (default: all available)"
+    )
     ep.add_argument(
         "--single-view",
         action="store_true",
@@ -189,7 +191,9 @@ def _register_pipeline(esub) -> None:
     eb = esub.add_parser("blur-distance", help="the distance c0-c1 under motion blur along it, per blur length and configuration")
     eb.add_argument("--pairs", type=positive_int, default=40, help="poses, each rendered at every blur length (default 40)")
     eb.add_argument("--lengths", type=float, nargs="+", help="blur lengths, px (default 0 5 9 13 17 21 25)")
-    eb.add_argument("--configs", nargs="*", help="preset names (default: default paper)")
+    eb.add_argument(
+        "--configs", nargs="*", help="configuration names: presets or ablations, markerpose.experiments.configs (default: default paper)"
+    )
     eb.add_argument("--out", default="markerpose-blur-distance", help="output folder: report.md, results.json, blur-distance.png")
     eb.add_argument("--quiet", action="store_true")
     eb.set_defaults(func=cmd_eval_blur_distance)

@@ -21,7 +21,11 @@ def register(sub) -> None:
     x.add_argument("--trials", type=int, help="robot-path placements (default 8)")
     x.add_argument("--pairs", type=int, help="random pairs per darkness / blur level (default 48)")
     x.add_argument("--seed", type=int, help="base seed (default 0)")
-    x.add_argument("--configs", nargs="*", help="preset names (default: the headline ones that can run)")
+    x.add_argument(
+        "--configs",
+        nargs="*",
+        help="configuration names: presets or ablations, markerpose.experiments.configs (default: the headline ones that can run)",
+    )
     x.add_argument("--out", default="markerpose-experiments", help="output folder (default: markerpose-experiments)")
     x.add_argument("--quiet", action="store_true")
     x.set_defaults(func=cmd_experiments)

@@ -18,7 +18,7 @@ from ..frame import Frame
 from ..marker import Marker
 from ..results import Detection
 from ..stages import propose, verify
-from ..stages.match import best_per_set, layout_orders
+from ..stages.match import VIEW_TRIPLES, best_per_set, layout_orders
 from ..stages.refine import Refiner
 
 
@@ -96,7 +96,7 @@ class NeuralDetector(Detector):
                 found = self.fit(frame, [gray], [cam], [(pts, s)])
                 if found is None:
                     break
-                reason = verify.plate_rejection(found[0], cam, self.marker, self.conf["verify"]["plate_tol"], verify.VIEWS[view])
+                reason = verify.plate_rejection(found[0], cam, self.marker, verify.PLATE_TOL, verify.VIEWS[view])
                 if reason is None:
                     return found[0]
                 frame.failed(reason)
@@ -125,7 +125,7 @@ class NeuralDetector(Detector):
         kept = [(p[k], float(s[k] * ev[k])) for k in best if ev[k] >= m["min_evidence"]]
         if not kept:
             frame.failed(f"ring evidence: the best of {len(best)} layout triples has {ev.max():.3f} (min_evidence {m['min_evidence']:g})")
-        return kept[: m["view_triples"]]
+        return kept[:VIEW_TRIPLES]
 
 
 __all__ = ["Detector", "NeuralDetector"]

@@ -26,7 +26,7 @@ class ClassicalDetector(Detector):
 
     def pairs(self, frame: Frame) -> Iterator[list[Detection]]:
         views = [frame.timed("propose", propose.classical_view, g, self.marker, self.refiner.classical) for g in frame.grays]
-        pair = frame.timed("match", match.pair_triples, self.rig, views[0][2:], views[1][2:], self.conf["match"]["pair_epipolar_tol"])
+        pair = frame.timed("match", match.pair_triples, self.rig, views[0][2:], views[1][2:], match.PAIR_EPIPOLAR_TOL)
         if pair is None:
             counts = ", ".join(f"{len(v[3])} {name}" for v, name in zip(views, verify.VIEWS))
             frame.failed(f"no pair of marker-like ring triples ({counts}) agrees with the epipolar geometry")

@@ -20,7 +20,7 @@ from ..frame import Frame
 from ..geometry import ring_diameter, ring_ellipses
 from ..keypoints import look_size
 from ..results import Detection
-from ..stages import verify
+from ..stages import match, verify
 from ..stages.match import stereo_triples, transfer, transfer_sources
 from .base import NeuralDetector
 
@@ -134,13 +134,13 @@ class StereoDetector(NeuralDetector):
             cand[0],
             cand[1],
             mk.points3d,
-            m["transfer_epipolar_tol"],
-            m["transfer_shape_tol"],
-            m["transfer_attempts"],
+            match.TRANSFER_EPIPOLAR_TOL,
+            match.TRANSFER_SHAPE_TOL,
+            match.TRANSFER_ATTEMPTS,
         )
         if not loose:  # no sign of the marker in both views (the common case without it): stop
             return
-        sources = transfer_sources(loose, cand, mk.centers2d, m["view_triples"])
+        sources = transfer_sources(loose, cand, mk.centers2d, match.VIEW_TRIPLES)
         blur_gate = self.gates(frame, zoom)[0]
         gate = m["transfer_min_evidence"]
         if gate:  # one evidence look per view for all of its sources
@@ -153,13 +153,13 @@ class StereoDetector(NeuralDetector):
                     )
                     keep[idx] = ev >= gate
             sources = [u for u, k in zip(sources, keep) if k]
-        for a, pts, s in sources[: m["transfer_sources"]]:
+        for a, pts, s in sources[: match.TRANSFER_SOURCES]:
             b = 1 - a
             det_a = self.fit(frame, [grays[a]], [cams[a]], [(pts, s)], blur_gate)
             if det_a is None:
                 return
             det_a = det_a[0]
-            poses = verify.plate_poses(det_a, cams[a], mk, self.conf["verify"]["plate_tol"])
+            poses = verify.plate_poses(det_a, cams[a], mk, verify.PLATE_TOL)
             for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
                 # Cheap first: the other view must show ring evidence where the pose puts the
                 # rings (an inconsistent pair, e.g. one view given twice, does not), before

@@ -24,9 +24,8 @@ from tqdm import tqdm
 from ..camera import StereoRig
 from ..formats import write_json
 from ..marker import Marker
-from ..pipeline import MarkerPose
 from ..synth import Imaging, look_at_pose, render_stereo
-from .configs import available
+from .configs import available, build
 from .endtoend import marker_free_pairs
 
 default_conf = {
@@ -89,7 +88,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     # Marker-free pairs: each view's clutter with ring distractors, the marker out of view.
     spec = {"alpha": (0.5, 1.0), "blur": 0.0}
     empty = [f for f, _ in marker_free_pairs(spec, c["empty_pairs"], rig, marker, np.random.default_rng(c["seed"] + 1))]
-    trackers = {name: MarkerPose(rig, marker, preset=name) for name in available(c["configs"])}
+    trackers = {name: build(name, rig, marker) for name in available(c["configs"])}
     times = {name: [] for name in trackers}
     stages = {name: {} for name in trackers}
     found = dict.fromkeys(trackers, 0)

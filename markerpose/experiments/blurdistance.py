@@ -29,9 +29,8 @@ from tqdm import tqdm
 from ..camera import StereoRig
 from ..formats import write_json
 from ..marker import Marker
-from ..pipeline import MarkerPose
 from ..synth import Imaging, look_at_pose, render_stereo
-from .configs import available
+from .configs import available, build
 
 default_conf = {
     "pairs": 40,  # poses, each rendered at every blur length
@@ -89,7 +88,7 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
     if out_dir is not None:  # before the work: a path that cannot be a folder fails now
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-    trackers = {name: MarkerPose(rig, marker, preset=name) for name in names}
+    trackers = {name: build(name, rig, marker) for name in names}
     true = float(np.linalg.norm(marker.points3d[1] - marker.points3d[0]))
     lengths = [float(v) for v in c["lengths"]]
     errors = {name: {L: [] for L in lengths} for name in names}  # mm, None where no pose

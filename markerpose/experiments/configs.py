@@ -1,35 +1,90 @@
-"""The presets the experiments compare (:mod:`markerpose.presets`), those that can run here,
-and an experiment's own settings over its defaults."""
+"""The configurations the experiments compare: the user presets (:mod:`markerpose.presets`)
+and the ablations, each of which switches one of our improvements off (or the paper's
+configuration one step towards ours), so that every gain is measured in the same run on
+the same frames; which of them can run here; and an experiment's own settings over its
+defaults."""
 
 from __future__ import annotations
 
 import importlib.util
 
 from ..nets import default_weights, have_backend, have_onnxruntime, int8_weights
-from ..presets import ORDER, PRESETS, is_neural
+from ..pipeline import MarkerPose
+from ..presets import ABOUT as PRESET_ABOUT
+from ..presets import ORDER as PRESET_ORDER
+from ..presets import PAPER_POSE, PRESETS, is_neural
 
 DEFAULT = "default"
+_NO_EDGE = {"edge_refit": False}
+
+# name -> (diff over the stages' defaults, what it is)
+ABLATIONS: dict[str, tuple[dict, str]] = {
+    # the neural pipeline, from the paper's towards ours
+    "neural-layout": (
+        {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE, "solve": PAPER_POSE},
+        "paper + IDs from the marker's layout, adaptive patches, sub-pixel mask fit",
+    ),
+    "neural-layout-rigid": (
+        {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE},
+        "neural-layout + bias correction + rigid pose",
+    ),
+    "neural-stereo": ({"refine": _NO_EDGE}, "neural-layout-rigid with candidates matched across views by the 3D shape"),
+    # the default with one part switched off or replaced
+    "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),
+    "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
+    "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
+    "neural-classical-refine": ({"refine": {"method": "classical"}}, "default with the classical ring fit instead of EllipSegNet"),
+    "default-masks-first": (
+        {"refine": {"layout_seed": False}},
+        "default with EllipSegNet's masks seeding every cold detection's edge fit (the former default)",
+    ),
+    # the classical detector, from the paper's towards ours
+    "classical-subpixel": ({"detector": "classical", "solve": PAPER_POSE}, "paper-classical + sub-pixel edges"),
+    "classical-subpixel-bias": ({"detector": "classical", "solve": {"pose": "paper"}}, "classical-subpixel + bias correction"),
+}
+
+# Reports list the default and the paper's configurations first, then the ablations.
+ORDER = (*PRESET_ORDER[:4], *ABLATIONS, *PRESET_ORDER[4:])
+ABOUT = {**PRESET_ABOUT, **{name: about for name, (_, about) in ABLATIONS.items()}}
+
+
+def diff(name: str) -> dict:
+    """The settings a configuration changes from the stages' defaults."""
+    if name in PRESETS:
+        return PRESETS[name]
+    if name in ABLATIONS:
+        return ABLATIONS[name][0]
+    raise ValueError(f"unknown configuration {name!r}; known: {list(ORDER)}")
+
+
+def build(name: str, rig, marker=None, **opts) -> MarkerPose:
+    """The MarkerPose of a configuration (a preset or an ablation), with ``opts`` (e.g.
+    ``threads``) over it."""
+    if name in PRESETS:
+        return MarkerPose(rig, marker, preset=name, **opts)
+    d = {k: ({**v, **opts.get(k, {})} if isinstance(v, dict) else v) for k, v in diff(name).items()}
+    return MarkerPose(rig, marker, preset=DEFAULT, **{**opts, **d})
 
 
 def available(names=None, require: bool = False) -> list[str]:
-    """Preset names, in report order, whose networks are present and can run here (all by
-    default, or those in ``names``); ``ValueError`` for an unknown name, and with
+    """Configuration names, in report order, whose networks are present and can run here
+    (all by default, or those in ``names``); ``ValueError`` for an unknown name, and with
     ``require`` when none can run (before an experiment's work)."""
-    unknown = [n for n in (names or ()) if n not in PRESETS]
+    unknown = [n for n in (names or ()) if n not in ORDER]
     if unknown:
-        raise ValueError(f"unknown preset(s) {unknown}; known: {list(ORDER)}")
+        raise ValueError(f"unknown configuration(s) {unknown}; known: {list(ORDER)}")
     runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
     nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
 
     def runs(name):  # OpenVINO runs the .onnx files only, and so does int8
-        backend = PRESETS[name].get("backend", "onnxruntime")
-        if PRESETS[name].get("propose", {}).get("int8"):
+        backend = diff(name).get("backend", "onnxruntime")
+        if diff(name).get("propose", {}).get("int8"):
             return have_backend(backend) and int8_weights("keypoints").is_file()
         return backend == "onnxruntime" or (have_backend(backend) and default_weights("keypoints").suffix == ".onnx")
 
-    out = [n for n in ORDER if (names is None or n in names) and (not is_neural(n) or (nets and runs(n)))]
+    out = [n for n in ORDER if (names is None or n in names) and (not is_neural(diff(n)) or (nets and runs(n)))]
     if require and not out:
-        raise ValueError(f"none of the presets {list(names or ORDER)} can run here (their networks or runtime are missing)")
+        raise ValueError(f"none of the configurations {list(names or ORDER)} can run here (their networks or runtime are missing)")
     return out
 
 
@@ -42,4 +97,4 @@ def settings(conf: dict | None, defaults: dict, what: str) -> dict:
     return {**defaults, **(conf or {})}
 
 
-__all__ = ["DEFAULT", "available", "settings"]
+__all__ = ["ABLATIONS", "ABOUT", "DEFAULT", "ORDER", "available", "build", "diff", "settings"]

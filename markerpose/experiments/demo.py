@@ -19,11 +19,9 @@ import numpy as np
 from ..camera import StereoRig
 from ..formats import write_json
 from ..marker import Marker
-from ..pipeline import MarkerPose
-from ..presets import ABOUT
 from ..synth import Imaging
 from ..viz import annotate_pair
-from .configs import DEFAULT, available
+from .configs import ABOUT, DEFAULT, available, build
 from .plots import plot_displacement, plot_rotation
 from .robot import PAPER, RobotScene, evaluate, render_sequences
 
@@ -102,7 +100,8 @@ def report_markdown(results: dict, conf: dict, render_s: float) -> str:
         "synthetic with a perfect calibration, print and robot, so the comparison that is like",
         "for like is between our presets, measured here on the same frames.",
         "",
-        "**The presets** (`MarkerPose(rig, preset=NAME)`; `default` is what `MarkerPose(rig)` gives):",
+        "**The configurations** (the presets, `MarkerPose(rig, preset=NAME)`, `default` being what `MarkerPose(rig)` gives, "
+        "and the ablations of `markerpose.experiments.configs.ABLATIONS`):",
         "",
     ]
     lines += [f"- `{name}`: {ABOUT.get(name, '')}" for name in results] + [""]
@@ -125,7 +124,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-demo", prog
     render_s = float(np.median(seconds[1:] or seconds))  # the first pair also builds the cached ray grids
     results, trackers = {}, {}
     for name in available(conf["configs"]):
-        trackers[name] = MarkerPose(rig, marker, preset=name)
+        trackers[name] = build(name, rig, marker)
         results[name] = evaluate(trackers[name], seqs, scene, marker, name=name, progress=progress)
     text = report_markdown(results, conf, render_s)
     (out / "report.md").write_text(text)

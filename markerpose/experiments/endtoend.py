@@ -29,7 +29,7 @@ from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, realism, render_stereo
-from .configs import available
+from .configs import available, build
 
 SETS = {
     "standard": {"seed": 3001, "alpha": (0.25, 1.0), "blur": (0.0, 9.0)},
@@ -201,7 +201,7 @@ def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0)
     """Every preset of ``conf["configs"]`` on one held-out set; returns {preset: figures}."""
     c = {**default_conf, **conf}
     rig, marker = StereoRig.default(), Marker()
-    trackers = {name: MarkerPose(rig, marker, preset=name) for name in available(c["configs"])}
+    trackers = {name: build(name, rig, marker) for name in available(c["configs"])}
     rows = {name: [] for name in trackers}
     views = {name: [] for name in trackers}
     conds = []

@@ -34,9 +34,8 @@ from tqdm import tqdm
 from ..camera import StereoRig
 from ..formats import write_json
 from ..marker import Marker
-from ..pipeline import MarkerPose
 from ..synth import Imaging
-from .configs import available
+from .configs import available, build
 from .endtoend import by_condition, evaluate_pair, random_pairs, summarize
 from .plots import plot_accuracy, plot_detection, plot_displacement, plot_rotation
 from .robot import PAPER, RobotScene, evaluate, render_sequences
@@ -380,7 +379,7 @@ def main(conf: dict | None = None, out_dir: str | Path = "markerpose-experiments
     t0 = time.perf_counter()
     rig, marker = StereoRig.default(), Marker()
     configs = available(c["configs"], require=True)
-    trackers = {name: MarkerPose(rig, marker, preset=name) for name in configs}
+    trackers = {name: build(name, rig, marker) for name in configs}
     robot = robot_trials(c, rig, marker, trackers, progress)
     lv = levels(c, rig, marker, trackers, progress)
     res = {

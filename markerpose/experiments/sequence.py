@@ -34,9 +34,8 @@ from ..camera import StereoRig
 from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
-from ..pipeline import MarkerPose
 from ..synth import Imaging, clutter_background, look_at_pose, render_stereo
-from .configs import settings
+from .configs import build, settings
 
 default_conf = {
     "frames": 240,  # at 60 frames/s
@@ -46,7 +45,7 @@ default_conf = {
     "threads": None,  # the networks' inference threads (None: every core)
     "passes": 2,  # passes over the sequence per method, in alternating order (the statistics pool them)
     "pace": True,  # hand each method the frames at the stream's rate (False: back to back)
-    "preset": "default",  # the preset of track and estimate (the paper's configuration is the reference)
+    "preset": "default",  # the configuration (a preset or an ablation) of track and estimate (the paper's is the reference)
 }
 # Fractions of the sequence: still, by hand, fast, gone, dark.
 SEGMENTS = (("static", 0.25), ("hand-held", 0.25), ("fast", 0.125), ("out of view", 0.125), ("dark", 0.25))
@@ -119,9 +118,9 @@ def main(conf: dict | None = None, out_dir: str | Path | None = "markerpose-sequ
     rig, marker = StereoRig.default(), Marker()
     opts = {} if c["threads"] is None else {"threads": int(c["threads"])}
     runners = {
-        "track": MarkerPose(rig, marker, preset=c["preset"], **opts),
-        "estimate": MarkerPose(rig, marker, preset=c["preset"], **opts),
-        "paper": MarkerPose(rig, marker, preset="paper", **opts),
+        "track": build(c["preset"], rig, marker, **opts),
+        "estimate": build(c["preset"], rig, marker, **opts),
+        "paper": build("paper", rig, marker, **opts),
     }
     calls = {"track": runners["track"].track, "estimate": runners["estimate"].estimate, "paper": runners["paper"].estimate}
     # The images and the truth only (a rendered frame also holds its ring masks).
@@ -233,7 +232,7 @@ def report(res: dict) -> str:
         "",
         "Segments: "
         + ", ".join(f"{name} ({int(round(f * n))} frames)" for name, f in SEGMENTS)
-        + f'. `track` is `MarkerPose(rig, preset="{c.get("preset", "default")}").track`; `estimate` is the same preset detecting every frame cold;'
+        + f". `track` is the `{c.get('preset', 'default')}` configuration's `track()`; `estimate` is the same configuration detecting every frame cold;"
         ' `paper` is `MarkerPose(rig, preset="paper").estimate`. All three on the same frames, each as a live stream '
         + (
             f"(a frame handed over every {1000 / c['fps']:.1f} ms, or as soon as the method is free)"

@@ -27,6 +27,7 @@ import numpy as np
 
 from ..camera import StereoRig
 from ..geometry import epipolar_distance, layout_ratios, signed_areas, triangulate, triple_orders
+from ..settings import choice, flag, number
 
 PAIRS = ((0, 1), (0, 2), (1, 2))
 
@@ -37,16 +38,11 @@ default_conf = {
     #                        (stage 1 misplaces steeply tilted rings by 10-20 px)
     "shape_tol": 0.35,  # stereo: relative error allowed in each triangulated ring distance
     "max_triples": 3,  # stereo: matched triples refined and checked, best first
-    "view_triples": 4,  # single views and the transfer: layout triples tried per view
     "min_evidence": 0.1,  # single views: layout triples with less ring evidence are not
     #                       refined, the others are tried by score x evidence; 0: by score
     "view_min_ratio": 0.25,  # single views with evidence: smallest layout ratio (cos 75°;
     #                          the evidence, not the ratio, tells a steep marker's ID order)
     "transfer": True,  # stereo: carry one view's refined rings into the other (below)
-    "transfer_epipolar_tol": 60.0,  # transfer: loose matching tolerances (px, relative) ...
-    "transfer_shape_tol": 0.6,
-    "transfer_attempts": 2,  # ... and how many loose triples are tried
-    "transfer_sources": 4,  # one view's triples refined and carried over, at most
     "blur_min_evidence": 0.1,  # a view's blurred-ring fit (the costliest step) only for rings
     #                            with at least this ring evidence (a decoy's triple has less;
     #                            the marker's, blurred 25 px, more); 0: no test
@@ -57,13 +53,34 @@ default_conf = {
     #                                 triples on marker-free pairs cost refits); 0: every one.
     #                                 Lower than min_evidence: a source from the steep view
     #                                 is pixels off, and its evidence runs lower
-    "pair_epipolar_tol": 3.0,  # classical: max epipolar distance of same-ID centres, px
     "max_fits": 3,  # neural: hypotheses refined (a triple fitted in one or both views) per
     #                 cold detection, over both looks; then the pair gives no pose. A valid
     #                 pair needs one or two, an inconsistent one (a view given twice, views
     #                 swapped) would otherwise try every triple and transfer (seconds)
 }
 METHODS = ("stereo", "layout", "head")
+RULES = {
+    "method": choice(*METHODS),
+    "epipolar_tol": number(0, above=True),
+    "shape_tol": number(0, 1, above=True),
+    "max_triples": number(1, integer=True),
+    "min_evidence": number(0),  # above the largest evidence: refuse all
+    "view_min_ratio": number(0, 1),
+    "transfer": flag(),
+    "blur_min_evidence": number(0),  # above the largest evidence: refuse all
+    "mask_min_evidence": number(0),  # above the largest evidence: refuse all
+    "transfer_min_evidence": number(0),  # above the largest evidence: refuse all
+    "max_fits": number(1, integer=True),
+}
+
+VIEW_TRIPLES = 4  # single views and the transfer: layout triples tried per view
+# The transfer's loose matching: tolerances (px; relative distance error), how many loose
+# triples are tried, and how many one-view triples are refined and carried over at most.
+TRANSFER_EPIPOLAR_TOL = 60.0
+TRANSFER_SHAPE_TOL = 0.6
+TRANSFER_ATTEMPTS = 2
+TRANSFER_SOURCES = 4
+PAIR_EPIPOLAR_TOL = 3.0  # the classical detector: largest epipolar distance of same-ID centres, px
 
 
 def side_lengths(points3d: np.ndarray) -> np.ndarray:
@@ -251,6 +268,13 @@ def pair_triples(rig: StereoRig, left: tuple, right: tuple, epipolar_tol: float 
 
 __all__ = [
     "METHODS",
+    "PAIR_EPIPOLAR_TOL",
+    "RULES",
+    "TRANSFER_ATTEMPTS",
+    "TRANSFER_EPIPOLAR_TOL",
+    "TRANSFER_SHAPE_TOL",
+    "TRANSFER_SOURCES",
+    "VIEW_TRIPLES",
     "best_per_set",
     "default_conf",
     "layout_orders",

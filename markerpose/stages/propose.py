@@ -17,34 +17,32 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import classical
-from ..keypoints import KeypointNet, check_second_look
+from .. import classical, settings
+from ..keypoints import KeypointNet
 from ..marker import Marker
 from ..nets import int8_weights
+from ..settings import flag, number, path
 
 default_conf = {
     "weights": None,  # neural: stage-1 weights file (None: the shipped one)
     "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
-    "candidates": 16,  # neural: candidates per view
-    "threshold": 0.01,  # ... their least location score
-    "nms": 4,  # ... non-maximum-suppression radius between them, px of the 320x240 input
+    "threshold": 0.01,  # neural: the candidates' least location score
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
-    "second_look_near": 5,  # ... only around the first look's best this many candidates per
-    #                         view (ours: a marker too small to be matched at the first look
-    #                         is still among its best candidates); 0: the whole image
-    "second_look_window": 64,  # ... in windows of this many px of its input each side (a
-    #                            large ring needs context beyond its own size)
 }
+RULES = {"weights": path(), "int8": flag(), "threshold": number(0, 1), "second_look": number(1)}
+
+CANDIDATES = 16  # candidates per view
+NMS = 4  # non-maximum-suppression radius between candidates, px of the 320x240 input
+# The second look sees only windows around the first look's best candidates per view (a
+# marker too small to be matched at the first look is still among its best ones), of this
+# many px of its input each side (a large ring needs context beyond its own size).
+SECOND_LOOK_NEAR = 5
+SECOND_LOOK_WINDOW = 64
 
 
 def check_conf(conf: dict) -> dict:
-    """``conf`` with its values checked (``ValueError`` naming the key)."""
-    check_second_look(conf["second_look"])
-    if int(conf["second_look_window"]) < 16:
-        raise ValueError(f"second_look_window must be >= 16 px, got {conf['second_look_window']!r}")
-    if int(conf["candidates"]) < 3:
-        raise ValueError(f"candidates must be >= 3, got {conf['candidates']!r}")
-    return conf
+    """``conf`` if every value fits :data:`RULES` (``ValueError`` naming the key)."""
+    return settings.check("propose", conf, RULES)
 
 
 class NeuralProposer:
@@ -86,18 +84,16 @@ class NeuralProposer:
         (:attr:`markerpose.frame.Frame.looked`), made once per call."""
         c = self.conf
         near = None
-        if zoom > 1 and previous is not None and c["second_look_near"]:
-            near = [p[: int(c["second_look_near"]), :2] for p in previous]
-        return self.net.candidates(
-            grays, c["threshold"], c["candidates"], zoom, c["nms"], near=near, window=int(c["second_look_window"]), kept=kept
-        )
+        if zoom > 1 and previous is not None:
+            near = [p[:SECOND_LOOK_NEAR, :2] for p in previous]
+        return self.net.candidates(grays, c["threshold"], CANDIDATES, zoom, NMS, near=near, window=SECOND_LOOK_WINDOW, kept=kept)
 
     def near(self, grays: list[np.ndarray], points: list, half: int, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look
         that sees only windows of 2 ``half`` x 2 ``half`` input px around ``points`` (per
         view, (M, 2) full-resolution pixels): where a tracker's prior put the marker."""
         c = self.conf
-        return self.net.candidates(grays, c["threshold"], c["candidates"], 1.0, c["nms"], near=points, window=int(half), kept=kept)
+        return self.net.candidates(grays, c["threshold"], CANDIDATES, 1.0, NMS, near=points, window=int(half), kept=kept)
 
     def decoded(self, grays: list[np.ndarray], kept: list | None = None) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
@@ -115,4 +111,14 @@ def classical_view(image: np.ndarray, marker: Marker, conf: dict | None = None):
     return classical.view_triples(image, marker, conf)
 
 
-__all__ = ["NeuralProposer", "check_conf", "classical_view", "default_conf"]
+__all__ = [
+    "CANDIDATES",
+    "NMS",
+    "RULES",
+    "SECOND_LOOK_NEAR",
+    "SECOND_LOOK_WINDOW",
+    "NeuralProposer",
+    "check_conf",
+    "classical_view",
+    "default_conf",
+]

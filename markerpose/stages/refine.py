@@ -23,10 +23,12 @@ from __future__ import annotations
 import numpy as np
 
 from .. import camera, classical, edges, jit
+from ..ellipses import FITS, PATCH_MODES
 from ..frame import Frame
 from ..geometry import cq_to_rect, layout_affine
 from ..marker import Marker
 from ..results import Detection
+from ..settings import choice, flag, number, path
 
 default_conf = {
     "method": "ellipsegnet",  # "ellipsegnet" (paper's stage 2), "classical" or "none"
@@ -43,6 +45,17 @@ default_conf = {
     #                      refinement; two hypotheses of a blurred pair (both views) need four
 }
 METHODS = ("ellipsegnet", "classical", "none")
+RULES = {
+    "method": choice(*METHODS),
+    "weights": path(),
+    "patch": choice(*PATCH_MODES),
+    "fit": choice(*FITS),
+    "edge_refit": flag(),
+    "layout_seed": flag(),
+    "subpixel": flag(),
+    "blur_fit": flag(),
+    "max_blur_fits": number(0, integer=True),
+}
 
 
 class Refiner:
@@ -232,4 +245,4 @@ class Refiner:
         )
 
 
-__all__ = ["METHODS", "Refiner", "default_conf"]
+__all__ = ["METHODS", "RULES", "Refiner", "default_conf"]

@@ -15,6 +15,7 @@ import numpy as np
 from ..geometry import POSE_METHODS, nearest_rotation, perspective_bias, pose_from_points, pose_rigid, triangulate
 from ..marker import Marker
 from ..results import Detection, Estimate
+from ..settings import choice, flag
 
 default_conf = {
     "pose": "rigid",  # "rigid": least-squares SO(3) fit (ours); "paper": R = [x y x×y], t = X0
@@ -22,10 +23,7 @@ default_conf = {
 }
 
 
-def check_conf(conf: dict) -> dict:
-    if conf["pose"] not in POSE_METHODS:
-        raise ValueError(f"unknown pose method {conf['pose']!r}; choose from {POSE_METHODS}")
-    return conf
+RULES = {"pose": choice(*POSE_METHODS), "bias_correction": flag()}
 
 
 def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: dict, source: str = "detected") -> Estimate:
@@ -65,4 +63,4 @@ def reprojection_rms(rig, marker: Marker, T_left_marker: np.ndarray, centers: np
     return float(np.sqrt(np.mean(np.sum((proj - centers) ** 2, axis=-1))))
 
 
-__all__ = ["check_conf", "default_conf", "reprojection_rms", "solve"]
+__all__ = ["RULES", "default_conf", "reprojection_rms", "solve"]

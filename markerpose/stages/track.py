@@ -22,18 +22,16 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .. import settings
 from ..geometry import ring_ellipses
+from ..settings import number
 
 default_conf = {
     "max_residual_px": 0.5,  # quality gate: RMS reprojection error of the six centres, px
-    "margin_px": 2.0,  # predicted rings must lie this far inside both images
     "one_pass_move": 0.15,  # px: a ring's edge fit from its predicted ellipse stops after
     #                         one pass when that pass moved it less than this (a still or
     #                         slow marker: the prediction was close), else it iterates to
     #                         convergence as a cold detection's does
-    "noise_every": 30,  # frames between estimates of the images' noise (the edge fit's
-    #                     contrast floor) while there is a prior; renewed too when the
-    #                     marker is found again after it was lost
     "shift_margin": 0.5,  # when the prior fails: the marker's drawn appearance is first sought
     #                       by correlation this many predicted plate extents around the
     #                       prediction in each view (:func:`shift`), and the prior's rings,
@@ -48,6 +46,21 @@ default_conf = {
     "lost_block": 8,  # ... px, the side of those blocks
     "lost_refresh": 30,  # ... frames: a cold detection at least this often even without change
 }
+RULES = {
+    "max_residual_px": number(0, above=True),
+    "one_pass_move": number(0),
+    "shift_margin": number(0),
+    "shift_min_score": number(-1, 1),
+    "near_margin": number(0),
+    "lost_change": number(0),
+    "lost_block": number(1, integer=True),
+    "lost_refresh": number(1, integer=True),
+}
+
+MARGIN_PX = 2.0  # predicted rings must lie this far inside both images
+# Frames between estimates of the images' noise (the edge fit's contrast floor) while
+# there is a prior; renewed too when the marker is found again after it was lost.
+NOISE_EVERY = 30
 
 
 def predict(history: list) -> np.ndarray:
@@ -264,11 +277,11 @@ class Tracker:
                 frame.why = "lost, and the pair has not changed since the last one detected without the marker"
                 return None
         if self.history:
-            # The cameras' noise as the stream estimated it (renewed every noise_every
+            # The cameras' noise as the stream estimated it (renewed every NOISE_EVERY
             # frames): this pair's fits take it, those of a search or a detection after a
             # failed prior too.
             noises, age = self.noise
-            if noises is None or age >= c["noise_every"]:
+            if noises is None or age >= NOISE_EVERY:
                 noises, age = frame.noises(grays), 0
             else:
                 frame.noises(grays, known=noises)
@@ -312,11 +325,11 @@ class Tracker:
 
     def predicted(self, grays: list, T_pred: np.ndarray) -> list | None:
         """Per view, the rings' outer ellipses under pose ``T_pred``; None where one leaves
-        its image (``margin_px``)."""
+        its image (:data:`MARGIN_PX`)."""
         mk, out = self.marker, []
         for gray, cam, T in zip(grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
             ellipses = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
-            if not inside(ellipses, gray.shape[::-1], self.conf["margin_px"]):
+            if not inside(ellipses, gray.shape[::-1], MARGIN_PX):
                 return None
             out.append(ellipses)
         return out
@@ -335,27 +348,28 @@ class Tracker:
             if found is None or found[1] < c["shift_min_score"]:
                 return None
             ellipses = [((x + dx, y + dy), axes, angle) for ((x, y), axes, angle), (dx, dy) in zip(rings, found[0])]
-            if not inside(ellipses, gray.shape[::-1], c["margin_px"]):
+            if not inside(ellipses, gray.shape[::-1], MARGIN_PX):
                 return None
             moved.append(ellipses)
         return moved
 
 
 def check_conf(conf: dict) -> dict:
-    """``conf`` with its values checked (``ValueError`` naming the key)."""
-    if float(conf["shift_margin"]) < 0:
-        raise ValueError(f"shift_margin must be >= 0 (0: no search), got {conf['shift_margin']!r}")
-    if not -1 <= float(conf["shift_min_score"]) <= 1:
-        raise ValueError(f"shift_min_score is a correlation in [-1, 1], got {conf['shift_min_score']!r}")
-    if float(conf["near_margin"]) < 0:
-        raise ValueError(f"near_margin must be >= 0 (0: no near look), got {conf['near_margin']!r}")
-    if float(conf["lost_change"]) < 0:
-        raise ValueError(f"lost_change must be >= 0 (0: no gate), got {conf['lost_change']!r}")
-    if int(conf["lost_block"]) < 1:
-        raise ValueError(f"lost_block must be >= 1 px, got {conf['lost_block']!r}")
-    if int(conf["lost_refresh"]) < 1:
-        raise ValueError(f"lost_refresh must be >= 1 frame, got {conf['lost_refresh']!r}")
-    return conf
+    """``conf`` if every value fits :data:`RULES` (``ValueError`` naming the key)."""
+    return settings.check("track", conf, RULES)
 
 
-__all__ = ["Tracker", "appearance", "blocks", "changed", "check_conf", "default_conf", "inside", "predict", "shift"]
+__all__ = [
+    "MARGIN_PX",
+    "NOISE_EVERY",
+    "RULES",
+    "Tracker",
+    "appearance",
+    "blocks",
+    "changed",
+    "check_conf",
+    "default_conf",
+    "inside",
+    "predict",
+    "shift",
+]

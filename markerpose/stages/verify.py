@@ -15,14 +15,17 @@ import numpy as np
 from ..geometry import epipolar_distance, pose_rigid, view_poses
 from ..marker import Marker
 from ..results import Detection
+from ..settings import flag, number
 
 default_conf = {
     "epipolar_tol": 3.0,  # max epipolar distance of same-ID refined centres, px
-    "epipolar_tol_coarse": 12.0,  # ... of points that could not be refined, px
     "plate_check": True,  # each view's refined rings must fit one plate pose (ours)
-    "plate_tol": 0.05,  # largest misfit of the rings' ellipses to that pose (relative radius)
     "max_shape_error": 2.0,  # mm: RMS misfit of the triangulated centres to the marker's layout
 }
+RULES = {"epipolar_tol": number(0, above=True), "plate_check": flag(), "max_shape_error": number(0, above=True)}
+
+EPIPOLAR_TOL_COARSE = 12.0  # max epipolar distance of same-ID points that could not be refined, px
+PLATE_TOL = 0.05  # largest misfit of the rings' ellipses to the plate's pose (relative radius)
 
 
 def plate_poses(det: Detection | None, camera, marker: Marker, tol: float) -> list:
@@ -60,14 +63,14 @@ def rejection(rig, found: list, marker: Marker, conf: dict, all_refined: bool) -
     # The IDs give the correspondences; the epipolar constraint checks them.
     d = np.diag(epipolar_distance(rig, found[0].centers, found[1].centers))
     both = found[0].refined & found[1].refined
-    tol = np.where(both, conf["epipolar_tol"], conf["epipolar_tol_coarse"])
+    tol = np.where(both, conf["epipolar_tol"], EPIPOLAR_TOL_COARSE)
     if np.any(d > tol):
         i = int(np.argmax(d - tol))
         return f"epipolar check: c{i} is {d[i]:.1f} px from its epipolar line (limit {tol[i]:g} px)"
     if conf["plate_check"]:
         for det, cam, view in zip(found, rig.cameras, VIEWS):
             if det.ellipses is not None and det.refined.all():
-                reason = plate_rejection(det, cam, marker, conf["plate_tol"], view)
+                reason = plate_rejection(det, cam, marker, PLATE_TOL, view)
                 if reason is not None:
                     return reason
     return None
@@ -107,4 +110,15 @@ def shape(points3d: np.ndarray, marker: Marker, conf: dict) -> bool:
     return shape_error(points3d, marker.points3d) <= conf["max_shape_error"]
 
 
-__all__ = ["default_conf", "pair", "plate_poses", "plate_rejection", "rejection", "shape", "shape_error"]
+__all__ = [
+    "EPIPOLAR_TOL_COARSE",
+    "PLATE_TOL",
+    "RULES",
+    "default_conf",
+    "pair",
+    "plate_poses",
+    "plate_rejection",
+    "rejection",
+    "shape",
+    "shape_error",
+]
