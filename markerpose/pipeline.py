@@ -99,7 +99,8 @@ class MarkerPose:
         self.conf = c = presets.resolve(preset, detector, **overrides)
         self.preset = preset
         self.rig, self.marker = rig, marker or Marker()
-        self.refiner = refine.Refiner(c["refine"], self.marker, c["detector"] == "neural", c["threads"], c["backend"])
+        neural = detectors.DETECTORS[detectors.name_for(c)].neural
+        self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
         self.detector = detectors.create(c, rig, self.marker, self.refiner, c["threads"], c["backend"])
         self.tracker = track.Tracker(c["track"], rig, self.marker)
         self.timings: dict = {}  # seconds per stage of the last call (see markerpose bench)

@@ -15,13 +15,12 @@ from __future__ import annotations
 
 import copy
 
-from . import settings
+from . import detectors, settings
 from .nets import BACKENDS
 from .settings import Rule, choice, number
 from .stages import STAGES, match, propose, refine, solve, track, verify
 
 PAPER_POSE = {"pose": "paper", "bias_correction": False}
-DETECTORS = ("neural", "classical")
 
 PRESETS: dict[str, dict] = {
     "default": {},
@@ -53,7 +52,9 @@ ORDER = tuple(PRESETS)  # the order reports list them in
 
 _STAGE_MODULES = dict(zip(STAGES, (propose, match, refine, verify, solve, track)))
 TOP_RULES: dict[str, Rule] = {
-    "detector": choice(*DETECTORS),  # "neural" (the paper's networks) or "classical" (paper §3.4)
+    # "neural" (stage 1: the stereo or the decoded detector), "classical" (paper §3.4), or
+    # the name of any other detector in markerpose.detectors.DETECTORS
+    "detector": Rule(lambda v: None if v in ("neural", *detectors.DETECTORS) else f"one of {['neural', *detectors.DETECTORS]}"),
     "threads": Rule(lambda v: None if v is None else number(1, integer=True).test(v)),  # the networks' threads (None: every core)
     "backend": choice(*BACKENDS),  # what runs the networks
 }
@@ -102,4 +103,4 @@ def resolve(preset: str = "default", detector: str | None = None, **overrides) -
     return conf
 
 
-__all__ = ["ABOUT", "DETECTORS", "ORDER", "PAPER_POSE", "PRESETS", "TOP_RULES", "check", "default_conf", "is_neural", "resolve"]
+__all__ = ["ABOUT", "ORDER", "PAPER_POSE", "PRESETS", "TOP_RULES", "check", "default_conf", "is_neural", "resolve"]

@@ -18,16 +18,17 @@ DETECTORS: dict[str, type[Detector]] = {
 
 
 def name_for(conf: dict) -> str:
-    """The detector a resolved configuration asks for."""
-    if conf["detector"] == "classical":
-        return "classical"
+    """The detector a resolved configuration asks for: ``detector`` names it, where
+    "neural" (stage 1) means the stereo or the decoded detector by ``match.method``."""
+    if conf["detector"] != "neural":
+        return conf["detector"]
     return "stereo" if conf["match"]["method"] == "stereo" else "decoded"
 
 
 def create(conf: dict, rig, marker, refiner, threads: int | None = None, backend: str = "onnxruntime") -> Detector:
     """The detector of a resolved configuration (:func:`name_for`), built."""
     cls = DETECTORS[name_for(conf)]
-    if issubclass(cls, NeuralDetector):
+    if cls.neural:
         return cls(conf, rig, marker, refiner, threads, backend)
     return cls(conf, rig, marker, refiner)
 

@@ -33,6 +33,7 @@ class Detector:
     """
 
     name = ""
+    neural = False  # True: it runs stage 1, and the refine stage EllipSegNet
     verified = False  # True: its pairs were checked as the detector pairs views; the pipeline only solves them
 
     def __init__(self, conf: dict, rig: StereoRig, marker: Marker, refiner: Refiner):
@@ -62,6 +63,7 @@ class NeuralDetector(Detector):
     """
 
     ids = "stereo"
+    neural = True
 
     def __init__(
         self, conf: dict, rig: StereoRig, marker: Marker, refiner: Refiner, threads: int | None = None, backend: str = "onnxruntime"

@@ -1,0 +1,61 @@
+"""Detectors found by name (markerpose.detectors): the registry, and a new detector in one class."""
+
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose import detectors
+from markerpose.detectors import DETECTORS, Detector
+from markerpose.presets import resolve
+from markerpose.results import Detection
+from markerpose.synth import look_at_pose, render_stereo
+
+
+@pytest.mark.parametrize(
+    "settings, name",
+    [
+        ({}, "stereo"),
+        ({"preset": "paper"}, "decoded"),
+        ({"match": {"method": "layout"}}, "decoded"),
+        ({"detector": "classical"}, "classical"),
+        ({"preset": "paper-classical"}, "classical"),
+    ],
+)
+def test_the_settings_name_the_detector(settings, name):
+    conf = resolve(**settings)
+    assert detectors.name_for(conf) == name and DETECTORS[name].name == name
+
+
+class _Truth(Detector):
+    """A detector that knows where the rings are: one hypothesis, the rendered truth."""
+
+    name = "truth"
+
+    def __init__(self, conf, rig, marker, refiner):
+        super().__init__(conf, rig, marker, refiner)
+        self.views: list = []
+
+    def pairs(self, frame):
+        yield [Detection(centers=v.outer_centers.copy()) for v in self.views]
+
+    def view(self, frame, view):
+        return Detection(centers=self.views[view].outer_centers.copy())
+
+
+def test_a_new_detector_is_one_class_and_one_registry_line(rig, monkeypatch):
+    monkeypatch.setitem(DETECTORS, "truth", _Truth)
+    T = look_at_pose([10, -5, 560], 30, 45, 20)
+    f = render_stereo(rig, T, seed=3)
+    tracker = mp.MarkerPose(rig, detector="truth")
+    assert isinstance(tracker.detector, _Truth) and tracker.refiner.net is None
+    tracker.detector.views = f.views
+    est = tracker.estimate(*f.images)
+    assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.01
+    np.testing.assert_array_equal(tracker.detect(f.images[1], view=1).centers, f.views[1].outer_centers)
+    # Tracking hands it over to the prior after its first pose, as with any detector.
+    assert tracker.track(*f.images).source == "detected" and tracker.track(*f.images).source == "tracked"
+
+
+def test_an_unknown_detector_names_the_known_ones(rig):
+    with pytest.raises(ValueError, match=r"detector must be one of \['neural', 'stereo', 'decoded', 'classical'\], got 'truth'"):
+        mp.MarkerPose(rig, detector="truth")
