@@ -10,8 +10,9 @@ H/8 x W/8 cells, and two heads classify every cell:
 :class:`KeypointNet` loads the shipped (or a given) weights with the decoding thresholds
 tuned when they were exported, and turns full-resolution images into candidates
 (:meth:`KeypointNet.candidates`, what the default pipeline uses) or into the paper's
-triple by ID (:meth:`KeypointNet.__call__`, :mod:`markerpose.decode`). The network needs
-torch; the decoding is numpy.
+triple by ID (:meth:`KeypointNet.__call__`, :mod:`markerpose.decode`). The shipped
+``.onnx`` weights run on ONNX Runtime (or OpenVINO); building and training the network
+needs torch; the decoding is numpy.
 """
 
 from __future__ import annotations
