@@ -21,15 +21,18 @@ class Rule:
     test: Callable[[object], str | None]
 
 
-def number(lo: float = -math.inf, hi: float = math.inf, *, above: bool = False, integer: bool = False) -> Rule:
-    """A finite number in [lo, hi] (``above``: greater than ``lo``); ``integer``: whole."""
+def number(lo: float = -math.inf, hi: float = math.inf, *, above: bool = False, integer: bool = False, no_limit: bool = False) -> Rule:
+    """A finite number in [lo, hi] (``above``: greater than ``lo``); ``integer``: whole;
+    ``no_limit``: also +inf (a tolerance that then checks nothing)."""
     kind = "a whole number" if integer else "a number"
     span = f" {'>' if above else '>='} {lo:g}" if math.isfinite(lo) else ""
     if math.isfinite(hi):
         span = f" in {'(' if above else '['}{lo:g}, {hi:g}]" if math.isfinite(lo) else f" <= {hi:g}"
-    want = kind + span
+    want = kind + span + (" or inf (no limit)" if no_limit else "")
 
     def test(v):
+        if no_limit and isinstance(v, (int, float)) and not isinstance(v, bool) and v == math.inf:
+            return None
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
             return want
         if integer and v != int(v):

@@ -22,7 +22,11 @@ default_conf = {
     "plate_check": True,  # each view's refined rings must fit one plate pose (ours)
     "max_shape_error": 2.0,  # mm: RMS misfit of the triangulated centres to the marker's layout
 }
-RULES = {"epipolar_tol": number(0, above=True), "plate_check": flag(), "max_shape_error": number(0, above=True)}
+RULES = {
+    "epipolar_tol": number(0, above=True, no_limit=True),
+    "plate_check": flag(),
+    "max_shape_error": number(0, above=True, no_limit=True),
+}
 
 EPIPOLAR_TOL_COARSE = 12.0  # max epipolar distance of same-ID points that could not be refined, px
 PLATE_TOL = 0.05  # largest misfit of the rings' ellipses to the plate's pose (relative radius)
