@@ -183,17 +183,25 @@ def _disk_kernel(
             j7 += w * dsig
         val[i] += sign * vi
         if jac:
-            J[i, col_cq] += sign * j0
-            J[i, col_cq + 1] += sign * j1
-            J[i, col_cq + 2] += sign * j2 / sq
-            J[i, col_cq + 3] += sign * j3 / sq
-            J[i, col_cq + 4] += sign * j4 / sq
-            if col_d >= 0:
-                J[i, col_d] += sign * j0
-                J[i, col_d + 1] += sign * j1
-            J[i, col_m] += sign * j5
-            J[i, col_m + 1] += sign * j6 * sl
-            J[i, col_m + 2] += sign * j7 * ss
+            _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss)
+
+
+@compiled
+def _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss):  # pragma: no cover - compiled
+    """Add ``sign`` times point ``i``'s derivatives (centre, form, the centre's copy,
+    theta / L / sigma) to its row of ``J``, the form's divided by ``sq`` and L's and
+    sigma's multiplied by ``sl`` and ``ss`` (the reparametrisation of :func:`_add_disk`)."""
+    J[i, col_cq] += sign * j0
+    J[i, col_cq + 1] += sign * j1
+    J[i, col_cq + 2] += sign * j2 / sq
+    J[i, col_cq + 3] += sign * j3 / sq
+    J[i, col_cq + 4] += sign * j4 / sq
+    if col_d >= 0:
+        J[i, col_d] += sign * j0
+        J[i, col_d + 1] += sign * j1
+    J[i, col_m] += sign * j5
+    J[i, col_m + 1] += sign * j6 * sl
+    J[i, col_m + 2] += sign * j7 * ss
 
 
 @compiled
@@ -444,6 +452,23 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
     # sparse pixel grid.
     if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=c["grid_stride"]):
         return None
+    p0 = _coarse_motion(prob, base, c)
+    if np.exp(p0[-2]) < c["min_length"]:
+        return None
+    if not _fit_pixels(prob, (p0[-3], 1.3 * np.exp(p0[-2])), c):
+        return None
+    try:
+        p, nfev, gave_up = _robust_lm(prob, p0, c)
+    except (np.linalg.LinAlgError, ValueError):
+        return None
+    if not np.all(np.isfinite(p)):
+        return None
+    return _fit_result(prob, p, nfev, gave_up)
+
+
+def _coarse_motion(prob, base, c):
+    """The start parameters ``base`` with the (theta, log L) of least cost on the coarse
+    grid of motion directions and lengths (conf["grid_search"]), on the current pixels."""
 
     def cost(th, L):
         p = base.copy()
@@ -459,22 +484,23 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         middle = sorted(lengths)[len(lengths) // 2]
         best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
         best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
-    p0 = best[1]
-    if np.exp(p0[-2]) < c["min_length"]:
-        return None
-    motion = (p0[-3], 1.3 * np.exp(p0[-2]))
+    return best[1]
+
+
+def _fit_pixels(prob, motion, c):
+    """Select the fit's pixels, those a ring blurred by ``motion`` = (theta, L) can reach,
+    on a grid sparse enough for conf["max_pixels"]; False when too few are usable."""
     if not prob.pixels(c["margin"], stride=c["stride"], motion=motion):
-        return None
+        return False
     if len(prob.v) > c["max_pixels"]:
         stride = int(np.ceil(c["stride"] * np.sqrt(len(prob.v) / c["max_pixels"])))
         if not prob.pixels(c["margin"], stride=stride, motion=motion):
-            return None
-    try:
-        p, nfev, gave_up = _robust_lm(prob, p0, c)
-    except (np.linalg.LinAlgError, ValueError):
-        return None
-    if not np.all(np.isfinite(p)):
-        return None
+            return False
+    return True
+
+
+def _fit_result(prob, p, nfev, gave_up):
+    """The result dict of :func:`fit_blurred_rings` for the fitted parameters ``p``."""
     r, beta, _ = prob.evaluate(p)
     rings, theta, L, sigma = prob.unpack(p)
     return {

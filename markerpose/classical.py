@@ -507,42 +507,33 @@ def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
     return camera.distort(np.column_stack([x, y]))
 
 
-def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Marker, c: dict, noises: list, cameras: list) -> list:
-    """:func:`refine_ring` of several rings at once (of one or more images; ring k is in
-    ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``): one
-    batch of edge fits (:func:`markerpose.edges.refine_edges`) for all outer edges, one for
-    all inner ones."""
-    if not rings:
-        return []
+def _edge_windows(marker: Marker) -> tuple[float, float, float]:
+    """(rho, outer half-window, inner half-window) of the edge fits, in units of the
+    ellipse: up to the middle of the black band on one side and to the middle of the gap
+    between rings (outer) or deep into the hole (inner)."""
     rho = marker.inner_diameter / marker.outer_diameter
     gap = _marker_gap(marker)
-    # Half-windows in units of the ellipse: up to the middle of the black band on one side
-    # and to the middle of the gap between rings (outer) or deep into the hole (inner).
     half_band = 0.5 * (1 - rho)  # outer radii
     w_out = 0.9 * min(half_band, 0.5 * gap)
     w_in = 0.9 * min(half_band / rho, 0.8)
-    view = np.asarray(view, np.intp)
-    floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
-    oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
-    outer = edges.refine_edges(
-        grays,
-        view,
-        np.array([r._outer_cq[0] for r in rings]),
-        np.array([r._outer_cq[1] for r in rings]),
-        w_out,
-        True,
-        c,
-        floor,
-        oth,
-        cameras,
-    )
-    # The inner ellipses: from the hole's, or from the outer one scaled by rho.
+    return rho, w_out, w_in
+
+
+def _inner_starts(rings: list, outer: list, rho: float) -> list:
+    """Per ring, the inner ellipse's start (centre, Q) where its outer edge fitted: the
+    hole's, or the fitted outer one scaled by rho; None elsewhere."""
     inner_cqs = [None] * len(rings)
     for k, (r, out) in enumerate(zip(rings, outer)):
         if out is not None:
             inner_cqs[k] = r._inner_cq if r._inner_cq is not None and not r.from_hole else (out[0][0], out[0][1] / rho**2)
-    inner: list = [None] * len(rings)
-    todo = [k for k in range(len(rings)) if inner_cqs[k] is not None]
+    return inner_cqs
+
+
+def _refine_inner(grays: list, view: np.ndarray, inner_cqs: list, w_in: float, c: dict, floor: np.ndarray, cameras: list) -> list:
+    """One batch of edge fits of the inner edges from ``inner_cqs`` (where not None), when
+    conf["refine_inner"] or the concentric centre asks for them; None per ring elsewhere."""
+    inner: list = [None] * len(inner_cqs)
+    todo = [k for k in range(len(inner_cqs)) if inner_cqs[k] is not None]
     if (c["refine_inner"] or c["center"] == "concentric") and todo:
         fits = edges.refine_edges(
             grays,
@@ -558,39 +549,73 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Ma
         )
         for k, f in zip(todo, fits):
             inner[k] = f
+    return inner
+
+
+def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camera: Camera | None, c: dict) -> Ring:
+    """``ring`` with its edge fits: ``outer`` and ``inner`` (or None) as
+    :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
+    the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
+    conf["center"] = "concentric", the two ellipses' concentric centre."""
+    outer_cq, outer_ideal, width = outer
+    inner_ideal = None
+    if inner is not None:
+        inner_cq, inner_ideal, _ = inner
+    use_ideal = camera is not None and outer_ideal is not None
+    center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
+    if c["center"] == "concentric" and inner is not None:
+        if use_ideal and inner_ideal is not None:
+            cc = concentric_center(outer_ideal, inner_ideal)
+            cc = None if cc is None else _ideal_to_pixels(camera, cc)[0]
+        else:
+            cc = concentric_center(outer_cq, inner_cq)
+        # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
+        if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
+            center = cc
+    return replace(
+        ring,
+        center=center,
+        outer=cq_to_rect(*outer_cq),
+        inner=cq_to_rect(*inner_cq) if inner is not None else ring.inner,
+        refined=True,
+        _outer_cq=outer_cq,
+        _inner_cq=inner_cq,
+        _edge_width=width,
+    )
+
+
+def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Marker, c: dict, noises: list, cameras: list) -> list:
+    """:func:`refine_ring` of several rings at once (of one or more images; ring k is in
+    ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``): one
+    batch of edge fits (:func:`markerpose.edges.refine_edges`) for all outer edges, one for
+    all inner ones."""
+    if not rings:
+        return []
+    rho, w_out, w_in = _edge_windows(marker)
+    view = np.asarray(view, np.intp)
+    floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
+    oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
+    outer = edges.refine_edges(
+        grays,
+        view,
+        np.array([r._outer_cq[0] for r in rings]),
+        np.array([r._outer_cq[1] for r in rings]),
+        w_out,
+        True,
+        c,
+        floor,
+        oth,
+        cameras,
+    )
+    inner_cqs = _inner_starts(rings, outer, rho)
+    inner = _refine_inner(grays, view, inner_cqs, w_in, c, floor, cameras)
     result = []
     for k, ring in enumerate(rings):
         if outer[k] is None:
             result.append(ring)
             continue
-        outer_cq, outer_ideal, width = outer[k]
         camera = None if cameras is None else cameras[view[k]]
-        inner_cq, inner_ideal = inner_cqs[k], None
-        if inner[k] is not None:
-            inner_cq, inner_ideal, _ = inner[k]
-        use_ideal = camera is not None and outer_ideal is not None
-        center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
-        if c["center"] == "concentric" and inner[k] is not None:
-            if use_ideal and inner_ideal is not None:
-                cc = concentric_center(outer_ideal, inner_ideal)
-                cc = None if cc is None else _ideal_to_pixels(camera, cc)[0]
-            else:
-                cc = concentric_center(outer_cq, inner_cq)
-            # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
-            if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
-                center = cc
-        result.append(
-            replace(
-                ring,
-                center=center,
-                outer=cq_to_rect(*outer_cq),
-                inner=cq_to_rect(*inner_cq) if inner[k] is not None else ring.inner,
-                refined=True,
-                _outer_cq=outer_cq,
-                _inner_cq=inner_cq,
-                _edge_width=width,
-            )
-        )
+        result.append(_refined_ring(ring, outer[k], inner_cqs[k], inner[k], camera, c))
     return result
 
 
@@ -692,6 +717,37 @@ def _unrefined(rings: list) -> list:
     return [replace(r, refined=False, _rejected=True) for r in rings]
 
 
+def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
+    """Whether :func:`refine_blurred` fits ``rings``: the fit is on, every ring has an
+    ellipse, the edges are wide (or no ring was edge-refined, where conf allows that) and,
+    for three rings, their sizes fit their spacing."""
+    if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
+        return False
+    minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
+    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
+        return False
+    if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
+        return False
+    if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
+        return False
+    return True
+
+
+def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: float | None) -> dict | None:
+    """The blurred-ring model fit of ``rings`` (:func:`markerpose.blurfit.fit_blurred_rings`),
+    started from their edge-fitted outer ellipses; None where it fails."""
+    from . import blurfit
+
+    noise = noise_sigma(gray) if noise is None else noise
+    rho = marker.inner_diameter / marker.outer_diameter
+    # Seeds where no edge fitted are worth the fit only if the image there is blurred. A
+    # fit whose centres wander well beyond the move kept below is given up early.
+    fit_conf = {"max_move": 2 * c["blur_fit_max_move"]}
+    if not any(r.refined for r in rings):
+        fit_conf["min_length"] = 10.0
+    return blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
+
+
 def refine_blurred(
     gray: np.ndarray,
     rings: list,
@@ -724,14 +780,7 @@ def refine_blurred(
     Returns the rings: refitted, unchanged, or unrefined where the two fits disagree.
     """
     c = _merge_conf(conf)
-    if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
-        return rings
-    minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
-    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
-        return rings
-    if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
-        return rings
-    if len(rings) == 3 and not _sizes_fit_spacing([r._outer_cq for r in rings], marker, c["blur_fit_size_tol"]):
+    if not _blur_fit_due(rings, marker, c):
         return rings
     # Wide edges the model may not check (the ring-evidence gate refuses them, or the
     # detection's budget of fits is spent) are not trusted either: under that much blur the
@@ -741,16 +790,7 @@ def refine_blurred(
         return _unrefined(rings)
     if limits.budget is not None and not limits.budget.take():
         return _unrefined(rings)
-    from . import blurfit
-
-    noise = noise_sigma(gray) if noise is None else noise
-    rho = marker.inner_diameter / marker.outer_diameter
-    # Seeds where no edge fitted are worth the fit only if the image there is blurred. A
-    # fit whose centres wander well beyond the move kept below is given up early.
-    fit_conf = {"max_move": 2 * c["blur_fit_max_move"]}
-    if not any(r.refined for r in rings):
-        fit_conf["min_length"] = 10.0
-    fit = blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
+    fit = _fit_blurred(gray, rings, marker, c, noise)
     if fit is None:
         return rings
     # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
@@ -764,6 +804,12 @@ def refine_blurred(
         return _unrefined(rings)
     if any(far) or fit["gave_up"]:  # a seed the edge fit gave up on went astray: the edge fit stands
         return rings
+    return _blur_fitted(rings, fit)
+
+
+def _blur_fitted(rings: list, fit: dict) -> list:
+    """``rings`` with the blurred-ring fit's outer ellipses, each centre moved as its edge
+    fit's distortion correction moved it."""
     out = []
     for r, (cen, Q) in zip(rings, fit["cqs"]):
         shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
@@ -794,10 +840,28 @@ def find_triples(rings: list[Ring], marker: Marker = Marker(), conf: dict | None
         return []
     ro = marker.outer_radius
     M = marker.centers2d / ro * np.array([1.0, -1.0])  # marker layout as seen (y down), outer radii
-    dm = {(i, j): np.linalg.norm(M[i] - M[j]) for i, j in ((0, 1), (0, 2), (1, 2))}
     P = np.array([r.center for r in rings])
     Qs = np.array([r._outer_cq[1] for r in rings])
     major = np.array([max(r.outer[1]) for r in rings])
+    idx = _spaced_triples(M, P, Qs, major, c)
+    out = []
+    Mc = M - M.mean(0)
+    wm = Mc[:, 0] + 1j * Mc[:, 1]
+    for i0, i1, i2 in idx:
+        tri = (int(i0), int(i1), int(i2))
+        cost = _triple_cost(tri, rings, P, Qs, major, wm, c)
+        if cost is not None:
+            out.append((float(cost), tri))
+    out.sort(key=lambda x: x[0])
+    return out[: c["max_triples"]]
+
+
+def _spaced_triples(M: np.ndarray, P: np.ndarray, Qs: np.ndarray, major: np.ndarray, c: dict) -> np.ndarray:
+    """Index triples (T, 3) of distinct candidates whose three pairwise distances, in outer
+    radii under each pair's mean ellipse, match the layout ``M``'s (3, 2) within
+    conf["prune_tol"], their sizes within conf["size_ratio_max"]; P: (N, 2) centres,
+    Qs: (N, 2, 2) outer forms, major: (N,) major axes."""
+    dm = {(i, j): np.linalg.norm(M[i] - M[j]) for i, j in ((0, 1), (0, 2), (1, 2))}
     # Pairwise distances in outer radii under the pair's mean ellipse.
     D = P[:, None, :] - P[None, :, :]
     Qp = 0.5 * (Qs[:, None] + Qs[None, :])
@@ -811,40 +875,38 @@ def find_triples(rings: list[Ring], marker: Marker = Marker(), conf: dict | None
 
     A01, A02, A12 = near(dm[0, 1]), near(dm[0, 2]), near(dm[1, 2])
     idx = np.argwhere(A01[:, :, None] & A02[:, None, :] & A12[None, :, :])
-    idx = idx[(idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])]
-    out = []
-    Mc = M - M.mean(0)
-    wm = Mc[:, 0] + 1j * Mc[:, 1]
-    for i0, i1, i2 in idx:
-        tri = (int(i0), int(i1), int(i2))
-        p = P[list(tri)]
-        v1, v2 = p[1] - p[0], p[2] - p[0]
-        if v1[0] * v2[1] - v1[1] * v2[0] >= 0:  # handedness: c0→c1→c2 negative in y-down images
-            continue
-        if major[list(tri)].max() / major[list(tri)].min() > c["size_ratio_max"]:
-            continue
-        shp = [_log_shape(Qs[k]) for k in tri]
-        dshape = max(np.linalg.norm(shp[a] - shp[b]) for a, b in ((0, 1), (0, 2), (1, 2)))
-        if dshape > c["triple_shape_tol"]:
-            continue
-        W = sqrtm_spd(Qs[list(tri)].mean(0))
-        q = (p - p.mean(0)) @ W.T
-        z = q[:, 0] + 1j * q[:, 1]
-        alpha = np.vdot(wm, z) / np.vdot(wm, wm)
-        res = z - alpha * wm
-        rel = float(np.sqrt((np.abs(res) ** 2).sum() / (np.abs(z) ** 2).sum()))
-        scale = abs(alpha)
-        if rel > c["layout_tol"] or not (1 / c["scale_tol"] <= scale <= c["scale_tol"]):
-            continue
-        cost = (
-            (rel / c["layout_tol"]) ** 2
-            + (np.log(scale) / np.log(c["scale_tol"])) ** 2
-            + (dshape / c["triple_shape_tol"]) ** 2
-            + sum(1.0 - rings[k].score for k in tri)
-        )
-        out.append((float(cost), tri))
-    out.sort(key=lambda x: x[0])
-    return out[: c["max_triples"]]
+    return idx[(idx[:, 0] != idx[:, 1]) & (idx[:, 0] != idx[:, 2]) & (idx[:, 1] != idx[:, 2])]
+
+
+def _triple_cost(tri: tuple, rings: list, P: np.ndarray, Qs: np.ndarray, major: np.ndarray, wm: np.ndarray, c: dict):
+    """The cost of the ordered triple ``tri`` as the marker (layout, scale and shape
+    misfits and the candidates' scores), or None where it fails a check (handedness, sizes,
+    shapes, layout, scale); wm: (3,) the layout's centred points as complex numbers."""
+    p = P[list(tri)]
+    v1, v2 = p[1] - p[0], p[2] - p[0]
+    if v1[0] * v2[1] - v1[1] * v2[0] >= 0:  # handedness: c0→c1→c2 negative in y-down images
+        return None
+    if major[list(tri)].max() / major[list(tri)].min() > c["size_ratio_max"]:
+        return None
+    shp = [_log_shape(Qs[k]) for k in tri]
+    dshape = max(np.linalg.norm(shp[a] - shp[b]) for a, b in ((0, 1), (0, 2), (1, 2)))
+    if dshape > c["triple_shape_tol"]:
+        return None
+    W = sqrtm_spd(Qs[list(tri)].mean(0))
+    q = (p - p.mean(0)) @ W.T
+    z = q[:, 0] + 1j * q[:, 1]
+    alpha = np.vdot(wm, z) / np.vdot(wm, wm)
+    res = z - alpha * wm
+    rel = float(np.sqrt((np.abs(res) ** 2).sum() / (np.abs(z) ** 2).sum()))
+    scale = abs(alpha)
+    if rel > c["layout_tol"] or not (1 / c["scale_tol"] <= scale <= c["scale_tol"]):
+        return None
+    return (
+        (rel / c["layout_tol"]) ** 2
+        + (np.log(scale) / np.log(c["scale_tol"])) ** 2
+        + (dshape / c["triple_shape_tol"]) ** 2
+        + sum(1.0 - rings[k].score for k in tri)
+    )
 
 
 def view_triples(image: np.ndarray, marker: Marker = Marker(), conf: dict | None = None) -> tuple:
@@ -925,6 +987,25 @@ def _shift_ring(ring: Ring, d: np.ndarray) -> Ring:
     )
 
 
+def _ring_near(gray: np.ndarray, p: np.ndarray, half: int, r_est: float, marker: Marker, c: dict, noise: float) -> Ring | None:
+    """The ring candidate (:func:`find_rings`) of the window of ``half`` px around the
+    point ``p`` nearest it, within 0.6 ring radii ``r_est`` + 4 px, in image px; None if none."""
+    h, w = gray.shape
+    x0, y0 = max(int(p[0]) - half, 0), max(int(p[1]) - half, 0)
+    x1, y1 = min(int(p[0]) + half + 1, w), min(int(p[1]) + half + 1, h)
+    if x1 - x0 < 16 or y1 - y0 < 16:
+        return None
+    roi = gray[y0:y1, x0:x1]
+    cands = _find_rings_gray(roi, marker, c, noise)
+    off = np.array([x0, y0], np.float64)
+    best = None
+    for r in cands:
+        dist = np.linalg.norm(r.center + off - p)
+        if dist < 0.6 * r_est + 4 and (best is None or dist < best[0]):
+            best = (dist, r)
+    return None if best is None else _shift_ring(best[1], off)
+
+
 def refine_points(
     image: np.ndarray,
     points: np.ndarray,
@@ -956,29 +1037,13 @@ def refine_points(
     """
     c = _merge_conf(conf)
     gray = to_gray(image)
-    h, w = gray.shape
     pts = np.asarray(points, np.float64).reshape(3, 2)
     if not np.isfinite(pts).all():
         raise ValueError(f"points must be finite, got {pts.tolist()}")
     r_est = max(ring_diameter(pts, marker) / 2, 4.0)
     half = int(np.ceil(2.2 * r_est)) + 4
     noise = noise_sigma(gray) if noise is None else float(noise)
-    rings: list[Ring | None] = []
-    for p in pts:
-        x0, y0 = max(int(p[0]) - half, 0), max(int(p[1]) - half, 0)
-        x1, y1 = min(int(p[0]) + half + 1, w), min(int(p[1]) + half + 1, h)
-        if x1 - x0 < 16 or y1 - y0 < 16:
-            rings.append(None)
-            continue
-        roi = gray[y0:y1, x0:x1]
-        cands = _find_rings_gray(roi, marker, c, noise)
-        off = np.array([x0, y0], np.float64)
-        best = None
-        for r in cands:
-            dist = np.linalg.norm(r.center + off - p)
-            if dist < 0.6 * r_est + 4 and (best is None or dist < best[0]):
-                best = (dist, r)
-        rings.append(None if best is None else _shift_ring(best[1], off))
+    rings: list[Ring | None] = [_ring_near(gray, p, half, r_est, marker, c, noise) for p in pts]
     found = np.array([r is not None for r in rings])
     if subpixel:
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]

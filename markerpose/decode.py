@@ -281,12 +281,7 @@ def decode(
     scored again (layout ratio and evidence of the refined points); the best of them,
     and ``min_score``, decide.
     """
-    c = {**default_conf, **(conf or {})}
-    if c["ids"] not in ID_MODES:
-        raise ValueError(f"ids must be one of {ID_MODES}, got {c['ids']!r}")
-    for need in ("verify", "align"):
-        if c[need] and image is None:
-            raise ValueError(f"decoding with {need}=True needs the image")
+    c = _decode_conf(conf, image)
     marker = marker or _MARKER
     layout = marker.centers2d
     cand, prob = candidates(det_logits, id_logits, c["threshold"], c["max_candidates"], c["nms_radius"])
@@ -295,6 +290,41 @@ def decode(
     # Every triple of candidates in every ID order at once: idx[m, j] = the candidate taking ID j.
     idx = triple_orders(len(cand))
     p = cand[idx, :2]  # (M, 3, 2)
+    s, r, keep = _order_scores(cand, prob, idx, p, layout, c)
+    if not keep.any():
+        return None
+    ev = np.ones(len(p))
+    if c["verify"]:
+        ev[keep] = plate_evidence(image, p[keep], marker)
+    per_triple, rows, value, order = _ranked(s, r, ev, keep, c)
+    if not c["align"]:
+        best, score = p[rows[order[0]]], float(value[order[0]])
+    else:
+        best, score = _aligned_best(image, p, s, r, per_triple, rows, value, order, marker, layout, c)
+        if best is None:
+            return None
+    if score < c["min_score"]:
+        return None
+    return best, score
+
+
+def _decode_conf(conf: dict | None, image: np.ndarray | None) -> dict:
+    """:data:`default_conf` with the overrides ``conf``, checked: a known ID mode, and the
+    image where ``verify`` or ``align`` need it."""
+    c = {**default_conf, **(conf or {})}
+    if c["ids"] not in ID_MODES:
+        raise ValueError(f"ids must be one of {ID_MODES}, got {c['ids']!r}")
+    for need in ("verify", "align"):
+        if c[need] and image is None:
+            raise ValueError(f"decoding with {need}=True needs the image")
+    return c
+
+
+def _order_scores(cand: np.ndarray, prob: np.ndarray, idx: np.ndarray, p: np.ndarray, layout: np.ndarray, c: dict) -> tuple:
+    """Per triple in each ID order (idx: (M, 3) candidates, p: (M, 3, 2) their points): the
+    score (M,) from the location scores and ID probabilities, the layout ratio (M,) (1 with
+    ``ids="head"``) and whether the order is allowed (M,) bool (handedness, ID probability
+    or layout ratio)."""
     p_id = prob[idx, [0, 1, 2]]  # (M, 3)
     keep = signed_areas(p) < 0  # the marker's handedness; degenerate triples out
     if c["ids"] == "head":
@@ -305,11 +335,12 @@ def decode(
         loose = c["align"] and c["align_min_ratio"] is not None
         keep &= r >= (c["align_min_ratio"] if loose else c["min_ratio"])
         s = np.prod(cand[idx, 2], axis=1) ** (1 / 3) * np.prod(p_id, axis=1) ** (c["id_weight"] / 3)
-    if not keep.any():
-        return None
-    ev = np.ones(len(p))
-    if c["verify"]:
-        ev[keep] = plate_evidence(image, p[keep], marker)
+    return s, r, keep
+
+
+def _ranked(s: np.ndarray, r: np.ndarray, ev: np.ndarray, keep: np.ndarray, c: dict) -> tuple:
+    """The triples ranked: (per triple its orders' values (T, 6), -1 where not allowed; the
+    rows of the triples' best orders; their values; their order, best first)."""
     # Each triple in its best ID order (a wrong order puts a ring in the wrong place:
     # a small ratio), then the triples against each other — with the softened ratio, so
     # a steeply tilted marker is not outscored by a flatter decoy (ratio_full; the ID
@@ -319,33 +350,42 @@ def decode(
     rows = rows[per_triple.max(1) >= 0]
     value = s[rows] * _ratio_weight(r[rows], c["ratio_full"]) * ev[rows]
     order = np.argsort(-value, kind="stable")
-    if not c["align"]:
-        best, score = p[rows[order[0]]], float(value[order[0]])
-    else:
-        best, score = None, -1.0
-        for j in order[: max(1, int(c["align_top"]))]:
-            k = rows[j]
-            t = k // 6  # the triple; its handedness-consistent orders, best first
-            tried = 6 * t + np.argsort(-per_triple[t], kind="stable")[: max(1, int(c["align_orders"]))]
-            for o in tried[per_triple[t, tried % 6] >= 0]:
-                if s[o] < c["min_score"]:
-                    # Every factor below is at most 1, so this order cannot reach min_score:
-                    # its alignment (the costly part) could not change the result.
-                    continue
-                q, cc = align_triple(image, p[o], marker, move_rule=c["align_move_rule"])
-                rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0  # "head": r = 1 throughout
-                if cc is not None and rq >= c["min_ratio"]:
-                    found = float(s[o] * _ratio_weight(rq, c["ratio_full"])) * max(cc, 0.0) ** float(c["align_cc_power"])
-                    if c["verify"]:
-                        found *= float(plate_evidence(image, q[None], marker)[0])
-                elif o == k and r[k] >= c["min_ratio"]:  # the unrefined triple stands
-                    q, found = p[k], float(value[j])
-                else:
-                    continue
-                if found > score:
-                    best, score = q, found
-        if best is None:
-            return None
-    if score < c["min_score"]:
-        return None
+    return per_triple, rows, value, order
+
+
+def _aligned_best(image, p, s, r, per_triple, rows, value, order, marker: Marker, layout: np.ndarray, c: dict) -> tuple:
+    """(points (3, 2), score) of the best of the ``align_top`` best triples once aligned
+    (``align_orders`` of their ID orders each), or (None, -1.0) when none is."""
+    best, score = None, -1.0
+    for j in order[: max(1, int(c["align_top"]))]:
+        k = rows[j]
+        t = k // 6  # the triple; its handedness-consistent orders, best first
+        tried = 6 * t + np.argsort(-per_triple[t], kind="stable")[: max(1, int(c["align_orders"]))]
+        for o in tried[per_triple[t, tried % 6] >= 0]:
+            if s[o] < c["min_score"]:
+                # Every factor below is at most 1, so this order cannot reach min_score:
+                # its alignment (the costly part) could not change the result.
+                continue
+            got = _aligned_order(image, p, s, r, o, k, value[j], marker, layout, c)
+            if got is None:
+                continue
+            q, found = got
+            if found > score:
+                best, score = q, found
     return best, score
+
+
+def _aligned_order(image, p, s, r, o, k, value_k, marker: Marker, layout: np.ndarray, c: dict) -> tuple | None:
+    """(points (3, 2), score) of the ID order ``o`` aligned to the image
+    (:func:`align_triple`); where the alignment fails or its layout ratio is too small, the
+    unrefined triple ``k`` (of value ``value_k``) when ``o`` is it, else None."""
+    q, cc = align_triple(image, p[o], marker, move_rule=c["align_move_rule"])
+    rq = layout_ratio(q, layout) if c["ids"] == "layout" else 1.0  # "head": r = 1 throughout
+    if cc is not None and rq >= c["min_ratio"]:
+        found = float(s[o] * _ratio_weight(rq, c["ratio_full"])) * max(cc, 0.0) ** float(c["align_cc_power"])
+        if c["verify"]:
+            found *= float(plate_evidence(image, q[None], marker)[0])
+        return q, found
+    if o == k and r[k] >= c["min_ratio"]:  # the unrefined triple stands
+        return p[k], float(value_k)
+    return None

@@ -402,6 +402,54 @@ def _median(buf, n):  # pragma: no cover - compiled
 
 
 @compiled
+def _plane_normal_equations(xy, values, use, center, res, lim, k, M, rhs):  # pragma: no cover - compiled
+    """Row ``k``'s plane normal equations (into ``M`` (3, 3), upper triangle, and ``rhs``
+    (3,)) over its used samples whose residual ``res`` is within ``lim``; returns their number."""
+    N = values.shape[1]
+    M[:] = 0.0
+    rhs[:] = 0.0
+    cnt = 0
+    for i in range(N):
+        if use[k, i] and abs(res[i]) <= lim:
+            cnt += 1
+            a1, a2 = xy[k, i, 0] - center[k, 0], xy[k, i, 1] - center[k, 1]
+            v = values[k, i]
+            M[0, 0] += 1.0
+            M[0, 1] += a1
+            M[0, 2] += a2
+            M[1, 1] += a1 * a1
+            M[1, 2] += a1 * a2
+            M[2, 2] += a2 * a2
+            rhs[0] += v
+            rhs[1] += a1 * v
+            rhs[2] += a2 * v
+    return cnt
+
+
+@compiled
+def _eliminate3(M, rhs):  # pragma: no cover - compiled
+    """Forward elimination with partial pivoting of the system M x = rhs (3 x 3), in
+    place (M upper triangular after it); False, stopping there, when M is singular."""
+    for col in range(3):
+        piv = col
+        for row in range(col + 1, 3):
+            if abs(M[row, col]) > abs(M[piv, col]):
+                piv = row
+        if M[piv, col] == 0.0:
+            return False
+        if piv != col:
+            for j in range(3):
+                M[col, j], M[piv, j] = M[piv, j], M[col, j]
+            rhs[col], rhs[piv] = rhs[piv], rhs[col]
+        for row in range(col + 1, 3):
+            f = M[row, col] / M[col, col]
+            for j in range(col, 3):
+                M[row, j] -= f * M[col, j]
+            rhs[row] -= f * rhs[col]
+    return True
+
+
+@compiled
 def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover - compiled
     """:func:`plane_levels` row by row: the robust selection, the ridge-regularised
     normal equations (3 x 3, solved by elimination with partial pivoting; a singular
@@ -426,47 +474,13 @@ def _plane_rows(xy, values, use, center, pen, floor, out):  # pragma: no cover -
                     buf[n] = abs(res[i])
                     n += 1
             lim = max(3 * (1.4826 * (_median(buf, n) if n else 0.0)), floor[k])
-            M[:] = 0.0
-            rhs[:] = 0.0
-            cnt = 0
-            for i in range(N):
-                if use[k, i] and abs(res[i]) <= lim:
-                    cnt += 1
-                    a1, a2 = xy[k, i, 0] - center[k, 0], xy[k, i, 1] - center[k, 1]
-                    v = values[k, i]
-                    M[0, 0] += 1.0
-                    M[0, 1] += a1
-                    M[0, 2] += a2
-                    M[1, 1] += a1 * a1
-                    M[1, 2] += a1 * a2
-                    M[2, 2] += a2 * a2
-                    rhs[0] += v
-                    rhs[1] += a1 * v
-                    rhs[2] += a2 * v
+            cnt = _plane_normal_equations(xy, values, use, center, res, lim, k, M, rhs)
             if cnt < 6:
                 break
             M[1, 1] += cnt * pen[k]
             M[2, 2] += cnt * pen[k]
             M[1, 0], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[1, 2]
-            ok = True
-            for col in range(3):  # forward elimination with partial pivoting
-                piv = col
-                for row in range(col + 1, 3):
-                    if abs(M[row, col]) > abs(M[piv, col]):
-                        piv = row
-                if M[piv, col] == 0.0:
-                    ok = False
-                    break
-                if piv != col:
-                    for j in range(3):
-                        M[col, j], M[piv, j] = M[piv, j], M[col, j]
-                    rhs[col], rhs[piv] = rhs[piv], rhs[col]
-                for row in range(col + 1, 3):
-                    f = M[row, col] / M[col, col]
-                    for j in range(col, 3):
-                        M[row, j] -= f * M[col, j]
-                    rhs[row] -= f * rhs[col]
-            if ok:
+            if _eliminate3(M, rhs):
                 x2 = rhs[2] / M[2, 2]
                 x1 = (rhs[1] - M[1, 2] * x2) / M[1, 1]
                 c0 = (rhs[0] - M[0, 1] * x1 - M[0, 2] * x2) / M[0, 0]
@@ -708,16 +722,51 @@ def edge_points(
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,)).
     """
-    K = len(cen)
+    L, a, b, n, S, m = _ray_counts(Q, half, c)
+    cen = np.ascontiguousarray(cen, np.float64)
+    u, r, xy, lam, dl, ok, v, v_in, v_out = _sampled_rays(grays, view, cen, L, n, S, m, half)
+
+    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
+    floor = np.asarray(floor, np.float64)
+    K, N = r.shape
+    w1090, sane, width = np.empty((K, N)), np.empty((K, N), bool), np.empty(K)
+    _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), w1090, sane, width)
+    far, n_use = _free_rays(others, xy, r, width, half, n, c, ok)
+
+    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
+    clean = sane & far & (w1090 < 1.2 * half * r)
+    _plateau_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, c, ok)
+    e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
+    P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
+    _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
+    mask = np.arange(N)[None, :] < cnt[:, None]
+    return P, mask, n_use, Wc, width
+
+
+def _ray_counts(Q: np.ndarray, half: float, c: dict) -> tuple:
+    """The rays of the K ellipses Q (K, 2, 2): (L (K, 2, 2) = Q^-1/2, semi-axes a and b
+    (K,), even numbers of rays n (K,) about conf["edge_spacing"] px apart along the
+    perimeter, samples per ray S (K,) about conf["edge_step"] px apart, samples per
+    plateau level m (K,))."""
     L, eig = _spd2(Q, -0.5)
     a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
     perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
     n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(np.int64)  # even
     S = np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200).astype(np.int64) + 1
-    N, Sm = int(n.max()), int(S.max())
     m = np.maximum(2, np.round(c["level_samples"] * S)).astype(np.intp)  # samples per plateau level
+    return L, a, b, n, S, m
+
+
+def _sampled_rays(
+    grays: list, view: np.ndarray, cen: np.ndarray, L: np.ndarray, n: np.ndarray, S: np.ndarray, m: np.ndarray, half: float
+) -> tuple:
+    """The rays' frame (:func:`_ray_frame`: directions u (K, 2, N), radii r (K, N), points
+    on the ellipse xy (K, N, 2), samples lam (K, Sm), their spacing dl (K,), in the image
+    ok (K, N)) and their samples in the images (v (K, N, Sm), local levels inside and
+    outside v_in, v_out (K, N)); cen: (K, 2) float64."""
+    K = len(cen)
+    N, Sm = int(n.max()), int(S.max())
     hw = np.array([grays[g].shape for g in range(len(grays))], np.float64)[view]
-    cen = np.ascontiguousarray(cen, np.float64)
     u, r, xy = np.empty((K, 2, N)), np.empty((K, N)), np.empty((K, N, 2))
     lam, dl, ok = np.empty((K, Sm)), np.empty(K), np.empty((K, N), bool)
     _ray_frame(np.ascontiguousarray(L), cen, n, S, float(half), hw, u, r, lam, dl, xy, ok)
@@ -726,11 +775,16 @@ def edge_points(
     cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
     for g in np.unique(view):
         _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(view == g)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
+    return u, r, xy, lam, dl, ok, v, v_in, v_out
 
-    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
-    floor = np.asarray(floor, np.float64)
-    w1090, sane, width = np.empty((K, N)), np.empty((K, N), bool), np.empty(K)
-    _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), w1090, sane, width)
+
+def _free_rays(
+    others: list, xy: np.ndarray, r: np.ndarray, width: np.ndarray, half: float, n: np.ndarray, c: dict, ok: np.ndarray
+) -> tuple:
+    """(far (K, N): the rays whose window ends clear of every neighbour's blurred outer
+    ellipse, per ellipse the number of rays not dropped for a neighbour (K,)); ``ok`` is
+    updated in place (:func:`_neighbours`)."""
+    K, N = r.shape
     far = np.ones((K, N), bool)
     n_use = n.copy()
     pairs = [(k, co, Qo) for k, oth in enumerate(others) for co, Qo in oth]
@@ -740,17 +794,27 @@ def edge_points(
         Qo = np.array([p[2] for p in pairs], np.float64)
         b_o = 1 / np.sqrt(_spd2(Qo, 0.5)[1][:, 1])
         _neighbours(xy, r, width, float(half), kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
+    return far, n_use
 
-    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
-    clean = sane & far & (w1090 < 1.2 * half * r)
+
+def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> None:
+    """The rays' plateau levels v_in, v_out (K, N), in place: planes fitted on the
+    ``clean`` rays (:func:`_ray_levels`, ridge penalty ``pen``) or, where too few are
+    clean, the local levels smoothed along the ellipse (circularly)."""
+    K = len(n)
     planes = np.empty(K, bool)
-    _ray_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, float(c["level_tol"]), ok, planes)
+    _ray_levels(v_in, v_out, xy, cen, pen, clean, n, float(c["level_tol"]), ok, planes)
     for k in np.nonzero(~planes)[0]:
-        # Too few: smooth the local levels along the ellipse (circularly) instead.
         w = max(1, round(c["level_smooth"] * n[k]))
         if w > 1:
             v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
+
+
+def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, half: float, c: dict) -> tuple:
+    """The edge on each ray (:func:`_ray_edges`): (positions e, fit weights W, 10-90 %
+    widths (K, N), the 75th percentile of the valid widths per ellipse (K,))."""
+    K, N = r.shape
     e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
     aw = c["area_window"]
     _ray_edges(
@@ -774,10 +838,7 @@ def edge_points(
         w1090,
         width,
     )
-    P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
-    _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
-    mask = np.arange(N)[None, :] < cnt[:, None]
-    return P, mask, n_use, Wc, width
+    return e, W, w1090, width
 
 
 # --- ellipse fits ---------------------------------------------------------------------------------
@@ -1196,30 +1257,13 @@ def _spd2_rows(Q, inverse, out, eig):  # pragma: no cover - compiled
         out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = r00, r01, r01, r11
 
 
-def refine_edges(
-    grays: list,
-    view: np.ndarray,
-    cen: np.ndarray,
-    Q: np.ndarray,
-    half: float,
-    dark_inside: bool,
-    c: dict,
-    floor: np.ndarray,
-    others: list,
-    cameras: list | None = None,
-) -> list:
-    """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
-    arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
-
-    Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
-    unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
-    levels are only reached near the true edge, so each pass halves the error at best.
-
-    Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
-    width px) or None when too few edge points are found.
-    """
+def _fit_passes(
+    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict, floor: np.ndarray, others: list
+) -> tuple:
+    """The passes of edge sampling and robust fit of :func:`refine_edges`, each on the
+    ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
+    ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,))."""
     K = len(cen)
-    cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
     active = np.ones(K, bool)
     found: list = [None] * K
     width = np.zeros(K)
@@ -1247,6 +1291,53 @@ def refine_edges(
             width[k] = wdg[i]
             if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
                 active[k] = False
+    return found, width
+
+
+def _ideal_fits(found: list, use: list, view: np.ndarray, cameras: list) -> dict:
+    """Ellipses k -> (centre, Q) in ideal (undistorted) px, fitted to the edge points
+    ``found[k]`` = (points (M, 2), weights (M,)) of the ellipses ``use`` once undistorted
+    by ``cameras[view[k]]`` (one undistortion per view); the fits that fail are left out."""
+    pts: dict = {}
+    for g in sorted({view[k] for k in use}):  # one undistortion per view
+        mine = [k for k in use if view[k] == g]
+        flat = cameras[g].undistort_points(np.concatenate([found[k][0] for k in mine]))
+        cuts = np.cumsum([len(found[k][0]) for k in mine])[:-1]
+        pts.update(zip(mine, np.split(flat, cuts)))
+    pts = [pts[k] for k in use]
+    N = max(len(p) for p in pts)
+    Pp, Mp, Wp = np.zeros((len(use), N, 2)), np.zeros((len(use), N), bool), np.zeros((len(use), N))
+    for i, (k, p) in enumerate(zip(use, pts)):
+        Pp[i, : len(p)], Mp[i, : len(p)], Wp[i, : len(p)] = p, True, found[k][1]
+    ci, Qi, ok = fit_ellipses(Pp, Mp, Wp)
+    return {k: (ci[i], Qi[i]) for i, k in enumerate(use) if ok[i]}
+
+
+def refine_edges(
+    grays: list,
+    view: np.ndarray,
+    cen: np.ndarray,
+    Q: np.ndarray,
+    half: float,
+    dark_inside: bool,
+    c: dict,
+    floor: np.ndarray,
+    others: list,
+    cameras: list | None = None,
+) -> list:
+    """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
+    arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
+
+    Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
+    unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
+    levels are only reached near the true edge, so each pass halves the error at best.
+
+    Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
+    width px) or None when too few edge points are found.
+    """
+    K = len(cen)
+    cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
+    found, width = _fit_passes(grays, view, cen, Q, half, dark_inside, c, floor, others)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1255,19 +1346,7 @@ def refine_edges(
         # image: fit there (the centre is mapped back by the caller).
         use = [k for k in ks if cameras[view[k]] is not None]
         if use:
-            pts: dict = {}
-            for g in sorted({view[k] for k in use}):  # one undistortion per view
-                mine = [k for k in use if view[k] == g]
-                flat = cameras[g].undistort_points(np.concatenate([found[k][0] for k in mine]))
-                cuts = np.cumsum([len(found[k][0]) for k in mine])[:-1]
-                pts.update(zip(mine, np.split(flat, cuts)))
-            pts = [pts[k] for k in use]
-            N = max(len(p) for p in pts)
-            Pp, Mp, Wp = np.zeros((len(use), N, 2)), np.zeros((len(use), N), bool), np.zeros((len(use), N))
-            for i, (k, p) in enumerate(zip(use, pts)):
-                Pp[i, : len(p)], Mp[i, : len(p)], Wp[i, : len(p)] = p, True, found[k][1]
-            ci, Qi, ok = fit_ellipses(Pp, Mp, Wp)
-            ideal = {k: (ci[i], Qi[i]) for i, k in enumerate(use) if ok[i]}
+            ideal = _ideal_fits(found, use, view, cameras)
     for k in ks:
         out[k] = ((cen[k], Q[k]), ideal.get(k), float(width[k]))
     return out
@@ -1276,19 +1355,16 @@ def refine_edges(
 _WARM = False
 
 
-def warm_up() -> None:
-    """Compile the kernels (or load them from numba's cache) for the argument types the
-    pipeline passes, once per process: a stream's first frames must not pay for it."""
-    global _WARM
-    if _WARM:
-        return
-    K, N, Sm = 1, 6, 4
-    ii, f2, b2 = np.zeros(K, np.intp), np.ones((K, N)), np.ones((K, N), bool)
-    lam, S, v = np.linspace(0.5, 1.5, Sm)[None], np.full(K, Sm, np.intp), np.zeros((K, N, Sm))
+def _warm_profiles(K: int, ii, f2, lam, S, v) -> None:
+    """Warm up the ray sampling (uint8 and float32 images) and the edge locators."""
     for img in (np.zeros((8, 8), np.uint8), np.zeros((8, 8), np.float32)):
         _sample_rays(img, ii, np.full(K, 4.0), np.full(K, 4.0), f2, f2, lam, S, np.full(K, 2, np.intp), v, f2.copy(), f2.copy())
     crossings(v, f2, f2, lam, np.full(K, 1 / 3), S, f2)
     integral(v, f2, f2, lam, np.full(K, 1 / 3), S, (f2, f2))
+
+
+def _warm_fits(K: int, N: int, f2, b2) -> None:
+    """Warm up the ellipse fits: direct, robust (LMedS, harmonics, rejection) and their helpers."""
     _scatter(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.zeros(K), np.zeros((K, len(_MOMENTS))))
     ring = np.stack([np.cos(np.arange(N)), 2 * np.sin(np.arange(N))], -1)[None]
     fit_ellipses(ring, b2)
@@ -1298,6 +1374,11 @@ def warm_up() -> None:
     _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
+
+
+def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
+    """Warm up :func:`edge_points`' kernels: the rays' frame, first look, neighbours,
+    plateau levels and edges."""
     n, S1 = np.full(K, N, np.int64), np.full(K, Sm, np.int64)
     u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
     _ray_frame(
@@ -1345,6 +1426,20 @@ def warm_up() -> None:
         np.empty((K, N)),
         np.empty(K),
     )
+
+
+def warm_up() -> None:
+    """Compile the kernels (or load them from numba's cache) for the argument types the
+    pipeline passes, once per process: a stream's first frames must not pay for it."""
+    global _WARM
+    if _WARM:
+        return
+    K, N, Sm = 1, 6, 4
+    ii, f2, b2 = np.zeros(K, np.intp), np.ones((K, N)), np.ones((K, N), bool)
+    lam, S, v = np.linspace(0.5, 1.5, Sm)[None], np.full(K, Sm, np.intp), np.zeros((K, N, Sm))
+    _warm_profiles(K, ii, f2, lam, S, v)
+    _warm_fits(K, N, f2, b2)
+    _warm_rays(K, N, Sm, f2, b2, lam, v)
     _WARM = True
 
 

@@ -111,25 +111,34 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
         return _sample(img, np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,)))
 
-    def step(a, b):  # relative difference of two paper samples
-        return np.abs(a - b) / (np.fmax(a, b) + _EPS)
-
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
-        inner, outside, plate = sample(zones["inner"]), sample(zones["outside"]), sample(zones["plate"])  # (T, 3, A) ×2, (T, G)
-        i, j = zones["pairs"]
-        steps = step(plate[:, i], plate[:, j])  # (T, pairs)
-        rough = np.where(np.isfinite(steps).sum(1) >= min_pairs, _nanpercentile(steps, 75), 0.0)
-        link = np.where(zones["linked"], step(outside, plate[:, zones["nearest"]]), np.nan)
-        off_plate = np.nan_to_num(np.nanmax(_nanmedian(link), axis=1), nan=0.0)  # no link in the image: no test
-        factors = [
-            # Band contrast along each ray: the brighter band sample against the brighter of core and outside.
-            _nanmedian(1 - sample(zones["band"]).max(-1) / (np.fmax(inner, outside) + _EPS)).min(1),
-            1 - 4 * rough,
-            1 - 2 * np.clip(_nanmedian((inner - outside) / (outside + _EPS)), 0, None).max(1),
-            1 - off_plate,
-        ]
+        factors = _evidence_factors(sample, zones, min_pairs)
     return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
+
+
+def _step(a, b):
+    """The relative difference of two paper samples."""
+    return np.abs(a - b) / (np.fmax(a, b) + _EPS)
+
+
+def _evidence_factors(sample, zones: dict, min_pairs: int) -> list:
+    """:func:`ring_evidence`'s four factors (T,) each (band contrast, plate smoothness, no
+    ring brighter inside, each ring on the plate), NaN where undecided; ``sample`` maps
+    marker points (..., 2) mm to image values (T, ...), NaN outside the image."""
+    inner, outside, plate = sample(zones["inner"]), sample(zones["outside"]), sample(zones["plate"])  # (T, 3, A) ×2, (T, G)
+    i, j = zones["pairs"]
+    steps = _step(plate[:, i], plate[:, j])  # (T, pairs)
+    rough = np.where(np.isfinite(steps).sum(1) >= min_pairs, _nanpercentile(steps, 75), 0.0)
+    link = np.where(zones["linked"], _step(outside, plate[:, zones["nearest"]]), np.nan)
+    off_plate = np.nan_to_num(np.nanmax(_nanmedian(link), axis=1), nan=0.0)  # no link in the image: no test
+    return [
+        # Band contrast along each ray: the brighter band sample against the brighter of core and outside.
+        _nanmedian(1 - sample(zones["band"]).max(-1) / (np.fmax(inner, outside) + _EPS)).min(1),
+        1 - 4 * rough,
+        1 - 2 * np.clip(_nanmedian((inner - outside) / (outside + _EPS)), 0, None).max(1),
+        1 - off_plate,
+    ]
 
 
 _EPS = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0

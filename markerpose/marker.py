@@ -219,8 +219,24 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         items.append(_Circle(cx, cy, marker.outer_radius, _INK, f"c{i}-outer"))
         items.append(_Circle(cx, cy, marker.inner_radius, _PAPER, f"c{i}-inner"))
 
-    # Ring IDs: outside the plate, just beyond the plate edge nearest to the ring (ties broken
-    # towards the side facing away from the rings' centroid), aligned with the ring centre.
+    items += _ring_labels(cp, (px0, py0, px1, py1))
+    items += _axis_items(cp, corners)
+    _check_fits(items, marker, paper_mm)
+
+    # Title.
+    items.append(_Text(W / 2, H - 15.0, "markerpose three-ring target", _TITLE_SIZE, "center", _INK, "title"))
+
+    items += _scale_bar(W / 2)
+    items += _notes(marker, W)
+    return items
+
+
+def _ring_labels(cp: np.ndarray, plate: tuple) -> list:
+    """The ring IDs' labels: outside the plate (page mm: x0, y0, x1, y1), just beyond the
+    plate edge nearest to the ring (ties broken towards the side facing away from the
+    rings' centroid), aligned with the ring centre; cp: (3, 2) page mm."""
+    px0, py0, px1, py1 = plate
+    items = []
     centroid = cp.mean(axis=0)
     for i, (cx, cy) in enumerate(cp):
         away = np.array([cx, cy]) - centroid
@@ -241,10 +257,15 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         else:
             t = _Text(cx, py1 + _LABEL_GAP, f"c{i}", s, "center", _ANNOT, f"label-c{i}")
         items.append(t)
+    return items
 
-    # Marker axes: the segments c0→c1 (x) and c0→c2 (y), each translated perpendicular to
-    # itself, away from the third ring, until it clears the plate by _AXIS_GAP. They keep the
-    # true direction and length of the axes and never come near the rings.
+
+def _axis_items(cp: np.ndarray, corners: np.ndarray) -> list:
+    """The marker axes: the segments c0→c1 (x) and c0→c2 (y), each translated
+    perpendicular to itself, away from the third ring, until it clears the plate
+    (``corners`` (4, 2)) by _AXIS_GAP. They keep the true direction and length of the
+    axes and never come near the rings; cp: (3, 2) page mm."""
+    items: list = []
     for name, j, k in (("x", 1, 2), ("y", 2, 1)):
         d = cp[j] - cp[0]
         u = d / np.linalg.norm(d)
@@ -258,8 +279,14 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
         items.append(_Polyline((tuple(a0 - 1.5 * n), tuple(a0 + 1.5 * n)), _ANNOT, 0.35, False, False, f"axis-{name}-origin"))
         tip = a1 + 2.8 * u
         items.append(_text_centered(tip[0], tip[1], name, _LABEL_SIZE, "center", _ANNOT, f"axis-{name}-label"))
+    return items
 
-    # Everything drawn so far must sit in the free area of the sheet.
+
+def _check_fits(items: list, marker: Marker, paper_mm: tuple[float, float]) -> None:
+    """Raise ValueError unless ``items`` (everything drawn around the plate) sit in the
+    free area of the sheet."""
+    W, H = paper_mm
+    x0, y0, x1, y1 = marker.plate
     ext = _items_extent(items)
     free = (_PAGE_MARGIN, _BOTTOM_RESERVED, W - _PAGE_MARGIN, H - _TOP_RESERVED)
     if ext[0] < free[0] or ext[1] < free[1] or ext[2] > free[2] or ext[3] > free[3]:
@@ -270,13 +297,12 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
             f"y {free[1]:g}..{free[3]:g} mm (use a smaller marker or larger paper)"
         )
 
-    # Title.
-    items.append(_Text(W / 2, H - 15.0, "markerpose three-ring target", _TITLE_SIZE, "center", _INK, "title"))
 
-    items += _scale_bar(W / 2)
-
-    # Geometry and printing instructions.
+def _notes(marker: Marker, W: float) -> list:
+    """The geometry and printing instructions, centred on the sheet of width ``W`` mm."""
+    items = []
     do, di = marker.outer_diameter, marker.inner_diameter
+    x0, y0, x1, y1 = marker.plate
     (c1x, c1y), (c2x, c2y) = marker.c1, marker.c2
     notes = [
         f"Rings: black outer \u00d8 {_num(do)} mm, white inner \u00d8 {_num(di)} mm; "

@@ -335,12 +335,6 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     import tempfile
 
     import onnx
-    from onnxruntime.quantization import (
-        CalibrationDataReader,
-        QuantFormat,
-        QuantType,
-        quantize_static,
-    )
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     src, dest = Path(src), Path(dest)
@@ -354,37 +348,9 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
         # Shape inference and graph fusions first, as the tool advises (ONNX's own shape
         # inference: the symbolic one needs sympy, and this network's shapes need none).
         quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
-        graph = onnx.load(str(pre)).graph
-        name = graph.input[0].name
-
-        class Reader(CalibrationDataReader):
-            def __init__(self):
-                self._it = iter(batches)
-
-            def get_next(self):
-                b = next(self._it, None)
-                return None if b is None else {name: b}
-
-        outputs = {o.name for o in graph.output}
-        last = [n.name for n in graph.node if outputs & set(n.output)]
-        pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
-        quantize_static(
-            str(pre),
-            str(dest),
-            Reader(),
-            quant_format=QuantFormat.QDQ,
-            per_channel=True,
-            activation_type=QuantType.QUInt8,
-            weight_type=QuantType.QInt8,
-            nodes_to_exclude=last,
-            extra_options={"TensorQuantOverrides": pinned},
-        )
+        _quantize_qdq(pre, dest, batches)
     out = onnx.load(str(dest))
-    # Only the operator sets the nodes use: the tool declares every domain the installed
-    # runtime knows, which older runtimes refuse to load.
-    used = {n.domain for n in out.graph.node}
-    for op in [o for o in out.opset_import if o.domain not in used and o.domain not in ("", "ai.onnx")]:
-        out.opset_import.remove(op)
+    _drop_unused_opsets(out)
     for m in list(out.metadata_props):
         if m.key == META_KEY:
             out.metadata_props.remove(m)
@@ -392,6 +358,54 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     entry.key, entry.value = META_KEY, json.dumps({**meta, "int8": {"calibration_inputs": int(sum(len(b) for b in batches))}})
     onnx.save(out, str(dest))
     return dest
+
+
+def _quantize_qdq(pre: Path, dest: Path, batches: list) -> None:
+    """Quantize the prepared network ``pre`` into ``dest`` (see :func:`quantize_onnx`):
+    QDQ pairs, weights per channel, activations calibrated on ``batches``, the input
+    pinned to [0, 1] and the output operators left float32."""
+    import onnx
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
+
+    graph = onnx.load(str(pre)).graph
+    name = graph.input[0].name
+
+    class Reader(CalibrationDataReader):
+        def __init__(self):
+            self._it = iter(batches)
+
+        def get_next(self):
+            b = next(self._it, None)
+            return None if b is None else {name: b}
+
+    outputs = {o.name for o in graph.output}
+    last = [n.name for n in graph.node if outputs & set(n.output)]
+    pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
+    quantize_static(
+        str(pre),
+        str(dest),
+        Reader(),
+        quant_format=QuantFormat.QDQ,
+        per_channel=True,
+        activation_type=QuantType.QUInt8,
+        weight_type=QuantType.QInt8,
+        nodes_to_exclude=last,
+        extra_options={"TensorQuantOverrides": pinned},
+    )
+
+
+def _drop_unused_opsets(model) -> None:
+    """Remove from ``model`` the operator sets its nodes do not use (the default one
+    stays): the quantization tool declares every domain the installed runtime knows,
+    which older runtimes refuse to load."""
+    used = {n.domain for n in model.graph.node}
+    for op in [o for o in model.opset_import if o.domain not in used and o.domain not in ("", "ai.onnx")]:
+        model.opset_import.remove(op)
 
 
 __all__ = [

@@ -229,6 +229,33 @@ class ShowSink:
         cv2.destroyWindow(self.name)
 
 
+def _json_row(k: int, t: float, est) -> str:
+    """Frame ``k``'s line of the JSON-lines output (time ``t``, estimate ``est`` or None)."""
+    return (
+        json.dumps(
+            {
+                "frame": k,
+                "timestamp_s": t,
+                "valid": est is not None,
+                "T_left_marker": None if est is None else est.T.tolist(),
+                "residual_px": None if est is None else est.residual_px,
+                "source": None if est is None else est.source,
+            }
+        )
+        + "\n"
+    )
+
+
+def _discard(f, partial: Path, fj, partial_jsonl: Path | None) -> None:
+    """Close and delete the partial outputs (the CSV ``f`` at ``partial`` and, where there
+    is one, the JSON lines ``fj`` at ``partial_jsonl``)."""
+    f.close()
+    partial.unlink(missing_ok=True)
+    if partial_jsonl:
+        fj.close()
+        partial_jsonl.unlink(missing_ok=True)
+
+
 def track_stream(
     tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
 ) -> dict:
@@ -258,19 +285,7 @@ def track_stream(
                 for sink in sinks:
                     sink(k, t, left, right, est)
                 if partial_jsonl:
-                    fj.write(
-                        json.dumps(
-                            {
-                                "frame": k,
-                                "timestamp_s": t,
-                                "valid": est is not None,
-                                "T_left_marker": None if est is None else est.T.tolist(),
-                                "residual_px": None if est is None else est.residual_px,
-                                "source": None if est is None else est.source,
-                            }
-                        )
-                        + "\n"
-                    )
+                    fj.write(_json_row(k, t, est))
                 n += 1
                 found += est is not None
                 tracked += est is not None and est.source == "tracked"
@@ -282,11 +297,7 @@ def track_stream(
             stopped = True
         except BaseException:
             if n == 0:  # nothing tracked (e.g. images that do not match the rig): no file
-                f.close()
-                partial.unlink(missing_ok=True)
-                if partial_jsonl:
-                    fj.close()
-                    partial_jsonl.unlink(missing_ok=True)
+                _discard(f, partial, fj, partial_jsonl)
             raise
         finally:
             bar.close()

@@ -109,7 +109,7 @@ def test_bad_configuration(rig):
         mp.MarkerPose(rig, propose={"weights": "/nonexistent/keypoints.pt"})
     with pytest.raises(ValueError, match=r"refine.method must be one of \[.*got 'magic'"):
         mp.MarkerPose(rig, refine={"method": "magic"})
-    with pytest.raises(ValueError, match=r"detector must be one of \['neural', 'classical'\], got 'magic'"):
+    with pytest.raises(ValueError, match=r"detector must be one of \['neural', 'stereo', 'decoded', 'classical'\], got 'magic'"):
         mp.MarkerPose(rig, detector="magic")
     with pytest.raises(ValueError, match="solve.pose must be one of"):
         mp.MarkerPose(rig, solve={"pose": "best"})

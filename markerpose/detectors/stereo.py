@@ -143,16 +143,8 @@ class StereoDetector(NeuralDetector):
         sources = transfer_sources(loose, cand, mk.centers2d, match.VIEW_TRIPLES)
         blur_gate = self.gates(frame, zoom)[0]
         gate = m["transfer_min_evidence"]
-        if gate:  # one evidence look per view for all of its sources
-            keep = np.ones(len(sources), bool)
-            for view in (0, 1):
-                idx = [k for k, (a, _, _) in enumerate(sources) if a == view]
-                if idx:
-                    ev = frame.timed(
-                        "verify", self.proposer.evidence, grays[view], np.stack([sources[k][1] for k in idx]), zoom, frame.looked
-                    )
-                    keep[idx] = ev >= gate
-            sources = [u for u, k in zip(sources, keep) if k]
+        if gate:
+            sources = self._evidenced(frame, sources, zoom, gate)
         for a, pts, s in sources[: match.TRANSFER_SOURCES]:
             b = 1 - a
             det_a = self.fit(frame, [grays[a]], [cams[a]], [(pts, s)], blur_gate)
@@ -166,33 +158,52 @@ class StereoDetector(NeuralDetector):
                 # any costly fit there.
                 if gate and frame.timed("verify", self.proposer.evidence, grays[b], pred[None], zoom, frame.looked)[0] < gate:
                     continue
-                # The pose predicts the rings' ellipses in the other view to within a pixel
-                # or so: their edges are fitted from there first; the usual refinement at
-                # the predicted centres can be led to a neighbouring ring by a steep,
-                # blurred view. On seeds where no edge fitted, the blurred-ring fit runs
-                # only when the source view's rings needed it too (the cameras expose
-                # together: the marker's motion blurs both views or neither), when its
-                # coarse search finds blur, and with ring evidence (blur_gate).
-                ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
-                guided = frame.timed(
-                    "refine",
-                    self.refiner.from_ellipses,
-                    frame,
-                    [grays[b]],
-                    [cams[b]],
-                    [ellipses],
-                    s,
-                    det_a.blur_px > 0,
-                    0.0,
-                    None,
-                    blur_gate,
-                )[0]
+                guided = self._guided(frame, b, T_b, s, det_a, blur_gate)
                 if guided is not None:
                     yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
                 det_b = self.fit(frame, [grays[b]], [cams[b]], [(pred, s)], blur_gate)
                 if det_b is None:
                     return
                 yield [det_a, det_b[0]][:: 1 - 2 * a]
+
+    def _evidenced(self, frame: Frame, sources: list, zoom: float, gate: float) -> list:
+        """The transfer ``sources`` (view, points (3, 2), score) whose ring evidence reaches
+        ``gate``: one evidence look per view for all of its sources."""
+        grays = frame.grays
+        keep = np.ones(len(sources), bool)
+        for view in (0, 1):
+            idx = [k for k, (a, _, _) in enumerate(sources) if a == view]
+            if idx:
+                ev = frame.timed("verify", self.proposer.evidence, grays[view], np.stack([sources[k][1] for k in idx]), zoom, frame.looked)
+                keep[idx] = ev >= gate
+        return [u for u, k in zip(sources, keep) if k]
+
+    def _guided(self, frame: Frame, b: int, T_b: np.ndarray, s: float, det_a: Detection, blur_gate) -> Detection | None:
+        """The rings of view ``b`` fitted on its edges from the ellipses that the pose ``T_b``
+        (view b's camera frame) predicts there, or None.
+
+        The pose predicts the rings' ellipses in the other view to within a pixel or so:
+        their edges are fitted from there first; the usual refinement at the predicted
+        centres can be led to a neighbouring ring by a steep, blurred view. On seeds where
+        no edge fitted, the blurred-ring fit runs only when the source view's rings
+        (``det_a``) needed it too (the cameras expose together: the marker's motion blurs
+        both views or neither), when its coarse search finds blur, and with ring evidence
+        (``blur_gate``)."""
+        cams, mk, grays = self.rig.cameras, self.marker, frame.grays
+        ellipses = ring_ellipses(cams[b], T_b, mk.points3d, mk.outer_radius)
+        return frame.timed(
+            "refine",
+            self.refiner.from_ellipses,
+            frame,
+            [grays[b]],
+            [cams[b]],
+            [ellipses],
+            s,
+            det_a.blur_px > 0,
+            0.0,
+            None,
+            blur_gate,
+        )[0]
 
 
 __all__ = ["MASK_GATE_MIN_PX", "StereoDetector"]

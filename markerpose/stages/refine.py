@@ -137,32 +137,45 @@ class Refiner:
         return [cq_to_rect(np.asarray(p, np.float64), Q) for p in points]
 
     def _ellipsegnet(self, frame: Frame, grays: list, cameras: list, points: list, limits, mask_gate=None) -> list:
-        conf = self.classical
+        """:meth:`__call__` with EllipSegNet: with ``layout_seed``, the edges fitted from the
+        layout's ellipses first; EllipSegNet's masks for the views where they did not fit
+        (and that pass ``mask_gate``)."""
         seen = [k for k, f in enumerate(points) if f is not None]
         out = [None] * len(grays)
         if self.edge_refit and self.conf["layout_seed"]:
-            # The edges fitted from the layout's ellipses (both views in one batch); no blur
-            # fit on seeds that found no ring (the masks' ellipses get their turn).
-            seeds = {k: self.layout_ellipses(points[k][0]) for k in seen}
-            views = [k for k in seen if seeds[k] is not None]
-            if views:
-                fits = classical.refine_ellipses_views(
-                    [grays[k] for k in views],
-                    [seeds[k] for k in views],
-                    self.marker,
-                    {**conf, "blur_fit_unrefined": False},
-                    [cameras[k] for k in views],
-                    frame.noises([grays[k] for k in views]),
-                    with_blur=True,
-                    limits=limits,
-                )
-                for k, (centers, ok, ellipses, blur) in zip(views, fits):
-                    if ok.all():
-                        out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
+            self._from_layout(frame, grays, cameras, points, seen, limits, out)
             seen = [k for k in seen if out[k] is None and (mask_gate is None or mask_gate(grays[k], points[k][0]))]
             if not seen:
                 return out
-        # EllipSegNet: all patches of all views in one batch.
+        self._from_masks(frame, grays, cameras, points, seen, limits, out)
+        return out
+
+    def _from_layout(self, frame: Frame, grays: list, cameras: list, points: list, seen: list, limits, out: list) -> None:
+        """Into ``out``, per view of ``seen``, the Detection whose three rings' edges fit
+        from the layout's ellipses (both views in one batch); no blur fit on seeds that
+        found no ring (the masks' ellipses get their turn)."""
+        seeds = {k: self.layout_ellipses(points[k][0]) for k in seen}
+        views = [k for k in seen if seeds[k] is not None]
+        if views:
+            fits = classical.refine_ellipses_views(
+                [grays[k] for k in views],
+                [seeds[k] for k in views],
+                self.marker,
+                {**self.classical, "blur_fit_unrefined": False},
+                [cameras[k] for k in views],
+                frame.noises([grays[k] for k in views]),
+                with_blur=True,
+                limits=limits,
+            )
+            for k, (centers, ok, ellipses, blur) in zip(views, fits):
+                if ok.all():
+                    out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
+
+    def _from_masks(self, frame: Frame, grays: list, cameras: list, points: list, seen: list, limits, out: list) -> None:
+        """Into ``out``, per view of ``seen``, the Detection from EllipSegNet's masks (all
+        patches of all views in one batch), with ``edge_refit`` their ellipses refitted on
+        the image's edges (all views in one batch)."""
+        conf = self.classical
         refined = self.net([grays[k] for k in seen], [points[k][0] for k in seen], self.marker, with_ellipses=self.edge_refit)
         fits = [None] * len(seen)
         if self.edge_refit:  # the image's edges, from the masks' ellipses (all views in one batch)
@@ -180,26 +193,32 @@ class Refiner:
             centers, ok = found[0], found[1]
             ellipses, blur = None, 0.0
             if fit is not None:
-                c2, ok2, ellipses, blur = fit
-                if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-                    c3, ok3, e3, b3 = classical.refine_points(
-                        grays[k],
-                        centers,
-                        self.marker,
-                        conf=conf,
-                        camera=cameras[k],
-                        with_blur=True,
-                        noise=frame.noises([grays[k]])[0],
-                        limits=limits,
-                    )
-                    c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
-                    ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
-                    ok2 = ok2 | ok3
+                c2, ok2, ellipses, blur = self._mended(frame, grays[k], cameras[k], centers, fit, limits)
                 # Only edge-fitted centres count as refined: a mask's centre can be
                 # pixels off, and a pose from it is wrong by a millimetre.
                 centers, ok = np.where(ok2[:, None], c2, centers), ok2
             out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
-        return out
+
+    def _mended(self, frame: Frame, gray: np.ndarray, camera, centers: np.ndarray, fit: tuple, limits) -> tuple:
+        """The edge refit ``fit`` = (centres (3, 2), refined (3,), ellipses, blur px) of a
+        view's masks, where a ring's mask was poor (not refined) the classical ring fit
+        near its mask's centre (``centers`` (3, 2)) instead."""
+        c2, ok2, ellipses, blur = fit
+        if not ok2.all():  # a poor mask: the classical ring fit near the point instead
+            c3, ok3, e3, b3 = classical.refine_points(
+                gray,
+                centers,
+                self.marker,
+                conf=self.classical,
+                camera=camera,
+                with_blur=True,
+                noise=frame.noises([gray])[0],
+                limits=limits,
+            )
+            c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
+            ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
+            ok2 = ok2 | ok3
+        return c2, ok2, ellipses, blur
 
     def from_ellipses(
         self,

@@ -189,18 +189,31 @@ def shift(
     moves = np.tile(d * s, (len(rings), 1))
     rho = marker.inner_radius / marker.outer_radius
     for k, (centre, axes, angle) in enumerate(rings):
-        ring = _ring(axes, angle, rho, s, 1.25)
-        h = ring.shape[0] // 2
-        c = (np.asarray(centre) - origin) / s  # the predicted centre, window px
-        at = np.round(c + d).astype(int)  # ... after the marker's move
-        lo_k, hi_k = at - h - ring_cells, at + h + ring_cells + 1
-        if lo_k.min() < 0 or hi_k[0] > nx or hi_k[1] > ny:
-            continue  # too near the window's edge to search: the marker's move
-        local, score = _peak(cv2.matchTemplate(window[lo_k[1] : hi_k[1], lo_k[0] : hi_k[0]], ring, cv2.TM_CCOEFF_NORMED))
-        # A weak peak, or one on the search's edge (the ring may lie beyond): the marker's move.
-        if score >= min_ring and np.all((local >= 0.5) & (local <= 2 * ring_cells - 0.5)):
-            moves[k] = (local + lo_k + h - c) * s
+        move = _ring_move(window, centre, axes, angle, rho, s, origin, d, ring_cells, min_ring)
+        if move is not None:
+            moves[k] = move
     return moves, best
+
+
+def _ring_move(window, centre, axes, angle: float, rho: float, s: int, origin, d, ring_cells: int, min_ring: float):
+    """One ring's displacement (2,) px from its predicted ``centre``, by the correlation of
+    its drawn appearance with the ``window`` (pixels of s x s image pixels from ``origin``)
+    within ``ring_cells`` of where the marker's move ``d`` (window px) puts it; None (the
+    marker's move stands) near the window's edge, for a peak under ``min_ring`` or one on
+    the search's edge."""
+    ny, nx = window.shape
+    ring = _ring(axes, angle, rho, s, 1.25)
+    h = ring.shape[0] // 2
+    c = (np.asarray(centre) - origin) / s  # the predicted centre, window px
+    at = np.round(c + d).astype(int)  # ... after the marker's move
+    lo_k, hi_k = at - h - ring_cells, at + h + ring_cells + 1
+    if lo_k.min() < 0 or hi_k[0] > nx or hi_k[1] > ny:
+        return None  # too near the window's edge to search: the marker's move
+    local, score = _peak(cv2.matchTemplate(window[lo_k[1] : hi_k[1], lo_k[0] : hi_k[0]], ring, cv2.TM_CCOEFF_NORMED))
+    # A weak peak, or one on the search's edge (the ring may lie beyond): the marker's move.
+    if score >= min_ring and np.all((local >= 0.5) & (local <= 2 * ring_cells - 0.5)):
+        return (local + lo_k + h - c) * s
+    return None
 
 
 def inside(ellipses: list, size: tuple, margin: float) -> bool:

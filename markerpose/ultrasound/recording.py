@@ -147,26 +147,32 @@ def reconstruct_recording(
         "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"],
     }
     if seed_px is not None:
-        first = next(k for k, T in enumerate(poses) if T is not None)
-        posed = list(range(first, len(frames)))
-        pts = sweep_points([frames[k] for k in posed], seed_px, calib.spacing, search, progress=progress)
-        X, idx = tracker_points(pts, [poses[k] for k in posed], calib)
-        if len(X) < 10:
-            raise ValueError(f"the tube was not found from the seed {tuple(seed_px)}: {len(X)} points")
-        fit = fit_cylinder(X, sweep_normal(poses, calib))
-        formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx])
-        summary["cylinder"] = {
-            "diameter_mm": fit.diameter,
-            "radius_mm": fit.radius,
-            "rms_mm": fit.rms,
-            "axis_point_mm": fit.point,
-            "axis_direction": fit.direction,
-            "points": len(X),
-            "inliers": int(fit.inliers.sum()),
-        }
+        summary["cylinder"] = _tube(frames, poses, calib, seed_px, search, progress, out)
         summary["files"].append("points.ply")
     formats.write_json(out / "summary.json", summary)
     return summary
+
+
+def _tube(frames: list, poses: list, calib: ProbeCalibration, seed_px, search: RingSearch | None, progress: bool, out: Path) -> dict:
+    """The tube segmented from ``seed_px`` on the first posed frame on, its points written
+    to ``out``/points.ply: the summary of the cylinder fitted to them."""
+    first = next(k for k, T in enumerate(poses) if T is not None)
+    posed = list(range(first, len(frames)))
+    pts = sweep_points([frames[k] for k in posed], seed_px, calib.spacing, search, progress=progress)
+    X, idx = tracker_points(pts, [poses[k] for k in posed], calib)
+    if len(X) < 10:
+        raise ValueError(f"the tube was not found from the seed {tuple(seed_px)}: {len(X)} points")
+    fit = fit_cylinder(X, sweep_normal(poses, calib))
+    formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx])
+    return {
+        "diameter_mm": fit.diameter,
+        "radius_mm": fit.radius,
+        "rms_mm": fit.rms,
+        "axis_point_mm": fit.point,
+        "axis_direction": fit.direction,
+        "points": len(X),
+        "inliers": int(fit.inliers.sum()),
+    }
 
 
 def calibrate_recording(
