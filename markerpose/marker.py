@@ -4,14 +4,41 @@ Marker frame (docs/design.md §1): origin at the centre of ring c0, c1 on +x, c2
 z = x × y out of the printed face. Every ring is a black disk of diameter
 ``outer_diameter`` with a concentric white disk of diameter ``inner_diameter``.
 The printed plate is the rings' bounding box grown by ``margin`` on every side.
+
+A tool is a marker with a name (and optionally a pointer's tip), kept in a small YAML
+file (:meth:`Marker.load`, :meth:`Marker.save`)::
+
+    name: probe
+    rings: [[0, 0], [25, 0], [0, 40]]   # c0, c1, c2 in the marker frame, mm
+    outer_diameter: 20
+    inner_diameter: 8
+    plate_margin: 10                    # mm beyond the rings' outer edges
+    tip: [10, -60, 0]                   # optional: a point of the tool in the marker frame, mm
 """
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+TOOL_KEYS = ("name", "rings", "outer_diameter", "inner_diameter", "plate_margin", "tip")
+NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")  # a name that OpenIGTLink's device names and file names take
+
+
+def _numbers(value, shape: tuple, key: str, where: str) -> np.ndarray:
+    """``value`` as finite float64 numbers of ``shape``, else ``ValueError`` naming the key."""
+    try:
+        a = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or not np.all(np.isfinite(a)) or isinstance(value, bool):
+        want = "a number" if shape == () else f"{' x '.join(map(str, shape))} numbers"
+        raise ValueError(f"{where}: {key} must be {want}, got {value!r}")
+    return a
 
 
 @dataclass(frozen=True)
@@ -24,6 +51,8 @@ class Marker:
         c1: (x, y) of ring c1 in the marker frame (on the +x axis by convention).
         c2: (x, y) of ring c2 in the marker frame (on the +y axis by convention).
         margin: white plate border around the rings' bounding box.
+        name: the tool's name (letters, digits, ``_`` and ``-``, starting with a letter).
+        tip: optional (x, y, z) of a point of the tool (a pointer's tip) in the marker frame.
     """
 
     outer_diameter: float = 20.0
@@ -31,8 +60,16 @@ class Marker:
     c1: tuple[float, float] = (25.0, 0.0)
     c2: tuple[float, float] = (0.0, 40.0)
     margin: float = 10.0
+    name: str = "marker"
+    tip: tuple[float, float, float] | None = None
 
     def __post_init__(self):
+        if not isinstance(self.name, str) or not NAME.fullmatch(self.name):
+            raise ValueError(f"name must be 1-32 letters, digits, _ or - starting with a letter, got {self.name!r}")
+        if self.tip is not None:
+            if len(self.tip) != 3 or not all(math.isfinite(float(v)) for v in self.tip):
+                raise ValueError(f"tip must be three finite numbers (x, y, z) in mm, got {self.tip!r}")
+            object.__setattr__(self, "tip", tuple(float(v) for v in self.tip))  # hashable, as the caches key on markers
         if not (0 < self.inner_diameter < self.outer_diameter):
             raise ValueError(f"need 0 < inner_diameter < outer_diameter, got {self.inner_diameter} and {self.outer_diameter}")
         if self.margin < 0:
@@ -78,6 +115,80 @@ class Marker:
         """(4, 3) plate corners in the marker frame, counter-clockwise, mm."""
         x0, y0, x1, y1 = self.plate
         return np.array([(x0, y0, 0), (x1, y0, 0), (x1, y1, 0), (x0, y1, 0)], dtype=np.float64)
+
+    def to_dict(self) -> dict:
+        """The tool file's fields (:data:`TOOL_KEYS`), as plain numbers."""
+        out = {
+            "name": self.name,
+            "rings": [[0.0, 0.0], [float(v) for v in self.c1], [float(v) for v in self.c2]],
+            "outer_diameter": float(self.outer_diameter),
+            "inner_diameter": float(self.inner_diameter),
+            "plate_margin": float(self.margin),
+        }
+        if self.tip is not None:
+            out["tip"] = [float(v) for v in self.tip]
+        return out
+
+    def save(self, path: str | Path) -> Path:
+        """Write the tool file (YAML) that :meth:`load` reads back as this marker."""
+        import yaml
+
+        path = Path(path)
+        path.write_text(yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Marker:
+        """A tool file (YAML: :data:`TOOL_KEYS`); ``ValueError`` naming the file and what is wrong."""
+        import yaml
+
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{path}: cannot read the tool file ({getattr(exc, 'strerror', None) or exc})") from None
+        if len(text) > 65536:  # a tool file is a few lines; a huge one is not one (and deep nesting costs the parser)
+            raise ValueError(f"{path}: not a tool file ({len(text)} characters)")
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
+        except RecursionError:
+            raise ValueError(f"{path}: nested too deeply to be a tool file") from None
+        return cls.from_dict(data, str(path))
+
+    @classmethod
+    def from_dict(cls, data, where: str = "tool") -> Marker:
+        """The marker of a tool file's fields (:data:`TOOL_KEYS`; ``where`` names the source
+        in errors): c0 at the origin, c1 on +x, c2 in the +y half-plane."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: a tool file maps the keys {list(TOOL_KEYS)}, got {type(data).__name__}")
+        unknown = sorted(str(k) for k in data if k not in TOOL_KEYS)
+        missing = [k for k in TOOL_KEYS[:-1] if k not in data]
+        if unknown or missing:
+            what = ", ".join(p for p in (f"unknown {unknown}" if unknown else "", f"missing {missing}" if missing else "") if p)
+            raise ValueError(f"{where}: {what} key(s); a tool file has {list(TOOL_KEYS)} (tip optional)")
+        rings = _numbers(data["rings"], (3, 2), "rings", where)
+        if np.any(rings[0] != 0):
+            raise ValueError(f"{where}: rings: c0 must be at the origin (0, 0), got {rings[0].tolist()}")
+        if rings[1, 1] != 0 or rings[1, 0] <= 0:
+            raise ValueError(f"{where}: rings: c1 must lie on the +x axis (x > 0, 0), got {rings[1].tolist()}")
+        if rings[2, 1] <= 0:
+            raise ValueError(f"{where}: rings: c2 must lie in the +y half-plane (y > 0), got {rings[2].tolist()}")
+        size = {k: float(_numbers(data[k], (), k, where)) for k in ("outer_diameter", "inner_diameter", "plate_margin")}
+        tip = None if data.get("tip") is None else tuple(_numbers(data["tip"], (3,), "tip", where).tolist())
+        try:
+            return cls(
+                outer_diameter=size["outer_diameter"],
+                inner_diameter=size["inner_diameter"],
+                c1=tuple(rings[1].tolist()),
+                c2=tuple(rings[2].tolist()),
+                margin=size["plate_margin"],
+                name=data["name"],
+                tip=tip,
+            )
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
 
     def reflectance(self, xy: np.ndarray, black: float = 0.04, white: float = 0.85) -> np.ndarray:
         """Ideal printed reflectance at marker-plane points.
@@ -221,14 +332,22 @@ def _target_items(marker: Marker, paper_mm: tuple[float, float]) -> list:
 
     items += _ring_labels(cp, (px0, py0, px1, py1))
     items += _axis_items(cp, corners)
+    if marker.name != "marker":  # a tool's name, on its plate's bottom margin where that has room, else under it
+        on_plate = marker.margin >= 2 * _LABEL_SIZE
+        y = py0 + 0.7 * _LABEL_SIZE if on_plate else py0 - _LABEL_GAP - 0.75 * _LABEL_SIZE
+        items.append(_Text((px0 + px1) / 2, y, marker.name, _LABEL_SIZE, "center", _ANNOT, "name"))
     _check_fits(items, marker, paper_mm)
 
     # Title.
-    items.append(_Text(W / 2, H - 15.0, "markerpose three-ring target", _TITLE_SIZE, "center", _INK, "title"))
+    items.append(_Text(W / 2, H - 15.0, _title(marker), _TITLE_SIZE, "center", _INK, "title"))
 
     items += _scale_bar(W / 2)
     items += _notes(marker, W)
     return items
+
+
+def _title(marker: Marker) -> str:
+    return "markerpose three-ring target" if marker.name == "marker" else f"markerpose tool: {marker.name}"
 
 
 def _ring_labels(cp: np.ndarray, plate: tuple) -> list:
@@ -261,19 +380,22 @@ def _ring_labels(cp: np.ndarray, plate: tuple) -> list:
 
 
 def _axis_items(cp: np.ndarray, corners: np.ndarray) -> list:
-    """The marker axes: the segments c0→c1 (x) and c0→c2 (y), each translated
-    perpendicular to itself, away from the third ring, until it clears the plate
-    (``corners`` (4, 2)) by _AXIS_GAP. They keep the true direction and length of the
-    axes and never come near the rings; cp: (3, 2) page mm."""
+    """The marker axes: the segment c0→c1 (x) and the frame's y axis up to c2's height
+    (c0→c2 where c2 lies on +y), each translated perpendicular to itself, away from the
+    third ring, until it clears the plate (``corners`` (4, 2)) by _AXIS_GAP. They keep the
+    true direction and length of the axes and never come near the rings; cp: (3, 2) page mm."""
     items: list = []
+    ux = (cp[1] - cp[0]) / np.linalg.norm(cp[1] - cp[0])
+    uy = np.array([-ux[1], ux[0]])  # the frame's y: x turned a quarter counter-clockwise (the page's y is up)
+    ends = {1: cp[1], 2: cp[0] + uy * float((cp[2] - cp[0]) @ uy)}
     for name, j, k in (("x", 1, 2), ("y", 2, 1)):
-        d = cp[j] - cp[0]
+        d = ends[j] - cp[0]
         u = d / np.linalg.norm(d)
         n = np.array([-u[1], u[0]])
         if n @ (cp[k] - cp[0]) > 0:
             n = -n
         shift = float(np.max((corners - cp[0]) @ n)) + _AXIS_GAP
-        a0, a1 = cp[0] + shift * n, cp[j] + shift * n
+        a0, a1 = cp[0] + shift * n, ends[j] + shift * n
         items += _arrow(a0, a1, _ANNOT, 0.35, f"axis-{name}")
         # A short tick at the origin end marks where c0 projects onto the arrow.
         items.append(_Polyline((tuple(a0 - 1.5 * n), tuple(a0 + 1.5 * n)), _ANNOT, 0.35, False, False, f"axis-{name}-origin"))
@@ -304,11 +426,12 @@ def _notes(marker: Marker, W: float) -> list:
     do, di = marker.outer_diameter, marker.inner_diameter
     x0, y0, x1, y1 = marker.plate
     (c1x, c1y), (c2x, c2y) = marker.c1, marker.c2
+    y_axis = "c0\u2192c2" if c2x == 0 else "x turned 90\u00b0 toward c2"
+    axes = f"x: c0\u2192c1, y: {y_axis}, z out of the page."
     notes = [
         f"Rings: black outer \u00d8 {_num(do)} mm, white inner \u00d8 {_num(di)} mm; "
         f"plate {_num(x1 - x0)} \u00d7 {_num(y1 - y0)} mm (grey cut line, margin {_num(marker.margin)} mm).",
-        f"Centres (marker frame, mm): c0 (0, 0), c1 ({_num(c1x)}, {_num(c1y)}), c2 ({_num(c2x)}, {_num(c2y)}); "
-        "x: c0\u2192c1, y: c0\u2192c2, z out of the page.",
+        f"Centres (marker frame, mm): c0 (0, 0), c1 ({_num(c1x)}, {_num(c1y)}), c2 ({_num(c2x)}, {_num(c2y)}); " + axes,
         "Print at 100% / actual size (no \u201cfit to page\u201d); check the scale bar with a ruler.",
     ]
     for k, line in enumerate(notes):
@@ -517,4 +640,4 @@ def write_target(marker: Marker, path, paper: str = "a4") -> Path:
     """
     path, key = _page(path, paper)
     paper_mm = PAPER_SIZES_MM[key]
-    return _write(_target_items(marker, paper_mm), paper_mm, path, "markerpose three-ring target")
+    return _write(_target_items(marker, paper_mm), paper_mm, path, _title(marker))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -164,3 +165,57 @@ def test_package_version_matches_pyproject():
 
     text = (Path(__file__).resolve().parents[1] / "pyproject.toml").read_text()
     assert re.search(r'^version = "([^"]+)"', text, re.M).group(1) == markerpose.__version__
+
+
+def test_a_tool_file_round_trips(tmp_path):
+    tool = Marker(c1=(30.0, 0.0), c2=(-5.0, 45.0), outer_diameter=18.0, inner_diameter=7.0, margin=8.0, name="probe", tip=(10, -60, 0))
+    path = tool.save(tmp_path / "probe.yaml")
+    assert Marker.load(path) == tool and Marker.load(path).tip == (10.0, -60.0, 0.0)
+    assert Marker.load(Marker().save(tmp_path / "marker.yaml")) == Marker()  # the paper's marker, named "marker"
+    import yaml
+
+    assert yaml.safe_load(path.read_text())["rings"] == [[0.0, 0.0], [30.0, 0.0], [-5.0, 45.0]]
+
+
+@pytest.mark.parametrize(
+    "text, says",
+    [
+        ("name: a\nrings: [[0, 0], [25, 0], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\n", r"missing \['plate_margin'\]"),
+        (
+            "name: a\nrings: [[0, 0], [25, 0], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\ncolor: red\n",
+            r"unknown \['color'\]",
+        ),
+        ("name: a\nrings: [[0, 0], [25, 0]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n", r"rings must be 3 x 2 numbers"),
+        (
+            "name: a\nrings: [[1, 0], [25, 0], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n",
+            "c0 must be at the origin",
+        ),
+        (
+            "name: a\nrings: [[0, 0], [25, 3], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n",
+            r"c1 must lie on the \+x axis",
+        ),
+        (
+            "name: a\nrings: [[0, 0], [25, 0], [0, -40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n",
+            r"c2 must lie in the \+y",
+        ),
+        (
+            "name: a\nrings: [[0, 0], [25, 0], [0, 40]]\nouter_diameter: .nan\ninner_diameter: 8\nplate_margin: 5\n",
+            "outer_diameter must be a number",
+        ),
+        ("name: 2 b\nrings: [[0, 0], [25, 0], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n", "name must be"),
+        ("name: a\nrings: [[0, 0], [15, 0], [0, 40]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 5\n", "rings overlap"),
+        ("- just\n- a list\n", "a tool file maps the keys"),
+        ("name: [unclosed\n", "not YAML"),
+        ("[" * 20000 + "]" * 20000, "nested too deeply|not a tool file"),
+    ],
+)
+def test_a_bad_tool_file_names_itself_and_the_fault(tmp_path, text, says):
+    path = tmp_path / "tool.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: .*({says})"):
+        Marker.load(path)
+
+
+def test_a_missing_tool_file_is_a_clear_error(tmp_path):
+    with pytest.raises(ValueError, match="cannot read the tool file"):
+        Marker.load(tmp_path / "nope.yaml")
