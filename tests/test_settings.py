@@ -39,3 +39,14 @@ def test_resolve_checks_preset_and_overrides_alike():
     conf = resolve("paper-classical", solve={"pose": "rigid"})
     assert conf["detector"] == "classical" and conf["solve"] == {"pose": "rigid", "bias_correction": False}
     assert resolve(detector="classical")["refine"]["subpixel"] is True  # the shorthand: the classical preset
+
+
+def test_the_readme_describes_the_presets_as_the_code_does():
+    """The presets are described once (presets.ABOUT); the README's table shows that text."""
+    from pathlib import Path
+
+    from markerpose.presets import ABOUT, ORDER
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    for name in ORDER:
+        assert f"| `{name}` | {ABOUT[name]}" in readme, name

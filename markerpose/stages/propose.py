@@ -31,8 +31,12 @@ default_conf = {
 }
 RULES = {"weights": path(), "int8": flag(), "threshold": number(0, 1), "second_look": number(1)}
 
-CANDIDATES = 16  # candidates per view
-NMS = 4  # non-maximum-suppression radius between candidates, px of the 320x240 input
+# Stage 1's candidate list for the stereo detector: the same quantities, under the same
+# names, as the decoded detector's (markerpose.decode.default_conf: threshold,
+# max_candidates, nms_radius, tuned when the weights were exported), at an operating point
+# of their own: more, weaker candidates, since matching across the views rejects decoys.
+MAX_CANDIDATES = 16  # candidates per view
+NMS_RADIUS = 4  # non-maximum-suppression radius between candidates, px of the 320x240 input
 # The second look sees only windows around the first look's best candidates per view (a
 # marker too small to be matched at the first look is still among its best ones), of this
 # many px of its input each side (a large ring needs context beyond its own size).
@@ -86,14 +90,14 @@ class NeuralProposer:
         near = None
         if zoom > 1 and previous is not None:
             near = [p[:SECOND_LOOK_NEAR, :2] for p in previous]
-        return self.net.candidates(grays, c["threshold"], CANDIDATES, zoom, NMS, near=near, window=SECOND_LOOK_WINDOW, kept=kept)
+        return self.net.candidates(grays, c["threshold"], MAX_CANDIDATES, zoom, NMS_RADIUS, near=near, window=SECOND_LOOK_WINDOW, kept=kept)
 
     def near(self, grays: list[np.ndarray], points: list, half: int, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look
         that sees only windows of 2 ``half`` x 2 ``half`` input px around ``points`` (per
         view, (M, 2) full-resolution pixels): where a tracker's prior put the marker."""
         c = self.conf
-        return self.net.candidates(grays, c["threshold"], CANDIDATES, 1.0, NMS, near=points, window=int(half), kept=kept)
+        return self.net.candidates(grays, c["threshold"], MAX_CANDIDATES, 1.0, NMS_RADIUS, near=points, window=int(half), kept=kept)
 
     def decoded(self, grays: list[np.ndarray], kept: list | None = None) -> list:
         """The paper's decoding: per view, (points (3, 2) by ID, score) or None."""
@@ -112,8 +116,8 @@ def classical_view(image: np.ndarray, marker: Marker, conf: dict | None = None):
 
 
 __all__ = [
-    "CANDIDATES",
-    "NMS",
+    "MAX_CANDIDATES",
+    "NMS_RADIUS",
     "RULES",
     "SECOND_LOOK_NEAR",
     "SECOND_LOOK_WINDOW",
