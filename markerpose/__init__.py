@@ -6,5 +6,5 @@ from .pipeline import MarkerPose
 from .presets import PRESETS
 from .results import Detection, Estimate
 
-__version__ = "0.31.0"
+__version__ = "0.32.0"
 __all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "PRESETS", "Detection", "Estimate", "write_target", "__version__"]
