@@ -78,8 +78,8 @@ class MarkerPose:
         marker: marker geometry (default: the paper's robot target).
         preset: a name of :data:`markerpose.presets.PRESETS` ("default", "paper",
             "paper-classical", ...).
-        detector: "neural" or "classical": shorthand for the presets "default" and
-            "classical" (with another preset: that preset with this detector).
+        detector: "neural" or "classical" (shorthand for the presets "default" and "classical"),
+            or any name in :data:`markerpose.detectors.DETECTORS`, over the preset.
         threads: (in ``overrides``) the networks' inference threads (None: every core).
         backend: (in ``overrides``) what runs the networks: "onnxruntime" (the default),
             "openvino" or "openvino-bf16" (OpenVINO at float32 or bfloat16; the ``openvino``
