@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 TOOL_KEYS = ("name", "rings", "outer_diameter", "inner_diameter", "plate_margin", "tip")
+REQUIRED_KEYS = TOOL_KEYS[:5]  # every key but the optional tip
 NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")  # a name that OpenIGTLink's device names and file names take
 
 
@@ -164,7 +165,7 @@ class Marker:
         if not isinstance(data, dict):
             raise ValueError(f"{where}: a tool file maps the keys {list(TOOL_KEYS)}, got {type(data).__name__}")
         unknown = sorted(str(k) for k in data if k not in TOOL_KEYS)
-        missing = [k for k in TOOL_KEYS[:-1] if k not in data]
+        missing = [k for k in REQUIRED_KEYS if k not in data]
         if unknown or missing:
             what = ", ".join(p for p in (f"unknown {unknown}" if unknown else "", f"missing {missing}" if missing else "") if p)
             raise ValueError(f"{where}: {what} key(s); a tool file has {list(TOOL_KEYS)} (tip optional)")

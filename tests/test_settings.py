@@ -38,7 +38,7 @@ def test_resolve_checks_preset_and_overrides_alike():
         resolve(verify={"plate_tol": 0.1})
     conf = resolve("paper-classical", solve={"pose": "rigid"})
     assert conf["detector"] == "classical" and conf["solve"] == {"pose": "rigid", "bias_correction": False}
-    assert resolve(detector="classical")["refine"]["subpixel"] is True  # the shorthand: the classical preset
+    assert resolve(detector="classical") == resolve("classical")  # the shorthand: the classical preset
 
 
 def test_the_readme_describes_the_presets_as_the_code_does():

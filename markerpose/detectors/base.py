@@ -62,7 +62,6 @@ class NeuralDetector(Detector):
         threads, backend: the network's runtime.
     """
 
-    ids = "stereo"
     neural = True
 
     def __init__(
