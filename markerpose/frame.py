@@ -7,6 +7,11 @@ estimate (computed once however many hypotheses refine it) and stage 1's inputs 
 once however many looks and evidence tests use them). Nothing of a call lives in the
 settings or in the stages, so two trackers in two threads share nothing but their
 read-only networks and settings.
+
+With several tools, each tool's detection works in its own :meth:`Frame.child`: its own
+work budget and reason, the images, timings, noise estimates and stage 1's looks shared
+(:meth:`Frame.shared`), and the rings of the tools found so far claimed
+(:meth:`Frame.claim`), so that no other tool is made of them.
 """
 
 from __future__ import annotations
@@ -40,8 +45,45 @@ class Frame:
         self.max_fits = 0
         self.blur_fits: classical.FitBudget | None = None
         self.looked: list = []
+        self.claimed: list[list] = [[], []]  # per view, (centre (2,), radius px, tool name) of the rings found
         self._noise: dict[int, tuple[np.ndarray, float]] = {}
+        self._memo: dict = {}
         self._t0 = time.perf_counter()
+
+    def child(self) -> Frame:
+        """A frame for one more tool's work on the same images: its own budget and reason;
+        the images, timings, noise estimates, stage 1's inputs and looks, and the claimed
+        rings shared with this one."""
+        sub = Frame.__new__(Frame)
+        sub.__dict__.update(self.__dict__)
+        sub.why, sub.fits_left, sub.max_fits, sub.blur_fits = None, None, 0, None
+        return sub
+
+    def shared(self, key, fn, *args):
+        """``fn(*args)``, computed once per call for ``key`` (hashable) across this frame
+        and its children: stage 1's look at the images serves every tool."""
+        if key not in self._memo:
+            self._memo[key] = fn(*args)
+        return self._memo[key]
+
+    def claim(self, name: str, rings: list) -> None:
+        """The rings of the tool ``name``, found in this call: per view, its outer
+        ellipses ((cx, cy), (major, minor), angle). Another tool's rings must lie off them."""
+        for view, ellipses in zip(self.claimed, rings):
+            view.extend((np.asarray(c, np.float64), max(axes) / 2, name) for c, axes, _ in ellipses)
+
+    def claimant(self, view: int, point) -> str | None:
+        """The tool whose claimed ring in ``view`` covers ``point`` (x, y), or None."""
+        for c, r, name in self.claimed[view]:
+            if np.hypot(*(np.asarray(point, np.float64) - c)) <= r:
+                return name
+        return None
+
+    def unclaimed(self, cand: list) -> list:
+        """Per view, the (N, 3) candidates off every claimed ring (all of them while none is)."""
+        if not any(self.claimed):
+            return cand
+        return [c[[self.claimant(v, p[:2]) is None for p in c]] if len(c) else c for v, c in enumerate(cand)]
 
     def failed(self, reason: str) -> None:
         """Remember why a hypothesis failed, if it is the first reason of this call."""

@@ -8,25 +8,33 @@ The public entry point (docs/design.md)::
     tracker.reset()                                # forget the prior (a new sequence)
     det = tracker.detect(image, view=0)            # one view: Detection or None
 
-The detectors (:mod:`markerpose.detectors`) yield refined hypotheses of both views; this
-class verifies and solves them (:mod:`markerpose.stages`), and a
-:class:`~markerpose.stages.track.Tracker` carries the marker from frame to frame. What one
-call needs lives in its :class:`~markerpose.frame.Frame`.
+    tools = MarkerPose(rig, markers=[a, b, c])     # several tools (markerpose.tools)
+    found = tools.estimate_all(left, right)        # {name: Estimate} of the tools found
+    found = tools.track_all(left, right)           # the same along a video
+
+The detectors (:mod:`markerpose.detectors`) yield refined hypotheses of both views; a
+:class:`ToolPipeline` verifies and solves them (:mod:`markerpose.stages`) for one marker,
+and its :class:`~markerpose.stages.track.Tracker` carries the marker from frame to frame.
+Each tool has its own, over networks shared by all. What one call needs lives in its
+:class:`~markerpose.frame.Frame`.
 """
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import closing, contextmanager
+from pathlib import Path
 
 from . import detectors, presets
 from .camera import StereoRig
 from .frame import Frame
+from .geometry import ring_ellipses
 from .images import as_gray, check_size, gray_pair
 from .marker import Marker
 from .results import Detection, Estimate
 from .stages import refine, solve, track, verify
+from .tools import check_tools
 
 
 class _SerialBlas:
@@ -70,108 +78,23 @@ class _SerialBlas:
 serial_blas = _SerialBlas()
 
 
-class MarkerPose:
-    """Stereo pose of the three-ring marker.
+class ToolPipeline:
+    """One marker's stages: its detector, verification, solve and tracker, over networks
+    it may share with other tools' (:meth:`MarkerPose.__init__` builds them).
 
-    Args:
-        rig: the calibrated stereo rig.
-        marker: marker geometry (default: the paper's robot target).
-        preset: a name of :data:`markerpose.presets.PRESETS` ("default", "paper",
-            "paper-classical", ...).
-        detector: "neural" or "classical" (shorthand for the presets "default" and "classical"),
-            or any name in :data:`markerpose.detectors.DETECTORS`, over the preset.
-        threads: (in ``overrides``) the networks' inference threads (None: every core).
-        backend: (in ``overrides``) what runs the networks: "onnxruntime" (the default),
-            "openvino" or "openvino-bf16" (OpenVINO at float32 or bfloat16; the ``openvino``
-            extra).
-        **overrides: one dict of settings per stage (``propose``, ``match``, ``refine``,
-            ``verify``, ``solve``, ``track``; see each stage's ``default_conf``), applied
-            over the preset.
-
-    One MarkerPose handles one call at a time: a call made while another thread's call
-    is under way raises ``RuntimeError`` (a video stream's frames come in order; give
-    each thread or stream its own MarkerPose, which shares nothing with another).
+    It is the ``pipeline`` its :class:`~markerpose.stages.track.Tracker` calls
+    (``cold``, ``near``, ``fitted``). A pose whose rings another tool found in the same
+    call (:meth:`~markerpose.frame.Frame.claim`) is rejected: one ring is one tool's.
     """
 
-    def __init__(self, rig: StereoRig, marker: Marker | None = None, preset: str = "default", detector: str | None = None, **overrides):
-        if not isinstance(rig, StereoRig):
-            raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
-        self.conf = c = presets.resolve(preset, detector, **overrides)
-        self.preset = preset
-        self.rig, self.marker = rig, marker or Marker()
-        neural = detectors.DETECTORS[detectors.name_for(c)].neural
-        self.refiner = refine.Refiner(c["refine"], self.marker, neural, c["threads"], c["backend"])
-        self.detector = detectors.create(c, rig, self.marker, self.refiner, c["threads"], c["backend"])
-        self.tracker = track.Tracker(c["track"], rig, self.marker)
-        self.timings: dict = {}  # seconds per stage of the last call (see markerpose bench)
-        self.why: str | None = None  # after a call that found nothing: the first reason met
-        self._busy = threading.Lock()
+    def __init__(self, conf: dict, rig: StereoRig, marker: Marker, refiner: refine.Refiner, detector: detectors.Detector):
+        self.conf, self.rig, self.marker = conf, rig, marker
+        self.refiner, self.detector = refiner, detector
+        self.tracker = track.Tracker(conf["track"], rig, marker)
 
-    def __repr__(self):
-        return f"MarkerPose(preset={self.preset!r}, conf={self.conf!r})"
-
-    @contextmanager
-    def _call(self, grays: list):
-        """One call's frame, numpy's BLAS on one thread meanwhile; its timings and why kept."""
-        if not self._busy.acquire(blocking=False):
-            raise RuntimeError("this MarkerPose is handling a call in another thread: give each thread its own MarkerPose")
-        frame = Frame(grays)
-        try:
-            with serial_blas():
-                yield frame
-        finally:
-            self.timings, self.why = frame.finish(), frame.why
-            self._busy.release()
-
-    def detect(self, image, view: int = 0) -> Detection | None:
-        """Ring centres c0, c1, c2 in one view (the fitted outer ellipses' centres), or None.
-
-        Args:
-            image: uint8 gray (H, W) or BGR (H, W, 3), of the size the rig was calibrated for.
-            view: which of the rig's cameras took it (0 left, 1 right).
-        """
-        if view not in (0, 1):
-            raise ValueError(f"view must be 0 (left) or 1 (right), got {view!r}")
-        gray = as_gray(image)
-        check_size(gray, self.rig.cameras[view], "image")
-        with self._call([gray]) as frame:
-            return self.detector.view(frame, view)
-
-    def estimate(self, left, right) -> Estimate | None:
-        """Pose of the marker from a stereo pair, or None if it is not found in both views.
-        Stateless: every pair is detected from scratch (see :meth:`track` for video).
-
-        Args:
-            left, right: uint8 gray (H, W) or BGR (H, W, 3) images of the same size.
-        Returns:
-            :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
-        """
-        with self._call(gray_pair(left, right, self.rig)) as frame:
-            est = self.cold(frame)
-            frame.why = None if est is not None else (frame.why or "no marker found")
-            return est
-
-    def track(self, left, right) -> Estimate | None:
-        """Pose of the marker in the next pair of a video stream, or None.
-
-        Uses the previous frames as the prior (:class:`~markerpose.stages.track.Tracker`):
-        the rings predicted from the last poses are refitted on the image's edges in both
-        views and verified; where that fails (the marker lost, moved too fast, put down
-        elsewhere), the marker is sought near the prediction by its appearance and, found
-        there, fitted the same way; failing that, the pair is detected cold: first with
-        stage 1 looking only near the predicted marker, then in the whole images, as
-        :meth:`estimate` does. ``Estimate.source`` says which ("tracked": from the prior,
-        without stage 1; "detected"). While the marker is lost, a pair that has not changed
-        since the last one detected without it returns None at once (``track``:
-        ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
-        :meth:`reset` between sequences.
-        """
-        with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self.tracker.next(frame, self)
-
-    def reset(self) -> None:
-        """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
-        self.tracker.reset()
+    @property
+    def name(self) -> str:
+        return self.marker.name
 
     def cold(self, frame: Frame) -> Estimate | None:
         """Detection from scratch: the detector's hypotheses, verified and solved in turn."""
@@ -193,6 +116,12 @@ class MarkerPose:
             return None
         return self._solved(frame, found, "tracked")
 
+    def claim(self, frame: Frame, est: Estimate) -> None:
+        """Claim, in ``frame``, the rings of this tool's pose ``est``."""
+        Ts = (est.T, self.rig.T_right_left @ est.T)
+        mk = self.marker
+        frame.claim(self.name, [ring_ellipses(cam, T, mk.points3d, mk.outer_radius) for cam, T in zip(self.rig.cameras, Ts)])
+
     def _first(self, frame: Frame, hypotheses: Iterator) -> Estimate | None:
         """The first of the hypotheses that passes verification, solved; None if none does."""
         with closing(hypotheses):
@@ -211,15 +140,208 @@ class MarkerPose:
         return self._solved(frame, found)
 
     def _solved(self, frame: Frame, found: list, source: str = "detected") -> Estimate | None:
-        """Solve, then reject points that do not have the marker's shape (a wrong triple)."""
+        """Solve, then reject points that do not have the marker's shape (a wrong triple),
+        and rings another tool was found on."""
         est = frame.timed("solve", solve.solve, self.rig, self.marker, found[0], found[1], self.conf["solve"], source)
-        if verify.shape(est.points3d, self.marker, self.conf["verify"]):
+        if not verify.shape(est.points3d, self.marker, self.conf["verify"]):
+            frame.failed(
+                f"shape check: the triangulated centres are {verify.shape_error(est.points3d, self.marker.points3d):.2f} mm "
+                f"from the marker's layout (limit {self.conf['verify']['max_shape_error']:g} mm)"
+            )
+            return None
+        if any(frame.claimed):
+            for view, centres in enumerate(est.centers):
+                for c in centres:
+                    other = frame.claimant(view, c)
+                    if other is not None:
+                        frame.failed(f"a ring of this pose is one of {other!r}'s, found in the same pair")
+                        return None
+        return est
+
+
+class MarkerPose:
+    """Stereo pose of the three-ring marker, or of several tools at once.
+
+    Args:
+        rig: the calibrated stereo rig.
+        marker: marker geometry (default: the paper's robot target).
+        markers: instead of ``marker``, several tools (Markers or tool files,
+            :meth:`Marker.load`), with distinct names and layouts told apart
+            (:func:`markerpose.tools.check_tools`): see :meth:`estimate_all`,
+            :meth:`track_all`. One stage 1 per pair serves them all.
+        preset: a name of :data:`markerpose.presets.PRESETS` ("default", "paper",
+            "paper-classical", ...).
+        detector: "neural" or "classical" (shorthand for the presets "default" and "classical"),
+            or any name in :data:`markerpose.detectors.DETECTORS`, over the preset.
+        threads: (in ``overrides``) the networks' inference threads (None: every core).
+        backend: (in ``overrides``) what runs the networks: "onnxruntime" (the default),
+            "openvino" or "openvino-bf16" (OpenVINO at float32 or bfloat16; the ``openvino``
+            extra).
+        **overrides: one dict of settings per stage (``propose``, ``match``, ``refine``,
+            ``verify``, ``solve``, ``track``; see each stage's ``default_conf``), applied
+            over the preset.
+
+    One MarkerPose handles one call at a time: a call made while another thread's call
+    is under way raises ``RuntimeError`` (a video stream's frames come in order; give
+    each thread or stream its own MarkerPose, which shares nothing with another).
+    """
+
+    def __init__(
+        self,
+        rig: StereoRig,
+        marker: Marker | None = None,
+        preset: str = "default",
+        detector: str | None = None,
+        markers: Sequence[Marker | str | Path] | None = None,
+        **overrides,
+    ):
+        if not isinstance(rig, StereoRig):
+            raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
+        self.conf = c = presets.resolve(preset, detector, **overrides)
+        self.preset = preset
+        self.markers = _markers(marker, markers)
+        kind = detectors.DETECTORS[detectors.name_for(c)]
+        if len(self.markers) > 1 and kind.name == "decoded":
+            raise ValueError("several tools need a detector that matches rings by their 3D shape: use the preset 'default' or 'classical'")
+        if c["solve"]["pose"] == "paper":
+            for m in self.markers:
+                if abs(m.c2[0]) > 1e-9:
+                    raise ValueError(f"solve pose 'paper' takes c2 on the marker's +y axis; {m.name!r} has c2 = {m.c2}: use pose 'rigid'")
+        self.rig, self.marker = rig, self.markers[0]
+        refiner = refine.Refiner(c["refine"], self.marker, kind.neural, c["threads"], c["backend"])
+        det = detectors.create(c, rig, self.marker, refiner, c["threads"], c["backend"])
+        self.tools = {self.marker.name: ToolPipeline(c, rig, self.marker, refiner, det)}
+        for m in self.markers[1:]:  # the first tool's networks serve every tool
+            r = refiner.for_marker(m)
+            self.tools[m.name] = ToolPipeline(c, rig, m, r, det.for_marker(m, r))
+        first = self.tools[self.marker.name]
+        self.refiner, self.detector, self.tracker = first.refiner, first.detector, first.tracker
+        self.timings: dict = {}  # seconds per stage of the last call (see markerpose bench)
+        self.why: str | None = None  # after a call that found nothing: the first reason met
+        self.whys: dict[str, str] = {}  # after estimate_all / track_all: why each tool not found was not
+        self._busy = threading.Lock()
+
+    def __repr__(self):
+        names = f", markers={list(self.tools)!r}" if len(self.tools) > 1 else ""
+        return f"MarkerPose(preset={self.preset!r}{names}, conf={self.conf!r})"
+
+    @contextmanager
+    def _call(self, grays: list):
+        """One call's frame, numpy's BLAS on one thread meanwhile; its timings and why kept."""
+        if not self._busy.acquire(blocking=False):
+            raise RuntimeError("this MarkerPose is handling a call in another thread: give each thread its own MarkerPose")
+        frame = Frame(grays)
+        try:
+            with serial_blas():
+                yield frame
+        finally:
+            self.timings, self.why = frame.finish(), frame.why
+            self._busy.release()
+
+    def _one(self, call: str) -> ToolPipeline:
+        if len(self.tools) > 1:
+            raise ValueError(f"{call}() follows one marker; with several tools call {call}_all(), which returns each tool's")
+        return self.tools[self.marker.name]
+
+    def detect(self, image, view: int = 0) -> Detection | None:
+        """Ring centres c0, c1, c2 in one view (the fitted outer ellipses' centres), or None.
+
+        Args:
+            image: uint8 gray (H, W) or BGR (H, W, 3), of the size the rig was calibrated for.
+            view: which of the rig's cameras took it (0 left, 1 right).
+        """
+        if view not in (0, 1):
+            raise ValueError(f"view must be 0 (left) or 1 (right), got {view!r}")
+        tool = self._one("detect")
+        gray = as_gray(image)
+        check_size(gray, self.rig.cameras[view], "image")
+        with self._call([gray]) as frame:
+            return tool.detector.view(frame, view)
+
+    def estimate(self, left, right) -> Estimate | None:
+        """Pose of the marker from a stereo pair, or None if it is not found in both views.
+        Stateless: every pair is detected from scratch (see :meth:`track` for video).
+
+        Args:
+            left, right: uint8 gray (H, W) or BGR (H, W, 3) images of the same size.
+        Returns:
+            :class:`Estimate` (``T`` = T_left_marker in mm, ``points3d``, ``centers``) or None.
+        """
+        tool = self._one("estimate")
+        with self._call(gray_pair(left, right, self.rig)) as frame:
+            est = tool.cold(frame)
+            frame.why = None if est is not None else (frame.why or "no marker found")
             return est
-        frame.failed(
-            f"shape check: the triangulated centres are {verify.shape_error(est.points3d, self.marker.points3d):.2f} mm "
-            f"from the marker's layout (limit {self.conf['verify']['max_shape_error']:g} mm)"
-        )
-        return None
+
+    def track(self, left, right) -> Estimate | None:
+        """Pose of the marker in the next pair of a video stream, or None.
+
+        Uses the previous frames as the prior (:class:`~markerpose.stages.track.Tracker`):
+        the rings predicted from the last poses are refitted on the image's edges in both
+        views and verified; where that fails (the marker lost, moved too fast, put down
+        elsewhere), the marker is sought near the prediction by its appearance and, found
+        there, fitted the same way; failing that, the pair is detected cold: first with
+        stage 1 looking only near the predicted marker, then in the whole images, as
+        :meth:`estimate` does. ``Estimate.source`` says which ("tracked": from the prior,
+        without stage 1; "detected"). While the marker is lost, a pair that has not changed
+        since the last one detected without it returns None at once (``track``:
+        ``lost_change``; a cold detection still runs every ``lost_refresh`` pairs). Call
+        :meth:`reset` between sequences.
+        """
+        tool = self._one("track")
+        with self._call(gray_pair(left, right, self.rig)) as frame:
+            return tool.tracker.next(frame, tool)
+
+    def estimate_all(self, left, right) -> dict[str, Estimate]:
+        """Each tool's pose from a stereo pair, detected from scratch: ``{name: Estimate}``
+        of the tools found (``{}`` when none is). Stage 1 looks at the pair once for all
+        tools; each tool's triples are matched by its own 3D shape, and the rings of a
+        tool found are not another's. ``whys`` says why each missing tool was not found."""
+        with self._call(gray_pair(left, right, self.rig)) as frame:
+            return self._each(frame, lambda tool, sub: tool.cold(sub), list(self.tools.values()))
+
+    def track_all(self, left, right) -> dict[str, Estimate]:
+        """Each tool's pose in the next pair of a video stream: ``{name: Estimate}`` of the
+        tools found. Each tool has its own tracker (as :meth:`track` has): the tools
+        with a prior are fitted first, then those without are detected cold, with stage 1
+        looking once for all of them. Call :meth:`reset` between sequences."""
+        tools = sorted(self.tools.values(), key=lambda t: not t.tracker.history)  # tracked tools claim their rings first
+        with self._call(gray_pair(left, right, self.rig)) as frame:
+            return self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool), tools)
+
+    def _each(self, frame: Frame, step, tools: list) -> dict[str, Estimate]:
+        """``step(tool, frame)`` of each tool in its own child frame; those found claim their rings."""
+        found, self.whys = {}, {}
+        for tool in tools:
+            sub = frame.child()
+            est = step(tool, sub)
+            if est is None:
+                self.whys[tool.name] = sub.why or "not found"
+                continue
+            found[tool.name] = est
+            tool.claim(frame, est)
+        frame.why = "; ".join(f"{n}: {w}" for n, w in self.whys.items()) if not found else None
+        return {name: found[name] for name in self.tools if name in found}
+
+    def reset(self) -> None:
+        """Forget the prior: the next :meth:`track` detects cold (a new sequence)."""
+        for tool in self.tools.values():
+            tool.tracker.reset()
 
 
-__all__ = ["MarkerPose", "serial_blas"]
+def _markers(marker: Marker | None, markers) -> list[Marker]:
+    """The tools a MarkerPose follows: ``marker`` (default: the paper's), or ``markers``
+    (Markers or tool files), checked to be told apart."""
+    if markers is None:
+        if marker is not None and not isinstance(marker, Marker):
+            raise ValueError(f"marker must be a Marker, got {type(marker).__name__}")
+        return [marker or Marker()]
+    if marker is not None:
+        raise ValueError("give marker or markers, not both")
+    if isinstance(markers, (str, Path, Marker)) or not len(markers):
+        raise ValueError("markers must be a non-empty list of Markers or tool files")
+    loaded = [m if isinstance(m, Marker) else Marker.load(m) for m in markers]
+    return check_tools(loaded, [str(m) if not isinstance(m, Marker) else m.name for m in markers])
+
+
+__all__ = ["MarkerPose", "ToolPipeline", "serial_blas"]

@@ -253,10 +253,12 @@ def test_plate_check_rejects_a_ring_refined_onto_the_wrong_edge(rig):
     _, (w, h), ang = ell[2]
     ell[2] = (tuple(moved), (0.8 * w, 0.8 * h), ang)
     bad = replace(right, centers=np.vstack([right.centers[:2], moved]), ellipses=ell)
-    assert mp.MarkerPose(rig, verify={**loose, "plate_check": False})._accepted(Frame(list(f.images)), [left, bad]) is not None
+    assert (
+        mp.MarkerPose(rig, verify={**loose, "plate_check": False}).tools["marker"]._accepted(Frame(list(f.images)), [left, bad]) is not None
+    )
     checked = mp.MarkerPose(rig, verify=loose)
-    assert checked._accepted(Frame(list(f.images)), [left, bad]) is None
-    assert checked._accepted(Frame(list(f.images)), [left, right]) is not None
+    assert checked.tools["marker"]._accepted(Frame(list(f.images)), [left, bad]) is None
+    assert checked.tools["marker"]._accepted(Frame(list(f.images)), [left, right]) is not None
 
 
 def test_single_view_tries_triples_by_ring_evidence(rig, tracker):

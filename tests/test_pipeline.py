@@ -242,8 +242,9 @@ def test_blas_runs_on_one_thread_inside_a_call_only(rig, frame, monkeypatch):
         pytest.skip("numpy's BLAS is not one threadpoolctl can see")
     tracker = mp.MarkerPose(rig)
     inside = []
-    cold = tracker.cold
-    monkeypatch.setattr(tracker, "cold", lambda frame: (inside.append(_blas_threads()), cold(frame))[1])
+    tool = tracker.tools["marker"]
+    cold = tool.cold
+    monkeypatch.setattr(tool, "cold", lambda frame: (inside.append(_blas_threads()), cold(frame))[1])
     with threadpool_limits(limits=2, user_api="blas"):
         est = tracker.estimate(*frame.images)
         assert est is not None and inside and all(n == 1 for n in inside[0])
@@ -330,8 +331,9 @@ def test_two_trackers_in_two_threads_share_nothing(rig):
         np.testing.assert_array_equal(np.stack(a), np.stack(b))
     tracker = mp.MarkerPose(rig, detector="classical")
     entered, release = threading.Event(), threading.Event()
-    cold = tracker.cold
-    tracker.cold = lambda frame: (entered.set(), release.wait(10), cold(frame))[2]
+    tool = tracker.tools["marker"]
+    cold = tool.cold
+    tool.cold = lambda frame: (entered.set(), release.wait(10), cold(frame))[2]
     worker = threading.Thread(target=tracker.estimate, args=seqs[0][0])
     worker.start()
     assert entered.wait(10)

@@ -9,6 +9,7 @@ one view alone (:meth:`Detector.view`) and, where it can, near a pose a tracker 
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Iterator
 
 import numpy as np
@@ -38,6 +39,12 @@ class Detector:
 
     def __init__(self, conf: dict, rig: StereoRig, marker: Marker, refiner: Refiner):
         self.conf, self.rig, self.marker, self.refiner = conf, rig, marker, refiner
+
+    def for_marker(self, marker: Marker, refiner: Refiner) -> Detector:
+        """This detector for another marker (with that marker's ``refiner``), sharing its networks."""
+        other = copy.copy(self)
+        other.marker, other.refiner = marker, refiner
+        return other
 
     def pairs(self, frame: Frame) -> Iterator[list[Detection]]:
         """Refined hypotheses of both views ([left, right] Detections), best first."""
@@ -70,6 +77,11 @@ class NeuralDetector(Detector):
         super().__init__(conf, rig, marker, refiner)
         self.ids = conf["match"]["method"]
         self.proposer = propose.NeuralProposer(conf["propose"], marker, self.ids, threads, backend)
+
+    def for_marker(self, marker: Marker, refiner: Refiner) -> NeuralDetector:
+        other = super().for_marker(marker, refiner)
+        other.proposer = self.proposer.for_marker(marker)
+        return other
 
     def start_budget(self, frame: Frame) -> None:
         """A cold detection's work budget (``match.max_fits``, ``refine.max_blur_fits``)."""

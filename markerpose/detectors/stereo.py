@@ -37,8 +37,14 @@ class StereoDetector(NeuralDetector):
             self.start_budget(frame)
         cand = None
         for zoom in self.proposer.looks():
-            cand = frame.timed("propose", self.proposer.candidates, frame.grays, zoom, cand, frame.looked)
+            cand = frame.unclaimed(self.look(frame, zoom, cand))
             yield from self.from_candidates(frame, cand, zoom)
+
+    def look(self, frame: Frame, zoom: float, previous: list | None) -> list:
+        """Stage 1's candidates of the look ``zoom`` (:meth:`~markerpose.stages.propose.NeuralProposer.candidates`),
+        made once per call for every tool that asks with the same ``previous`` look."""
+        key = ("look", zoom, None if previous is None else tuple(self.proposer.near_key(p) for p in previous))
+        return frame.shared(key, frame.timed, "propose", self.proposer.candidates, frame.grays, zoom, previous, frame.looked)
 
     def from_candidates(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
         """Stage 1's candidates of both views (from the look ``zoom``) matched by the

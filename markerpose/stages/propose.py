@@ -15,6 +15,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from .. import classical, settings
@@ -74,6 +76,13 @@ class NeuralProposer:
             weights = int8_weights("keypoints")
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
+    def for_marker(self, marker: Marker) -> NeuralProposer:
+        """This stage 1 for another marker (its layout and rings' evidence), sharing the network."""
+        other = copy.copy(self)
+        other.net = copy.copy(self.net)
+        other.net.marker = marker
+        return other
+
     def looks(self) -> tuple[float, ...]:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""
         zoom = float(self.conf["second_look"])
@@ -91,6 +100,11 @@ class NeuralProposer:
         if zoom > 1 and previous is not None:
             near = [p[:SECOND_LOOK_NEAR, :2] for p in previous]
         return self.net.candidates(grays, c["threshold"], MAX_CANDIDATES, zoom, NMS_RADIUS, near=near, window=SECOND_LOOK_WINDOW, kept=kept)
+
+    @staticmethod
+    def near_key(previous: np.ndarray) -> bytes:
+        """What of one view's ``previous`` candidates a zoomed look depends on (hashable)."""
+        return np.ascontiguousarray(previous[:SECOND_LOOK_NEAR, :2]).tobytes()
 
     def near(self, grays: list[np.ndarray], points: list, half: int, kept: list | None = None) -> list[np.ndarray]:
         """Per view, (N, 3) candidates as :meth:`candidates` gives them, from a first look

@@ -20,6 +20,8 @@ classical detector's own triples are refined by :meth:`Refiner.triple`.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from .. import camera, classical, edges, jit
@@ -89,6 +91,12 @@ class Refiner:
         self.edge_refit = self.net is not None and bool(conf["edge_refit"]) and conf["fit"] != "moments"
         # Whether refined detections carry the rings' ellipses (what the plate check needs).
         self.gives_ellipses = self.edge_refit or conf["method"] == "classical"
+
+    def for_marker(self, marker: Marker) -> Refiner:
+        """This refine stage for another marker's rings, sharing its network."""
+        other = copy.copy(self)
+        other.marker = marker
+        return other
 
     def __call__(self, frame: Frame, grays: list, cameras: list, points: list, blur_gate=None, mask_gate=None) -> list:
         """Per view, the Detection near (points (3, 2), score), or None where None is given.
