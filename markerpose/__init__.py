@@ -4,7 +4,18 @@ from .camera import Camera, StereoRig
 from .marker import Marker, write_target
 from .pipeline import MarkerPose
 from .presets import PRESETS
-from .results import Detection, Estimate
+from .results import Detection, Estimate, relative_poses
 
 __version__ = "0.32.0"
-__all__ = ["Camera", "StereoRig", "Marker", "MarkerPose", "PRESETS", "Detection", "Estimate", "write_target", "__version__"]
+__all__ = [
+    "Camera",
+    "StereoRig",
+    "Marker",
+    "MarkerPose",
+    "PRESETS",
+    "Detection",
+    "Estimate",
+    "write_target",
+    "relative_poses",
+    "__version__",
+]

@@ -68,3 +68,18 @@ class Estimate:
     def t(self) -> np.ndarray:
         """(3,) translation of T_left_marker, mm (the position of c0)."""
         return self.T[:3, 3]
+
+
+def relative_poses(found: dict[str, Estimate], reference: str) -> dict[str, np.ndarray]:
+    """T_reference_tool (4, 4, mm) of every tool in ``found`` (``{name: Estimate}``, as
+    :meth:`markerpose.MarkerPose.track_all` returns it) other than ``reference``: each
+    tool's pose in the frame of the reference tool seen in the same pair. ``{}`` when
+    the reference is not in ``found``: a tool is never reported relative to a reference
+    that was not seen."""
+    if reference not in found:
+        return {}
+    inv = np.linalg.inv(found[reference].T)
+    return {name: inv @ est.T for name, est in found.items() if name != reference}
+
+
+__all__ = ["Detection", "Estimate", "relative_poses"]

@@ -6,6 +6,11 @@ pose ``T_left_marker`` as a translation, a quaternion (x, y, z, w), a rotation v
 and the 16 matrix entries; empty pose fields when the marker is not found). The CSV is
 written to ``NAME.partial`` and renamed when the stream ends or is stopped with Ctrl-C,
 so a file under the final name always holds every frame that was read.
+
+With several tools (:meth:`markerpose.MarkerPose.track_all`), :func:`track_tools_stream`
+writes the CSV in long form, one row a frame and tool (:data:`TOOLS_CSV_HEADER`): each
+tool's pose in the left camera's frame, or, given a reference tool, every other tool's
+pose in the reference's frame (T_reference_tool) as seen in the same pair.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import json
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -27,6 +33,11 @@ CSV_HEADER = (
     + [f"T{i}{j}" for i in range(4) for j in range(4)]
     + ["residual_px"]
 )
+# Long form, one row a frame and tool: which tool, and the frame its pose is in ("camera":
+# T_left_tool, as CSV_HEADER's; else the reference tool's name: T_reference_tool).
+TOOLS_CSV_HEADER = CSV_HEADER[:2] + ["tool", "relative_to"] + CSV_HEADER[2:]
+CAMERA = "camera"
+REFERENCE_NOT_SEEN = "reference not seen"
 
 
 class _Folder:
@@ -135,17 +146,83 @@ def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream
     return StereoStream(left, right, fps)
 
 
-def pose_row(k: int, t: float, est) -> list:
-    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds."""
-    if est is None:
-        return [k, f"{t:.6f}", 0] + [""] * (len(CSV_HEADER) - 3)
+def _pose_cells(T, residual_px) -> list:
+    """``valid`` and the pose fields of :data:`CSV_HEADER` for the pose ``T`` (4, 4, mm),
+    or valid 0 and empty fields when ``T`` is None."""
+    if T is None:
+        return [0] + [""] * (len(CSV_HEADER) - 3)
     from scipy.spatial.transform import Rotation
 
     from .geometry import nearest_rotation
 
-    R = Rotation.from_matrix(nearest_rotation(est.R))
-    vals = [*est.t, *R.as_quat(), *R.as_rotvec(), *est.T.ravel(), est.residual_px]
-    return [k, f"{t:.6f}", 1, *(f"{v:.9g}" for v in vals)]
+    T = np.asarray(T)
+    R = Rotation.from_matrix(nearest_rotation(T[:3, :3]))
+    vals = [*T[:3, 3], *R.as_quat(), *R.as_rotvec(), *T.ravel(), residual_px]
+    return [1, *(f"{v:.9g}" for v in vals)]
+
+
+def pose_row(k: int, t: float, est) -> list:
+    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds."""
+    return [k, f"{t:.6f}", *_pose_cells(None if est is None else est.T, None if est is None else est.residual_px)]
+
+
+class ToolReport(NamedTuple):
+    """What a frame reports of one tool.
+
+    Attributes:
+        name: the tool's name.
+        relative_to: the frame ``T`` is in: :data:`CAMERA` (T_left_tool) or the reference
+            tool's name (T_reference_tool).
+        T: (4, 4) the pose reported, mm, or None (the tool, or its reference, not found).
+        est: the tool's own :class:`~markerpose.results.Estimate` (left camera), or None.
+        why: None when ``T`` is reported, else why not: the tracker's reason, or
+            :data:`REFERENCE_NOT_SEEN`.
+    """
+
+    name: str
+    relative_to: str
+    T: np.ndarray | None
+    est: object
+    why: str | None
+
+    @property
+    def valid(self) -> bool:
+        return self.T is not None
+
+
+def tool_reports(found: dict, names, reference: str | None = None, whys: dict | None = None) -> list[ToolReport]:
+    """One :class:`ToolReport` per tool of ``names``, in that order, from ``found``
+    (``{name: Estimate}`` of :meth:`markerpose.MarkerPose.track_all`; ``whys`` its
+    tracker's ``whys``). With ``reference``, every other tool is reported relative to it
+    (:func:`markerpose.results.relative_poses`), and not at all when the reference is not
+    in ``found``; the reference itself in the camera's frame."""
+    from .results import relative_poses
+
+    whys = whys or {}
+    relative = relative_poses(found, reference) if reference is not None else {}
+    out = []
+    for name in names:
+        est = found.get(name)
+        missing = None if est is not None else whys.get(name, "not found")
+        if reference is None or name == reference:
+            out.append(ToolReport(name, CAMERA, None if est is None else est.T, est, missing))
+        else:
+            T = relative.get(name)
+            out.append(ToolReport(name, reference, T, est, missing or (None if T is not None else REFERENCE_NOT_SEEN)))
+    return out
+
+
+def tools_row(k: int, t: float, report: ToolReport) -> list:
+    """One CSV row (see :data:`TOOLS_CSV_HEADER`) of one tool in frame ``k`` at ``t``
+    seconds; the residual is the tool's own, also for a pose relative to the reference."""
+    residual = report.est.residual_px if report.valid else None
+    return [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual)]
+
+
+def igtl_device_name(tool: str, relative_to: str = CAMERA) -> str:
+    """The OpenIGTLink device name of a tool's pose, PLUS's way: ``Tool1ToTracker`` for
+    ``tool1`` in the camera's frame, ``Tool1ToReference`` relative to the reference tool."""
+    return f"{tool[:1].upper()}{tool[1:]}To{'Tracker' if relative_to == CAMERA else 'Reference'}"
 
 
 class IGTLSender:
@@ -176,25 +253,70 @@ class IGTLSender:
     def __call__(self, k: int, t: float, est, wait: bool = False) -> bool:
         if est is None or not self.server.is_connected():
             return False
-        msg = self._pyigtl.TransformMessage(np.asarray(est.T, np.float64), timestamp=float(t), device_name=self.name)
+        self._send(self.name, est.T, t, wait)
+        return True
+
+    def _send(self, name: str, T, t: float, wait: bool) -> None:
+        msg = self._pyigtl.TransformMessage(np.asarray(T, np.float64), timestamp=float(t), device_name=name)
         self.server.send_message(msg, wait=wait)
         self.sent += 1
-        return True
 
     def close(self):
         self.server.stop()
 
 
+class IGTLToolsSender(IGTLSender):
+    """An :class:`IGTLSender` for several tools: each frame, one TRANSFORM per tool
+    reported (:class:`ToolReport`), named by :func:`igtl_device_name` (``Tool1ToTracker``,
+    or ``Tool1ToReference`` relative to the reference tool). A tool not reported (not
+    found, or its reference not seen) sends nothing.
+
+    Args:
+        port: TCP port (OpenIGTLink's default is 18944).
+        tools: the tools' names, to check that their device names differ.
+        reference: the reference tool's name, or None.
+        local_only: listen on 127.0.0.1 only (False: the machine's network interface).
+    """
+
+    def __init__(self, port: int = 18944, tools=(), reference: str | None = None, local_only: bool = True):
+        self.devices = {n: igtl_device_name(n, CAMERA if reference in (None, n) else reference) for n in tools}
+        seen: dict[str, str] = {}
+        for tool, device in self.devices.items():
+            if device in seen:
+                raise ValueError(f"the tools {seen[device]!r} and {tool!r} would both be sent as {device!r} over OpenIGTLink; rename one")
+            seen[device] = tool
+        super().__init__(port, name=None, local_only=local_only)
+
+    def __call__(self, k: int, t: float, reports, wait: bool = False) -> int:
+        """Send frame ``k``'s reported poses (at ``t`` seconds); the number sent."""
+        if not self.server.is_connected():
+            return 0
+        sent = 0
+        for r in reports:
+            if r.valid:
+                self._send(igtl_device_name(r.name, r.relative_to), r.T, t, wait)
+                sent += 1
+        return sent
+
+
+def _annotated(images, est, rig) -> np.ndarray:
+    """Both views side by side with the axes drawn: of the estimate ``est``
+    (:func:`~markerpose.viz.annotate_pair`), or of each tool of ``{name: Estimate}``
+    (:func:`~markerpose.viz.annotate_tools`)."""
+    from .viz import annotate_pair, annotate_tools
+
+    return annotate_tools(images, est, rig) if isinstance(est, dict) else annotate_pair(images, est, rig)
+
+
 class VideoSink:
-    """Both views side by side with the marker's axes drawn, into a video file (mp4v)."""
+    """Both views side by side with the marker's axes drawn, into a video file (mp4v);
+    with several tools (``est`` a ``{name: Estimate}``), each tool's axes and name."""
 
     def __init__(self, path: str | Path, rig, fps: float):
         self.path, self.rig, self.fps, self.writer = Path(path), rig, fps, None
 
     def __call__(self, k, t, left, right, est):
-        from .viz import annotate_pair
-
-        frame = annotate_pair((left, right), est, self.rig)
+        frame = _annotated((left, right), est, self.rig)
         if self.writer is None:
             h, w = frame.shape[:2]
             self.writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.fps), (w, h))
@@ -208,8 +330,8 @@ class VideoSink:
 
 
 class ShowSink:
-    """A live window with both views and the axes (OpenCV with GUI support and a display);
-    q or Esc stops the stream like Ctrl-C."""
+    """A live window with both views and the axes (OpenCV with GUI support and a display;
+    several tools as :class:`VideoSink` draws them); q or Esc stops the stream like Ctrl-C."""
 
     def __init__(self, rig, name: str = "markerpose"):
         self.rig, self.name = rig, name
@@ -219,9 +341,7 @@ class ShowSink:
             raise ValueError("--show needs OpenCV with GUI support (opencv-python, not -headless) and a display") from exc
 
     def __call__(self, k, t, left, right, est):
-        from .viz import annotate_pair
-
-        cv2.imshow(self.name, annotate_pair((left, right), est, self.rig))
+        cv2.imshow(self.name, _annotated((left, right), est, self.rig))
         if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
             raise KeyboardInterrupt
 
@@ -246,6 +366,27 @@ def _json_row(k: int, t: float, est) -> str:
     )
 
 
+def _finite(x) -> float | None:
+    """``x`` as a float, or None when there is none or it is not finite (strict JSON has no NaN)."""
+    return None if x is None or not np.isfinite(x) else float(x)
+
+
+def _json_tools_row(k: int, t: float, reports: list[ToolReport]) -> str:
+    """Frame ``k``'s line of the JSON-lines output with several tools (time ``t``)."""
+    tools = {
+        r.name: {
+            "valid": r.valid,
+            "relative_to": r.relative_to,
+            "T": r.T.tolist() if r.valid else None,
+            "residual_px": _finite(r.est.residual_px) if r.valid else None,
+            "source": r.est.source if r.valid else None,
+            "why": r.why,
+        }
+        for r in reports
+    }
+    return json.dumps({"frame": k, "timestamp_s": t, "tools": tools}, allow_nan=False) + "\n"
+
+
 def _discard(f, partial: Path, fj, partial_jsonl: Path | None) -> None:
     """Close and delete the partial outputs (the CSV ``f`` at ``partial`` and, where there
     is one, the JSON lines ``fj`` at ``partial_jsonl``)."""
@@ -256,43 +397,46 @@ def _discard(f, partial: Path, fj, partial_jsonl: Path | None) -> None:
         partial_jsonl.unlink(missing_ok=True)
 
 
-def track_stream(
-    tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
-) -> dict:
-    """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
-    ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
-    e.g. an :class:`IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
-    a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
-    share, frames per second, longest run of frames without a pose."""
+class _Out:
+    """A stream's open outputs, for the step of :func:`_run`: CSV rows (flushed each
+    frame) and, where asked for, JSON lines."""
+
+    def __init__(self, f, fj):
+        self._f, self._w, self._fj = f, csv.writer(f), fj
+
+    def rows(self, rows) -> None:
+        for row in rows:
+            self._w.writerow(row)
+        self._f.flush()
+
+    def line(self, text: str) -> None:
+        if self._fj is not None:
+            self._fj.write(text)
+
+
+def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list, step, progress: bool) -> dict:
+    """The loop of :func:`track_stream` and :func:`track_tools_stream`: ``step(k, t,
+    left, right, out)`` handles each pair (``out``: :class:`_Out`) and returns the
+    progress bar's counts. The CSV (``header`` first) and JSON lines are written to
+    ``.partial`` files and renamed when the stream ends or Ctrl-C stops it; deleted
+    when the first pair fails. Returns frames, frames per second, stopped and csv."""
     out_csv = Path(out_csv)
     partial = out_csv.with_name(out_csv.name + ".partial")
     partial_jsonl = None if jsonl is None else Path(jsonl).with_name(Path(jsonl).name + ".partial")
     tracker.reset()
-    n = found = tracked = gap = longest = 0
+    n = 0
     stopped = False
     t0 = time.perf_counter()
     bar = tqdm(total=stream.count, desc="track", unit="pair", disable=not progress)
     with open(partial, "w", newline="") as f, open(partial_jsonl, "w") if partial_jsonl else contextlib.nullcontext() as fj:
-        w = csv.writer(f)
-        w.writerow(CSV_HEADER)
+        out = _Out(f, fj)
+        out.rows([header])
         try:
             for k, t, left, right in stream:
-                est = tracker.track(left, right)
-                w.writerow(pose_row(k, t, est))
-                f.flush()
-                if send is not None:
-                    send(k, t, est)
-                for sink in sinks:
-                    sink(k, t, left, right, est)
-                if partial_jsonl:
-                    fj.write(_json_row(k, t, est))
+                counts = step(k, t, left, right, out)
                 n += 1
-                found += est is not None
-                tracked += est is not None and est.source == "tracked"
-                gap = 0 if est is not None else gap + 1
-                longest = max(longest, gap)
                 bar.update()
-                bar.set_postfix(fps=f"{n / (time.perf_counter() - t0):.1f}", found=f"{found}/{n}")
+                bar.set_postfix(fps=f"{n / (time.perf_counter() - t0):.1f}", **counts)
         except KeyboardInterrupt:
             stopped = True
         except BaseException:
@@ -306,15 +450,127 @@ def track_stream(
     if partial_jsonl:
         partial_jsonl.replace(jsonl)
     seconds = time.perf_counter() - t0
+    return {"frames": n, "fps": n / seconds if seconds > 0 else 0.0, "stopped": stopped, "csv": str(out_csv)}
+
+
+def track_stream(
+    tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
+) -> dict:
+    """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
+    ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
+    e.g. an :class:`IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
+    a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
+    share, frames per second, longest run of frames without a pose."""
+    c = {"n": 0, "found": 0, "tracked": 0, "gap": 0, "longest": 0}
+
+    def step(k, t, left, right, out):
+        est = tracker.track(left, right)
+        out.rows([pose_row(k, t, est)])
+        if send is not None:
+            send(k, t, est)
+        for sink in sinks:
+            sink(k, t, left, right, est)
+        out.line(_json_row(k, t, est))
+        c["n"] += 1
+        c["found"] += est is not None
+        c["tracked"] += est is not None and est.source == "tracked"
+        c["gap"] = 0 if est is not None else c["gap"] + 1
+        c["longest"] = max(c["longest"], c["gap"])
+        return {"found": f"{c['found']}/{c['n']}"}
+
+    run = _run(tracker, stream, out_csv, jsonl, CSV_HEADER, step, progress)
+    n, found = run["frames"], c["found"]
     return {
         "frames": n,
         "found": found / n if n else 0.0,
-        "tracked": tracked / found if found else 0.0,
-        "fps": n / seconds if seconds > 0 else 0.0,
-        "longest_gap": longest,
-        "stopped": stopped,
-        "csv": str(out_csv),
+        "tracked": c["tracked"] / found if found else 0.0,
+        "fps": run["fps"],
+        "longest_gap": c["longest"],
+        "stopped": run["stopped"],
+        "csv": run["csv"],
     }
 
 
-__all__ = ["CSV_HEADER", "IGTLSender", "ShowSink", "StereoStream", "VideoSink", "open_stereo", "pose_row", "track_stream"]
+def track_tools_stream(
+    tracker,
+    stream: StereoStream,
+    out_csv: str | Path,
+    jsonl: str | Path | None = None,
+    progress: bool = True,
+    reference: str | None = None,
+    send=None,
+    sinks: tuple = (),
+) -> dict:
+    """Track every tool of ``tracker`` (a MarkerPose of several tools, ``markers=``)
+    through ``stream`` with :meth:`~markerpose.MarkerPose.track_all`: one CSV row a frame
+    and tool, in the order of ``tracker.tools`` (:data:`TOOLS_CSV_HEADER`, see
+    :func:`tool_reports` for ``reference``); with ``jsonl``, one JSON object a frame
+    (``{"frame", "timestamp_s", "tools": {name: {"valid", "relative_to", "T",
+    "residual_px", "source", "why"}}}``); with ``send``, ``send(k, t, reports)`` after
+    each (e.g. an :class:`IGTLToolsSender`); each of ``sinks`` gets ``(k, t, left, right,
+    found)``, ``found`` the ``{name: Estimate}`` in the camera's frame. Outputs are
+    written as :func:`track_stream` writes them.
+
+    Returns:
+        frames, frames per second, stopped, csv, reference, and ``tools``: per tool its
+        found share, the tracked share of those found, the longest run of frames without
+        it, and ``reported``: the share of frames with its pose written (for a tool
+        relative to the reference: found together with the reference).
+    """
+    names = list(tracker.tools)
+    if reference is not None and reference not in names:
+        stream.close()
+        raise ValueError(f"reference {reference!r} is none of the tools: {', '.join(names)}")
+    c = {name: {"found": 0, "tracked": 0, "reported": 0, "gap": 0, "longest": 0} for name in names}
+
+    def step(k, t, left, right, out):
+        found = tracker.track_all(left, right)
+        reports = tool_reports(found, names, reference, tracker.whys)
+        out.rows([tools_row(k, t, r) for r in reports])
+        if send is not None:
+            send(k, t, reports)
+        for sink in sinks:
+            sink(k, t, left, right, found)
+        out.line(_json_tools_row(k, t, reports))
+        for r in reports:
+            s = c[r.name]
+            s["found"] += r.est is not None
+            s["tracked"] += r.est is not None and r.est.source == "tracked"
+            s["reported"] += r.valid
+            s["gap"] = 0 if r.est is not None else s["gap"] + 1
+            s["longest"] = max(s["longest"], s["gap"])
+        return {"found": ",".join(str(c[n]["found"]) for n in names) + f"/{k + 1}"}
+
+    run = _run(tracker, stream, out_csv, jsonl, TOOLS_CSV_HEADER, step, progress)
+    n = run["frames"]
+    tools = {
+        name: {
+            "found": s["found"] / n if n else 0.0,
+            "tracked": s["tracked"] / s["found"] if s["found"] else 0.0,
+            "reported": s["reported"] / n if n else 0.0,
+            "longest_gap": s["longest"],
+        }
+        for name, s in c.items()
+    }
+    return {"frames": n, "tools": tools, "reference": reference, **run}
+
+
+__all__ = [
+    "CAMERA",
+    "CSV_HEADER",
+    "IGTLSender",
+    "IGTLToolsSender",
+    "REFERENCE_NOT_SEEN",
+    "ShowSink",
+    "StereoStream",
+    "TOOLS_CSV_HEADER",
+    "ToolReport",
+    "VideoSink",
+    "igtl_device_name",
+    "open_stereo",
+    "pose_row",
+    "tool_reports",
+    "tools_row",
+    "track_stream",
+    "track_tools_stream",
+]

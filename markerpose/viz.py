@@ -1,4 +1,4 @@
-"""Drawing on images: marker axes and detected centres (for the demo and users' own videos)."""
+"""Drawing on images: marker axes and detected centres, tools' names (for the demo and users' own videos)."""
 
 from __future__ import annotations
 
@@ -52,4 +52,23 @@ def annotate_pair(images, est, rig, length: float = 30.0) -> np.ndarray:
             continue
         T = est.T if i == 0 else rig.T_right_left @ est.T
         views.append(draw_centers(draw_axes(img, cam, T, length=length), est.centers[i]))
+    return np.hstack(views)
+
+
+def annotate_tools(images, found: dict, rig, length: float = 30.0) -> np.ndarray:
+    """Both views side by side (BGR), with each found tool's axes drawn on each and its
+    name written beside its origin (``found``: ``{name: Estimate}``, as
+    :meth:`markerpose.MarkerPose.track_all` returns it; the views unmarked when empty)."""
+    views = []
+    for i, (img, cam) in enumerate(zip(images, rig.cameras)):
+        out = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR) if img.ndim == 2 else img.copy()
+        for name, est in found.items():
+            T = est.T if i == 0 else rig.T_right_left @ est.T
+            out = draw_axes(out, cam, T, length=length)
+            u, v = (int(round(x)) for x in cam.project(T[:3, 3][None])[0])
+            org = (u + 8, v + 24)  # below right of the origin, clear of the arrows' base
+            # A dark outline under the light text: readable on the white plate and on clutter.
+            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 0, 0), 4, cv2.LINE_AA)
+            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, 0.8, (255, 255, 255), 2, cv2.LINE_AA)
+        views.append(out)
     return np.hstack(views)

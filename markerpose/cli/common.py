@@ -31,13 +31,23 @@ def marker(args):
     )
 
 
+# The marker-geometry options (:func:`add_marker_args`) and their defaults, the paper's marker.
+MARKER_DEFAULTS = {"outer_diameter": 20.0, "inner_diameter": 8.0, "c1": 25.0, "c2": 40.0, "margin": 10.0}
+
+
 def add_marker_args(p):
+    d = MARKER_DEFAULTS
     g = p.add_argument_group("marker geometry (mm)")
-    g.add_argument("--outer-diameter", type=float, default=20.0, help="black ring diameter (default 20)")
-    g.add_argument("--inner-diameter", type=float, default=8.0, help="white inner disk diameter (default 8)")
-    g.add_argument("--c1", type=float, default=25.0, help="distance c0→c1 along x (default 25)")
-    g.add_argument("--c2", type=float, default=40.0, help="distance c0→c2 along y (default 40)")
-    g.add_argument("--margin", type=float, default=10.0, help="plate margin around the rings (default 10)")
+    g.add_argument("--outer-diameter", type=float, default=d["outer_diameter"], help="black ring diameter (default 20)")
+    g.add_argument("--inner-diameter", type=float, default=d["inner_diameter"], help="white inner disk diameter (default 8)")
+    g.add_argument("--c1", type=float, default=d["c1"], help="distance c0→c1 along x (default 25)")
+    g.add_argument("--c2", type=float, default=d["c2"], help="distance c0→c2 along y (default 40)")
+    g.add_argument("--margin", type=float, default=d["margin"], help="plate margin around the rings (default 10)")
+
+
+def geometry_given(args) -> list[str]:
+    """The marker-geometry options whose values differ from their defaults, as flags (e.g. ``--c1``)."""
+    return ["--" + k.replace("_", "-") for k, v in MARKER_DEFAULTS.items() if getattr(args, k, v) != v]
 
 
 def positive_int(text: str) -> int:
@@ -98,11 +108,20 @@ def overrides(settings: list | None) -> dict:
 
 
 def tracker(args):
-    """The MarkerPose of a command's --rig, marker, --preset / --detector and --set."""
+    """The MarkerPose of a command's --rig, marker, --preset / --detector and --set; with
+    ``--tools`` (where the command has it), of those tool files, which define the
+    geometry: a marker-geometry option given with them is a ``ValueError``."""
     from ..pipeline import MarkerPose
 
+    tools = getattr(args, "tools", None)
+    if tools:
+        given = geometry_given(args)
+        if given:
+            raise ValueError(f"{', '.join(given)} with --tools: the tool files define the geometry; drop {', '.join(given)}")
     found = overrides(args.settings)
     detector = found.pop("detector", args.detector)
+    if tools:
+        return MarkerPose(rig(args.rig), markers=list(tools), preset=args.preset, detector=detector, **found)
     return MarkerPose(rig(args.rig), marker(args), preset=args.preset, detector=detector, **found)
 
 

@@ -1,5 +1,7 @@
 """``markerpose track``: the marker through two image folders, two videos or two
-cameras; one CSV row a frame, optionally a video, a live view and OpenIGTLink."""
+cameras; one CSV row a frame, optionally a video, a live view and OpenIGTLink. With
+``--tools``, several tools at once: one CSV row a frame and tool, each tool's pose in the
+camera's frame or, with ``--reference``, in the reference tool's."""
 
 from __future__ import annotations
 
@@ -24,39 +26,76 @@ def _sinks(args, pose_tracker, stream) -> list:
     return sinks
 
 
-def _sender(args, stream):
-    """The OpenIGTLink sender of --igtl, or None; the stream is closed when it fails."""
+def _sender(args, stream, names=None):
+    """The OpenIGTLink sender of --igtl, or None (``names``: the tools of --tools); the
+    stream is closed when it fails."""
     if args.igtl is None:
         return None
-    from ..video import IGTLSender
+    from ..video import IGTLSender, IGTLToolsSender
 
     try:
-        send = IGTLSender(args.igtl, args.igtl_name, local_only=not args.igtl_public)
+        if names is None:
+            send = IGTLSender(args.igtl, args.igtl_name, local_only=not args.igtl_public)
+        else:
+            send = IGTLToolsSender(args.igtl, names, args.reference, local_only=not args.igtl_public)
     except ValueError:
         stream.close()
         raise
-    print(f"OpenIGTLink: serving TRANSFORM {args.igtl_name!r} on port {args.igtl}", file=sys.stderr)
+    devices = repr(args.igtl_name) if names is None else ", ".join(repr(d) for d in send.devices.values())
+    print(f"OpenIGTLink: serving TRANSFORM {devices} on port {args.igtl}", file=sys.stderr)
     return send
 
 
-def cmd_track(args):
-    from ..video import open_stereo, track_stream
+def _check_reference(args, names: list) -> None:
+    """``ValueError`` unless --reference names one of the tools."""
+    if args.reference is not None and args.reference not in names:
+        raise ValueError(f"--reference {args.reference}: no such tool; the tools are {', '.join(names)}")
 
+
+def _tools_summary(s: dict) -> str:
+    """Each tool's found share (and, relative to the reference, the share reported)."""
+    parts = []
+    for name, t in s["tools"].items():
+        part = f"{name} found in {100 * t['found']:.1f} %"
+        if name == s["reference"]:
+            part += " (the reference)"
+        elif s["reference"] is not None:
+            part += f", {100 * t['reported']:.1f} % relative to {s['reference']}"
+        parts.append(part)
+    return "; ".join(parts)
+
+
+def cmd_track(args):
+    from ..video import open_stereo, track_stream, track_tools_stream
+
+    if args.reference is not None and not args.tools:
+        raise ValueError("--reference needs --tools: the reference is one of the tools")
     pose_tracker = tracker(args)
+    names = list(pose_tracker.tools) if args.tools else None
+    if names is not None:
+        _check_reference(args, names)
     stream = open_stereo(args.left, args.right, args.fps)
     sinks = _sinks(args, pose_tracker, stream)
-    send = _sender(args, stream)
+    send = _sender(args, stream, names)
     try:
-        s = track_stream(pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks))
+        if names is None:
+            s = track_stream(pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks))
+        else:
+            s = track_tools_stream(
+                pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, reference=args.reference, send=send, sinks=tuple(sinks)
+            )
     finally:
         if send is not None:
             send.close()
         for sink in sinks:
             sink.close()
+    wrote = f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else "")
+    if names is not None:
+        print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, {s['fps']:.1f} frames/s; {_tools_summary(s)}; {wrote}")
+        return
     print(
         f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
-        f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; "
-        f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else "")
+        f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; {wrote}"
     )
 
 
@@ -84,9 +123,27 @@ def register(sub) -> None:
         metavar="PORT",
         help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages (port default 18944; the igtl extra)",
     )
-    k.add_argument("--igtl-name", default="MarkerToTracker", help="the TRANSFORM's device name (default MarkerToTracker)")
+    k.add_argument(
+        "--igtl-name",
+        default="MarkerToTracker",
+        help="the TRANSFORM's device name (default MarkerToTracker); ignored with --tools, where each tool's is NameToTracker "
+        "(or NameToReference relative to --reference)",
+    )
     k.add_argument("--igtl-public", action="store_true", help="listen on the network interface, not only on 127.0.0.1")
     k.add_argument("--quiet", action="store_true", help="no progress bar")
     add_set_arg(k)
+    k.add_argument(
+        "--tools",
+        nargs="+",
+        metavar="TOOL_FILE",
+        help="track several tools (YAML tool files, e.g. from markerpose tools), given after LEFT RIGHT; "
+        "the CSV has one row a frame and tool; the files define the geometry",
+    )
+    k.add_argument(
+        "--reference",
+        metavar="NAME",
+        help="with --tools: report every other tool relative to this one (T_reference_tool); "
+        "not at all in frames where the reference is not seen",
+    )
     add_marker_args(k)
     k.set_defaults(func=cmd_track)

@@ -19,6 +19,8 @@ How an image is made (docs/design.md §8):
 Ground truth comes with every view: the projected 3D ring centres, the imaged
 outer/inner ellipses as conics (ideal, undistorted pixels) and their centres,
 a ring-ID mask and the pose. Everything is deterministic for a given seed.
+:func:`render_tools` puts several tools in one stereo pair, nearer plates painted over
+farther ones, with each tool's truth and how much of each ring is seen.
 """
 
 from __future__ import annotations
@@ -133,6 +135,40 @@ class StereoFrame:
     imaging: tuple = field(default=(), repr=False)
 
 
+@dataclass
+class ToolTruth:
+    """Ground truth of one tool in a :class:`ToolsFrame`.
+
+    Attributes:
+        marker: the tool.
+        T_left_marker: (4, 4) tool → left camera, mm.
+        views: the left (0) and right (1) :class:`ViewTruth`, whose ``mask`` is 0 where a
+            nearer plate covers the ring.
+        visible: (2, 3) per view and ring, the fraction of the ring's outer disk that is in
+            the image and not covered by a nearer plate (pixel centres, as ``mask`` counts
+            them; exactly 1.0 when the whole ring is in the image and no pixel of it is covered).
+    """
+
+    marker: Marker
+    T_left_marker: np.ndarray
+    views: list
+    visible: np.ndarray
+
+    @property
+    def fully_visible(self) -> bool:
+        """Every ring of both views wholly in the image (``in_image``) and no pixel of it covered."""
+        return bool(all(v.in_image.all() for v in self.views) and np.all(self.visible >= 1.0))
+
+
+@dataclass
+class ToolsFrame:
+    """A rendered stereo pair of several tools, with each tool's ground truth by name."""
+
+    images: list
+    truths: dict
+    imaging: tuple = field(default=(), repr=False)
+
+
 # --- geometry of the view --------------------------------------------------------------
 def _ring_truth(camera: Camera, T: np.ndarray, marker: Marker):
     H = plane_homography(camera.K, T)
@@ -149,6 +185,47 @@ def _circle_points(marker: Marker, n: int = 64) -> np.ndarray:
     a = np.linspace(0, 2 * np.pi, n, endpoint=False)
     ring = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * marker.outer_radius
     return marker.points3d[:, None, :] + ring[None]
+
+
+def _rim_pixels(camera: Camera, T: np.ndarray, marker: Marker, n: int = 64) -> np.ndarray:
+    """(3, n, 2) each ring's outer circle projected into ``camera`` (distorted px)."""
+    rim = _circle_points(marker, n) @ T[:3, :3].T + T[:3, 3]
+    return camera.project(rim.reshape(-1, 3)).reshape(3, -1, 2)
+
+
+def _view_truth(camera: Camera, T: np.ndarray, marker: Marker, mask: np.ndarray) -> ViewTruth:
+    """The :class:`ViewTruth` of a plate rendered at ``T`` whose ring-ID mask is ``mask``."""
+    w, h = camera.image_size
+    centers, outer, inner, outer_centers = _ring_truth(camera, T, marker)
+    uv = _rim_pixels(camera, T, marker)
+    in_image = np.all((uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1), axis=1)
+    return ViewTruth(T, centers, outer, inner, outer_centers, mask, in_image)
+
+
+def _plate_pixels(camera: Camera, T: np.ndarray, marker: Marker) -> np.ndarray:
+    """(H, W) bool: the pixels whose centre's ray meets the plate, the test by which
+    :func:`_render_plate` paints a pixel with the plate rather than what lies behind it.
+    Exact under lens distortion, where the plate's straight edges image as curves."""
+    w, h = camera.image_size
+    on = np.zeros((h, w), bool)
+    bbox = plate_bbox(camera, T, marker)
+    if bbox is None:
+        return on
+    bx0, by0, bx1, by1 = bbox
+    grid = camera.normalized_grid()[by0:by1, bx0:bx1]
+    Hinv = np.linalg.inv(np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]]))
+    mx, my = plane_coords(Hinv, grid[..., 0], grid[..., 1])
+    x0, y0, x1, y1 = marker.plate
+    on[by0:by1, bx0:bx1] = (mx >= x0) & (mx <= x1) & (my >= y0) & (my <= y1)
+    return on
+
+
+def _disk_areas(camera: Camera, T: np.ndarray, marker: Marker) -> np.ndarray:
+    """(3,) area (px²) of each ring's outer disk imaged by ``camera``, the parts beyond the
+    image's edges included: its projected rim as a 256-gon (area short by ~1e-4)."""
+    uv = _rim_pixels(camera, T, marker, 256)
+    x, y = uv[..., 0], uv[..., 1]
+    return 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
 
 
 def plate_bbox(camera: Camera, T: np.ndarray, marker: Marker):
@@ -275,6 +352,20 @@ def _render_plate(camera: Camera, T: np.ndarray, marker: Marker, scene: np.ndarr
         val[on] = val[on] * imaging.plate_light(mx[on], my[on])
     scene[by0:by1, bx0:bx1] = val
     return mask
+
+
+def _scene(camera: Camera, background, rng: np.random.Generator) -> np.ndarray:
+    """The float32 scene a view's plates are painted into: a copy of ``background``, or
+    random clutter drawn from ``rng`` when it is None."""
+    if camera.image_size is None:
+        raise ValueError("camera.image_size is needed to render")
+    w, h = camera.image_size
+    if background is None:
+        return clutter_background((w, h), rng)
+    scene = np.asarray(background, dtype=np.float32)
+    if scene.shape != (h, w):
+        raise ValueError(f"background must be (H, W) = {(h, w)}, got {scene.shape}")
+    return scene.copy()
 
 
 # --- light, optics, sensor -----------------------------------------------------------
@@ -411,22 +502,10 @@ def render_view(
     if T.shape != (4, 4):
         raise ValueError(f"T_cam_marker must be (4, 4), got {T.shape}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
-    w, h = camera.image_size
-    if background is None:
-        scene = clutter_background((w, h), rng)
-    else:
-        scene = np.asarray(background, dtype=np.float32)
-        if scene.shape != (h, w):
-            raise ValueError(f"background must be (H, W) = {(h, w)}, got {scene.shape}")
-        scene = scene.copy()
+    scene = _scene(camera, background, rng)
     mask = _render_plate(camera, T, marker, scene, imaging)
-    image = expose(scene, (w, h), imaging, rng)
-    centers, outer, inner, outer_centers = _ring_truth(camera, T, marker)
-    rim = _circle_points(marker) @ T[:3, :3].T + T[:3, 3]
-    uv = camera.project(rim.reshape(-1, 3)).reshape(3, -1, 2)
-    in_image = np.all((uv[..., 0] >= 0) & (uv[..., 0] <= w - 1) & (uv[..., 1] >= 0) & (uv[..., 1] <= h - 1), axis=1)
-    truth = ViewTruth(T, centers, outer, inner, outer_centers, mask, in_image)
-    return image, truth
+    image = expose(scene, camera.image_size, imaging, rng)
+    return image, _view_truth(camera, T, marker, mask)
 
 
 def render_stereo(
@@ -462,6 +541,83 @@ def render_stereo(
     return StereoFrame(images, views, T_left, tuple(imgs))
 
 
+def render_tools(
+    rig: StereoRig,
+    poses,
+    imaging: Imaging | tuple[Imaging, Imaging] | None = None,
+    background: np.ndarray | tuple | None = None,
+    seed: int | np.random.Generator | None = 0,
+) -> ToolsFrame:
+    """Render both views of the rig with several tools in the scene.
+
+    In each view the plates are painted farthest first, by the depth of the plate's
+    centre in that camera, so a nearer plate hides what lies behind it (painter's order;
+    plates that cut through each other are not resolved pixel by pixel). Each view is
+    exposed once, as :func:`render_stereo` exposes it: a single tool renders exactly as
+    :func:`render_stereo` renders it with the same seed.
+
+    Args:
+        rig: the stereo rig (both cameras need ``image_size``).
+        poses: (marker, T_left_marker) pairs, one per tool, with distinct ``marker.name``.
+        imaging: one :class:`Imaging` for both views, or a pair.
+        background: one (H, W) background for both, a pair, or None (random clutter per view).
+        seed: int or Generator.
+    Returns:
+        :class:`ToolsFrame` with ``images[i]`` for left (0) and right (1), and each tool's
+        :class:`ToolTruth` under its name, in the order of ``poses``.
+    Raises:
+        ValueError: two tools share a name, a pose is not (4, 4), or a plate does not lie
+            entirely in front of a camera (the tool named).
+    """
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    imgs = imaging if isinstance(imaging, tuple) else (imaging or Imaging(),) * 2
+    bgs = background if isinstance(background, (tuple, list)) else (background, background)
+    markers, Ts = [], []
+    for marker, T_left_marker in poses:
+        if marker.name in (m.name for m in markers):
+            raise ValueError(f"two tools named {marker.name!r}; each tool needs its own name")
+        T_left = np.asarray(T_left_marker, dtype=np.float64)
+        if T_left.shape != (4, 4):
+            raise ValueError(f"{marker.name}: T_left_marker must be (4, 4), got {T_left.shape}")
+        markers.append(marker)
+        Ts.append((T_left, rig.T_right_left @ T_left))
+    n = len(markers)
+    images = []
+    views = [[None, None] for _ in range(n)]
+    visible = np.zeros((n, 2, 3))
+    for v, (cam, im, bg) in enumerate(zip(rig.cameras, imgs, bgs)):
+        scene = _scene(cam, bg, rng)
+        depth = []
+        for m, T in zip(markers, Ts):
+            x0, y0, x1, y1 = m.plate
+            depth.append((T[v] @ np.array([(x0 + x1) / 2, (y0 + y1) / 2, 0.0, 1.0]))[2])
+        order = np.argsort(-np.asarray(depth), kind="stable")  # farthest first; ties in the order given
+        masks = {}
+        for k in order:
+            try:
+                masks[k] = _render_plate(cam, Ts[k][v], markers[k], scene, im)
+            except ValueError as e:
+                raise ValueError(f"{markers[k].name}: {e}") from None
+        images.append(expose(scene, cam.image_size, im, rng))
+        # Nearest first, so that `cover` holds the pixels of the plates in front of tool k.
+        w, h = cam.image_size
+        cover = np.zeros((h, w), bool)
+        for k in order[::-1]:
+            T, mask = Ts[k][v], masks[k]
+            truth = _view_truth(cam, T, markers[k], np.where(cover, 0, mask).astype(np.uint8))
+            areas = _disk_areas(cam, T, markers[k])
+            for i in range(3):
+                ring = mask == i + 1
+                seen = np.count_nonzero(ring & ~cover)
+                # A ring wholly in the image is all in the mask: its own pixel count is exact.
+                total = np.count_nonzero(ring) if truth.in_image[i] else areas[i]
+                visible[k, v, i] = min(1.0, seen / total) if total > 0 else 0.0
+            views[k][v] = truth
+            cover |= _plate_pixels(cam, T, markers[k])
+    truths = {m.name: ToolTruth(m, Ts[k][0], views[k], visible[k].copy()) for k, m in enumerate(markers)}
+    return ToolsFrame(images, truths, tuple(imgs))
+
+
 def look_at_pose(position: np.ndarray, tilt_deg: float = 0.0, tilt_axis_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
     """T_cam_marker of a marker at ``position`` (c0, mm) facing the camera.
 
@@ -485,8 +641,11 @@ __all__ = [
     "Imaging",
     "ViewTruth",
     "StereoFrame",
+    "ToolTruth",
+    "ToolsFrame",
     "render_view",
     "render_stereo",
+    "render_tools",
     "motion_kernel",
     "look_at_pose",
     "sensor_readout",
