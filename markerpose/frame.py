@@ -74,8 +74,9 @@ class Frame:
 
     def claimant(self, view: int, point) -> str | None:
         """The tool whose claimed ring in ``view`` covers ``point`` (x, y), or None."""
+        x, y = float(point[0]), float(point[1])
         for c, r, name in self.claimed[view]:
-            if np.hypot(*(np.asarray(point, np.float64) - c)) <= r:
+            if (x - c[0]) ** 2 + (y - c[1]) ** 2 <= r * r:
                 return name
         return None
 

@@ -117,10 +117,15 @@ class ToolPipeline:
         return self._solved(frame, found, "tracked")
 
     def claim(self, frame: Frame, est: Estimate) -> None:
-        """Claim, in ``frame``, the rings of this tool's pose ``est``."""
+        """Claim, in ``frame``, the rings of this tool's pose ``est``: their fitted outer
+        ellipses, or where a view has none, those the pose projects."""
         Ts = (est.T, self.rig.T_right_left @ est.T)
         mk = self.marker
-        frame.claim(self.name, [ring_ellipses(cam, T, mk.points3d, mk.outer_radius) for cam, T in zip(self.rig.cameras, Ts)])
+        rings = [
+            det.ellipses if det.ellipses is not None else ring_ellipses(cam, T, mk.points3d, mk.outer_radius)
+            for det, cam, T in zip(est.detections, self.rig.cameras, Ts)
+        ]
+        frame.claim(self.name, rings)
 
     def _first(self, frame: Frame, hypotheses: Iterator) -> Estimate | None:
         """The first of the hypotheses that passes verification, solved; None if none does."""
@@ -312,14 +317,15 @@ class MarkerPose:
     def _each(self, frame: Frame, step, tools: list) -> dict[str, Estimate]:
         """``step(tool, frame)`` of each tool in its own child frame; those found claim their rings."""
         found, self.whys = {}, {}
-        for tool in tools:
+        for k, tool in enumerate(tools):
             sub = frame.child()
             est = step(tool, sub)
             if est is None:
                 self.whys[tool.name] = sub.why or "not found"
                 continue
             found[tool.name] = est
-            tool.claim(frame, est)
+            if k < len(tools) - 1:  # the last tool's rings no other tool will look at
+                tool.claim(frame, est)
         frame.why = "; ".join(f"{n}: {w}" for n, w in self.whys.items()) if not found else None
         return {name: found[name] for name in self.tools if name in found}
 

@@ -23,3 +23,36 @@ def test_the_first_reason_stays_and_timings_add_up():
     frame.timed("refine", lambda: None)
     timings = frame.finish()
     assert set(timings) == {"refine", "total"} and timings["total"] >= timings["refine"] >= 0
+
+
+def test_children_share_the_call_but_not_the_budget():
+    import numpy as np
+
+    from markerpose.frame import Frame
+
+    frame = Frame([np.zeros((4, 4), np.uint8)] * 2)
+    frame.budget(3, 2)
+    sub = frame.child()
+    assert sub.fits_left is None and sub.why is None and sub.grays is frame.grays
+    sub.budget(1, 1)
+    assert sub.spend() and not sub.spend() and frame.fits_left == 3
+    calls = []
+    assert sub.shared("k", lambda: calls.append(1) or 7) == 7 and frame.shared("k", lambda: calls.append(1) or 8) == 7
+    assert calls == [1]
+    sub.timed("propose", lambda: None)
+    assert "propose" in frame.timings
+
+
+def test_claimed_rings_are_kept_off():
+    import numpy as np
+
+    from markerpose.frame import Frame
+
+    frame = Frame([np.zeros((4, 4), np.uint8)] * 2)
+    cand = [np.array([[10.0, 10, 0.9], [50, 50, 0.8]]), np.array([[10.0, 10, 0.9]])]
+    assert frame.unclaimed(cand) is cand
+    frame.child().claim("a", [[((10.0, 10.0), (8.0, 6.0), 0.0)], []])
+    assert frame.claimant(0, (13.5, 10)) == "a" and frame.claimant(0, (14.5, 10)) is None and frame.claimant(1, (10, 10)) is None
+    left, right = frame.unclaimed(cand)
+    np.testing.assert_array_equal(left, cand[0][1:])
+    np.testing.assert_array_equal(right, cand[1])

@@ -148,6 +148,17 @@ def cmd_eval_blur_distance(args):
     print(f"Wrote {args.out}/: report.md, results.json, blur-distance.png")
 
 
+def cmd_eval_tools(args):
+    from ..experiments import tools
+
+    conf = {"pairs": args.pairs, "free": args.free, "tools": args.tools, "frames": args.frames, "speed_pairs": args.speed_pairs}
+    if args.configs:
+        conf["configs"] = tuple(args.configs)
+    res = tools.main(conf, args.out, progress=not args.quiet)
+    print(tools.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json" + (", tools.mp4" if "video" in res else ""))
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -197,6 +208,16 @@ def _register_pipeline(esub) -> None:
     eb.add_argument("--out", default="markerpose-blur-distance", help="output folder: report.md, results.json, blur-distance.png")
     eb.add_argument("--quiet", action="store_true")
     eb.set_defaults(func=cmd_eval_blur_distance)
+    et = esub.add_parser("tools", help="several tools at once: held-out pairs with 2-4 tools, a tracked 3-tool video, the speed")
+    et.add_argument("--pairs", type=positive_int, default=100, help="pairs with tools (default 100)")
+    et.add_argument("--free", type=int, default=50, help="marker-free pairs (default 50)")
+    et.add_argument("--tools", type=int, default=4, help="the tool set's size, 2 to 6; each pair shows 2 to this many (default 4)")
+    et.add_argument("--frames", type=int, default=120, help="pairs of the 3-tool video (0: none; default 120)")
+    et.add_argument("--speed-pairs", type=int, default=20, help="cold pairs timed (0: no timing; default 20)")
+    et.add_argument("--configs", nargs="*", help="presets (default: default classical; the paper's decoded detector takes one marker)")
+    et.add_argument("--out", default="markerpose-tools", help="output folder: report.md, results.json, tools.mp4")
+    et.add_argument("--quiet", action="store_true")
+    et.set_defaults(func=cmd_eval_tools)
 
 
 def register(sub) -> None:

@@ -48,6 +48,8 @@ default_conf = {
     "tolerance_px": 3.0,
     "hidden_share": 0.3,  # pairs where one tool is placed behind another
     "seed": 3200,
+    "frames": 120,  # the video's pairs (0: no video)
+    "speed_pairs": 20,  # cold pairs timed (0: no timing)
 }
 
 
@@ -199,7 +201,8 @@ def summarize(rows: list, rel: list, free: list) -> dict:
 
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
     """Every configuration of ``conf["configs"]`` on the held-out tool pairs and the
-    marker-free pairs; the result (written as JSON to ``out``)."""
+    marker-free pairs; then the video and the speed (the default preset). With ``out``
+    (a folder): results.json, report.md and the tracked video tools.mp4."""
     c = {**default_conf, **(conf or {})}
     rig = StereoRig.default()
     tools = tool_set(int(c["tools"]))
@@ -231,9 +234,36 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         "pairs_by_count": {str(k): sum(cd["tools"] == k for cd in conds) for k in range(2, len(tools) + 1)},
         "configs": {n: summarize(rows[n], rel[n], free[n]) for n in trackers},
     }
+    if c["frames"] or c["speed_pairs"]:
+        frames = video(rig, tools, max(int(c["frames"]), 30), seed=c["seed"] + 100)
+        if c["frames"]:
+            res["video"] = track_video(MarkerPose(rig, markers=tools[:3]), frames, c["tolerance_px"])
+            res["video"]["frames"] = len(frames)
+        if c["speed_pairs"]:
+            res["speed"] = speed(rig, tools, frames, c["speed_pairs"], c["seed"] + 200, progress)
     if out is not None:
-        write_json(out, res)
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "results.json", res)
+        (out / "report.md").write_text(report(res) + "\n")
+        if "video" in res:
+            write_video(out / "tools.mp4", rig, tools[:3], frames)
     return res
+
+
+def write_video(path: Path, rig: StereoRig, tools: list, frames: list) -> Path:
+    """The video's pairs tracked again, each tool's axes and name drawn (what ``markerpose
+    track --tools ... --video`` writes)."""
+    from ..video import VideoSink
+
+    tracker = MarkerPose(rig, markers=tools)
+    sink = VideoSink(path, rig, 30.0)
+    try:
+        for k, f in enumerate(frames):
+            sink(k, k / 30.0, *f.images, tracker.track_all(*f.images))
+    finally:
+        sink.close()
+    return path
 
 
 # --- the video -------------------------------------------------------------------------
@@ -382,7 +412,35 @@ def report(res: dict) -> str:
         lines.append(
             f"| {name} | {r['pairs']} | {r['t_median_mm']:.3f} / {r['t_p95_mm']:.3f} | {r['r_median_deg']:.3f} | {f['false_poses']} of {f['pairs']} |"
         )
+    if "video" in res:
+        v = res["video"]
+        lines += [
+            "",
+            f"Video ({v['frames']} pairs, three tools moving, the third out of view for a while), `track_all`:",
+            "",
+            "| tool | pairs fully in view | found right (all pairs) | missed while fully in view | swaps | false poses | re-entries found on the first pair back |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for tool, p in v.items():
+            if tool == "frames":
+                continue
+            back = ", ".join(f"pair {r['frame']}: {'yes' if r['found'] else 'no'}" for r in p["reentries"]) or "-"
+            lines.append(
+                f"| {tool} | {p['in_view']} | {p['right']} | {len(p['missed_frames'])} | {p['swaps']} | {p['false_poses']} | {back} |"
+            )
+    if "speed" in res:
+        sp = res["speed"]
+        t = sp["tracked_ms"]
+        lines += [
+            "",
+            "| speed (one run, this machine) | figure |",
+            "|---|---|",
+            f"| cold pair, 3 tools in view (`estimate_all`) / one tool alone (`estimate`), median ms | "
+            f"{sp['cold_three_ms']:.1f} / {sp['cold_one_ms']:.1f} = **{sp['cold_ratio']:.2f}x** |",
+            f"| tracked pair, 1 / 2 / 3 tools (`track_all`), median ms | {t['1']:.1f} / {t['2']:.1f} / {t['3']:.1f} |",
+            f"| each extra tracked tool, ms | **{sp['per_extra_tool_ms']:.1f}** |",
+        ]
     return "\n".join(lines)
 
 
-__all__ = ["default_conf", "judge", "main", "report", "scenes", "speed", "summarize", "track_video", "video"]
+__all__ = ["default_conf", "judge", "main", "report", "scenes", "speed", "summarize", "track_video", "video", "write_video"]

@@ -1,0 +1,157 @@
+"""Several tools in one MarkerPose: estimate_all / track_all, one stage 1 for all, identity
+by 3D shape, claimed rings, relative poses, and the errors of a wrong tool list."""
+
+import numpy as np
+import pytest
+
+import markerpose as mp
+from markerpose.geometry import nearest_rotation, rotation_angle
+from markerpose.keypoints import KeypointNet
+from markerpose.synth import Imaging, look_at_pose, render_tools
+from markerpose.tools import tool_set
+
+# Three tools apart in both views of the default rig, tilted and turned differently.
+POSES = (
+    look_at_pose(np.array([-90.0, 40, 600]), 20, 30, 10),
+    look_at_pose(np.array([10.0, -60, 650]), 25, 100, -20),
+    look_at_pose(np.array([40.0, 60, 560]), 15, 200, 40),
+)
+
+
+@pytest.fixture(scope="module")
+def tools():
+    return tool_set(3)
+
+
+@pytest.fixture(scope="module")
+def scene(rig, tools):
+    return render_tools(rig, list(zip(tools, POSES)), Imaging(alpha=0.7), seed=11)
+
+
+@pytest.fixture(scope="module")
+def several(rig, tools):
+    return mp.MarkerPose(rig, markers=tools)
+
+
+def _close(est, T, mm=0.3, deg=0.2):
+    assert np.linalg.norm(est.t - T[:3, 3]) < mm
+    assert np.rad2deg(rotation_angle(nearest_rotation(est.R), T[:3, :3])) < deg
+
+
+def test_estimate_all_finds_each_tool_at_its_pose(several, scene, tools):
+    found = several.estimate_all(*scene.images)
+    assert list(found) == [t.name for t in tools]  # the tools' order
+    for t, T in zip(tools, POSES):
+        _close(found[t.name], T)
+    assert several.whys == {} and several.why is None
+
+
+def test_one_stage1_look_serves_every_tool(rig, tools, scene, monkeypatch):
+    calls = []
+    logits = KeypointNet.logits
+    monkeypatch.setattr(KeypointNet, "logits", lambda self, batch: (calls.append(len(batch)), logits(self, batch))[1])
+    assert len(mp.MarkerPose(rig, markers=tools).estimate_all(*scene.images)) == 3
+    assert calls == [2]  # one look, both views in one batch, for the three tools
+
+
+def test_tools_share_the_networks(several):
+    first, *others = several.tools.values()
+    for tool in others:
+        assert tool.detector.proposer.net.runner is first.detector.proposer.net.runner
+        assert tool.refiner.net is first.refiner.net
+        assert tool.detector.marker is tool.marker and tool.refiner.marker is tool.marker
+    assert several.marker is first.marker and several.tracker is first.tracker
+
+
+def test_track_all_follows_each_tool_and_finds_one_back(rig, tools):
+    tracker = mp.MarkerPose(rig, markers=tools)
+    scenes = []
+    for k in range(4):
+        poses = [(t, T.copy()) for t, T in zip(tools, POSES)]
+        for _, T in poses:
+            T[0, 3] += 1.5 * k
+        if k == 2:
+            poses = poses[:2]  # tool3 out of view
+        scenes.append((render_tools(rig, poses, Imaging(alpha=0.7), seed=20 + k), poses))
+    got, whys = [], []
+    for f, _ in scenes:
+        got.append(tracker.track_all(*f.images))
+        whys.append(dict(tracker.whys))
+    assert [e.source for e in got[1].values()] == ["tracked"] * 3
+    assert set(got[2]) == {"tool1", "tool2"} and list(whys[2]) == ["tool3"]
+    assert set(got[3]) == {"tool1", "tool2", "tool3"}  # back on its first pair
+    for found, (_, poses) in zip(got, scenes):
+        for t, T in poses:
+            _close(found[t.name], T)
+    tracker.reset()
+    assert all(not t.tracker.history for t in tracker.tools.values())
+
+
+def test_a_pair_without_tools_gives_an_empty_dict(rig, tools, several):
+    far = look_at_pose(np.array([0.0, 3000, 1000]))  # out of both views
+    pair = render_tools(rig, [(tools[0], far)], seed=3)
+    assert several.estimate_all(*pair.images) == {}
+    assert set(several.whys) == {t.name for t in tools} and several.why
+
+
+def test_a_tool_alone_is_not_taken_for_another(rig, tools, several):
+    """Only tool2 in view: its rings are tool2's, and no other tool's pose is made of them."""
+    pair = render_tools(rig, [(tools[1], POSES[1])], seed=4)
+    found = several.estimate_all(*pair.images)
+    assert list(found) == ["tool2"]
+    _close(found["tool2"], POSES[1])
+
+
+def test_a_partly_hidden_tool_is_found_right_or_not_at_all(rig, tools, several):
+    front = look_at_pose(np.array([-20.0, 0, 520]), 10, 0, 0)
+    behind = look_at_pose(np.array([-45.0, 20, 640]), 15, 60, 30)
+    pair = render_tools(rig, [(tools[0], front), (tools[1], behind)], seed=6)
+    assert pair.truths["tool1"].fully_visible and not pair.truths["tool2"].fully_visible
+    found = several.estimate_all(*pair.images)
+    _close(found["tool1"], front)
+    if "tool2" in found:
+        _close(found["tool2"], behind)
+
+
+def test_relative_poses(several, scene, tools):
+    found = several.estimate_all(*scene.images)
+    rel = mp.relative_poses(found, "tool1")
+    assert set(rel) == {"tool2", "tool3"}
+    for t, T in zip(tools[1:], POSES[1:]):
+        truth = np.linalg.inv(POSES[0]) @ T
+        assert np.linalg.norm(rel[t.name][:3, 3] - truth[:3, 3]) < 0.5
+    assert mp.relative_poses({k: v for k, v in found.items() if k != "tool1"}, "tool1") == {}
+
+
+def test_one_marker_calls_refuse_several_tools(several, scene):
+    for call in (lambda: several.estimate(*scene.images), lambda: several.track(*scene.images)):
+        with pytest.raises(ValueError, match="_all"):
+            call()
+    with pytest.raises(ValueError, match="_all"):
+        several.detect(scene.images[0])
+
+
+def test_tool_lists_that_cannot_be_told_apart_are_refused(rig, tools, tmp_path):
+    twin = mp.Marker(20.0, 8.0, tools[0].c1, tools[0].c2, name="twin")
+    with pytest.raises(ValueError, match="'tool1' and 'twin'"):
+        mp.MarkerPose(rig, markers=[tools[0], twin])
+    with pytest.raises(ValueError, match="two tools named"):
+        mp.MarkerPose(rig, markers=[tools[0], mp.Marker(20.0, 8.0, tools[1].c1, tools[1].c2, name="tool1")])
+    with pytest.raises(ValueError, match="not both"):
+        mp.MarkerPose(rig, tools[0], markers=tools)
+    with pytest.raises(ValueError, match="non-empty"):
+        mp.MarkerPose(rig, markers=[])
+    with pytest.raises(ValueError, match="one marker|3D shape"):
+        mp.MarkerPose(rig, markers=tools, preset="paper")  # the decoded detector
+    with pytest.raises(ValueError, match="pose 'paper'"):
+        mp.MarkerPose(rig, markers=tools, solve={"pose": "paper"})
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nrings: [[0, 0], [25, 0]]\n")
+    with pytest.raises(ValueError, match="bad.yaml"):
+        mp.MarkerPose(rig, markers=[tools[0].save(tmp_path / "a.yaml"), bad])
+
+
+def test_tool_files_load(rig, tools, tmp_path, scene):
+    paths = [t.save(tmp_path / f"{t.name}.yaml") for t in tools]
+    found = mp.MarkerPose(rig, markers=paths).estimate_all(*scene.images)
+    assert list(found) == [t.name for t in tools]
