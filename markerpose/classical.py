@@ -693,6 +693,21 @@ def refine_views(
     return out
 
 
+def _refine_grouped(grays: list, views: list, markers: list, c: dict, noises: list, cameras: list | None) -> list:
+    """:func:`refine_views` of views whose markers may differ: one batch for the views of
+    markers with the same edge windows (all of them, for one marker)."""
+    groups: dict = {}
+    for v, mk in enumerate(markers):
+        groups.setdefault(_edge_windows(mk), []).append(v)
+    out: list = [None] * len(views)
+    for vs in groups.values():
+        cams = None if cameras is None else [cameras[v] for v in vs]
+        done = refine_views([grays[v] for v in vs], [views[v] for v in vs], markers[vs[0]], c, [noises[v] for v in vs], cams)
+        for v, rings in zip(vs, done):
+            out[v] = rings
+    return out
+
+
 def _blur_length(rings: list) -> float:
     """The blur length the blurred-ring fit kept for a view's rings (None for a missing
     one), px; 0 where it did not run or was not kept."""
@@ -1090,13 +1105,17 @@ def refine_ellipses_views(
     noises: list | None = None,
     with_blur: bool = False,
     limits: BlurLimits | None = None,
+    markers: list | None = None,
 ) -> list:
     """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
-    fits in one batch.
+    fits in one batch (one per set of edge windows, :func:`_edge_windows`, when the views'
+    markers differ).
 
     Args:
         images: per view, uint8 gray (H, W) or BGR.
         ellipses: per view, a list of approximate outer ellipses (RotatedRect) or None.
+        markers: per view, the marker whose rings they are (None: ``marker`` for all); an
+            image may come more than once, with another marker's rings.
         cameras: per view, a Camera or None.
         noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
         with_blur: also return each view's motion blur.
@@ -1109,9 +1128,10 @@ def refine_ellipses_views(
     c = _merge_conf(conf)
     grays = [as_gray(im, f"view {v}", allow_float=True) for v, im in enumerate(images)]  # 8-bit stays 8-bit: no float copy
     noises = _noises(grays, noises)
-    rho = marker.inner_diameter / marker.outer_diameter
+    markers = [marker] * len(grays) if markers is None else list(markers)
     views = []
-    for rects in ellipses:
+    for rects, mk in zip(ellipses, markers):
+        rho = mk.inner_diameter / mk.outer_diameter
         rings = []
         for rect in rects:
             if rect is None:
@@ -1124,8 +1144,8 @@ def refine_ellipses_views(
             )
         views.append(rings)
     out = []
-    for gray, noise, rings in zip(grays, noises, refine_views(grays, views, marker, c, noises, cameras)):
-        rings = refine_blurred(gray, rings, marker, c, noise, limits)
+    for gray, noise, rings, mk in zip(grays, noises, _refine_grouped(grays, views, markers, c, noises, cameras), markers):
+        rings = refine_blurred(gray, rings, mk, c, noise, limits)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])

@@ -66,6 +66,17 @@ class Frame:
             self._memo[key] = fn(*args)
         return self._memo[key]
 
+    def prefit(self, name: str, predicted: list, found: list) -> None:
+        """Keep the tool ``name``'s edge fit ``found`` of its ``predicted`` rings, made in
+        one batch with other tools' (see :meth:`prefitted`)."""
+        self._memo[("prefit", name)] = (predicted, found)
+
+    def prefitted(self, name: str, predicted: list) -> list | None:
+        """The fit :meth:`prefit` kept for the tool ``name``, if of these very ``predicted``
+        rings (once), else None."""
+        kept = self._memo.pop(("prefit", name), None)
+        return kept[1] if kept is not None and kept[0] is predicted else None
+
     def claim(self, name: str, rings: list) -> None:
         """The rings of the tool ``name``, found in this call: per view, its outer
         ellipses ((cx, cy), (major, minor), angle). Another tool's rings must lie off them."""

@@ -107,9 +107,11 @@ class ToolPipeline:
     def fitted(self, frame: Frame, predicted: list, first_tol: float, noises: list | None = None) -> Estimate | None:
         """Per view, the rings' edges fitted from ``predicted`` ellipses (a tracker's),
         verified and solved (``source`` "tracked"), or None."""
-        found = frame.timed(
-            "refine", self.refiner.from_ellipses, frame, frame.grays, list(self.rig.cameras), predicted, 1.0, False, first_tol, noises
-        )
+        found = frame.prefitted(self.name, predicted)
+        if found is None:
+            found = frame.timed(
+                "refine", self.refiner.from_ellipses, frame, frame.grays, list(self.rig.cameras), predicted, 1.0, False, first_tol, noises
+            )
         if any(det is None for det in found):
             return None
         if frame.timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], True) is not None:
@@ -312,7 +314,31 @@ class MarkerPose:
         looking once for all of them. Call :meth:`reset` between sequences."""
         tools = sorted(self.tools.values(), key=lambda t: not t.tracker.history)  # tracked tools claim their rings first
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool), tools)
+            expected = {t.name: t.tracker.expected(frame) for t in tools if t.tracker.history}
+            self._fit_together(frame, expected)
+            return self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET)), tools)
+
+    def _fit_together(self, frame: Frame, expected: dict) -> None:
+        """The first edge fits of the tools with a prior (``expected``: each one's predicted
+        rings, :meth:`~markerpose.stages.track.Tracker.expected`) in one batch, kept in
+        ``frame`` for each tool's own step (:meth:`ToolPipeline.fitted`)."""
+        items = [(name, rings) for name, rings in expected.items() if rings is not None]
+        if len(items) < 2:
+            return
+        tools = [self.tools[name] for name, _ in items]
+        found = frame.timed(
+            "refine",
+            self.refiner.from_ellipses_of,
+            frame,
+            frame.grays,
+            list(self.rig.cameras),
+            [(t.marker, rings, t.tracker.noise[0]) for t, (_, rings) in zip(tools, items)],
+            1.0,
+            False,
+            self.conf["track"]["one_pass_move"],
+        )
+        for (name, rings), fit in zip(items, found):
+            frame.prefit(name, rings, fit)
 
     def _each(self, frame: Frame, step, tools: list) -> dict[str, Estimate]:
         """``step(tool, frame)`` of each tool in its own child frame; those found claim their rings."""

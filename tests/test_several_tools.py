@@ -155,3 +155,24 @@ def test_tool_files_load(rig, tools, tmp_path, scene):
     paths = [t.save(tmp_path / f"{t.name}.yaml") for t in tools]
     found = mp.MarkerPose(rig, markers=paths).estimate_all(*scene.images)
     assert list(found) == [t.name for t in tools]
+
+
+def test_tracked_tools_fitted_in_one_batch_as_each_alone(rig, tools):
+    """track_all fits every tracked tool's rings in one batch: the poses are those of each
+    tool's own fit, to the last bit, and the batch runs instead of the tools' own fits."""
+    batched, alone = mp.MarkerPose(rig, markers=tools), mp.MarkerPose(rig, markers=tools)
+    alone._fit_together = lambda frame, expected: None
+    calls = []
+    fit = batched.refiner.from_ellipses_of
+    batched.refiner.from_ellipses_of = lambda *a: (calls.append(len(a[3])), fit(*a))[1]
+    for k in range(3):
+        poses = [(t, T.copy()) for t, T in zip(tools, POSES)]
+        for _, T in poses:
+            T[1, 3] += 1.0 * k
+        f = render_tools(rig, poses, Imaging(alpha=0.7), seed=40 + k)
+        a, b = batched.track_all(*f.images), alone.track_all(*f.images)
+        assert list(a) == list(b) == [t.name for t in tools]
+        for n in a:
+            np.testing.assert_array_equal(a[n].T, b[n].T)
+            assert a[n].source == b[n].source == ("detected" if k == 0 else "tracked")
+    assert calls == [3, 3]  # frames 1 and 2: one batch of the three tools

@@ -247,20 +247,41 @@ class Refiner:
         pass when that moved the ellipses less than this (px; see ``refine_first_tol``).
         ``noises``: per view, the image's noise sigma if known. ``blur_gate``: as in
         :meth:`__call__`."""
+        return self.from_ellipses_of(frame, grays, cameras, [(self.marker, ellipses, noises)], score, blur_unrefined, first_tol, blur_gate)[
+            0
+        ]
+
+    def from_ellipses_of(
+        self,
+        frame: Frame,
+        grays: list,
+        cameras: list,
+        items: list,
+        score: float,
+        blur_unrefined: bool = True,
+        first_tol: float = 0.0,
+        blur_gate=None,
+    ) -> list:
+        """:meth:`from_ellipses` of several markers' rings in the same views, in one batch:
+        ``items`` are (marker, per view its predicted ellipses, per view the noise sigma or
+        None); per item, per view a Detection or None."""
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
+        n = len(grays)
         fits = classical.refine_ellipses_views(
-            grays,
-            ellipses,
+            grays * len(items),
+            [e for _, ellipses, _ in items for e in ellipses],
             self.marker,
             conf,
-            cameras,
-            frame.noises(grays) if noises is None else noises,
+            cameras * len(items),
+            [s for _, _, noises in items for s in (frame.noises(grays) if noises is None else noises)],
             with_blur=True,
             limits=classical.BlurLimits(frame.blur_fits, blur_gate),
+            markers=[m for m, _, _ in items for _ in range(n)],
         )
-        return [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
+        found = [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
+        return [found[k * n : (k + 1) * n] for k in range(len(items))]
 
     def triple(self, frame: Frame, view: tuple, tri: tuple, cost: float, camera) -> Detection:
         """The classical detector's triple ``tri`` of a view (gray, noise, rings, ...)

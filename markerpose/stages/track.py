@@ -250,6 +250,9 @@ def changed(before: np.ndarray, after: np.ndarray, k: float, level: float = 1.0,
     return bool(med > scene or d.max() > k * 1.4826 * med + level)
 
 
+UNSET = object()  # Tracker.next's expected not given
+
+
 class Tracker:
     """One marker's state along a video stream, and the step from one pair to the next.
 
@@ -278,8 +281,9 @@ class Tracker:
         self.after_miss = False  # the last pose was found after the prior failed
         self.lost: tuple | None = None  # lost: (block means of the last pair detected cold, pairs skipped since)
 
-    def next(self, frame, pipeline):
-        """The marker's pose in the frame's pair (an Estimate), or None; the state moves on."""
+    def next(self, frame, pipeline, expected=UNSET):
+        """The marker's pose in the frame's pair (an Estimate), or None; the state moves on.
+        ``expected``: what :meth:`expected` gave for this pair, where it was called first."""
         c, grays = self.conf, frame.grays
         now = None
         if not self.history and self.lost is not None and c["lost_change"]:
@@ -289,17 +293,9 @@ class Tracker:
                 self.lost = (before, skipped + 1)
                 frame.why = "lost, and the pair has not changed since the last one detected without the marker"
                 return None
-        if self.history:
-            # The cameras' noise as the stream estimated it (renewed every NOISE_EVERY
-            # frames): this pair's fits take it, those of a search or a detection after a
-            # failed prior too.
-            noises, age = self.noise
-            if noises is None or age >= NOISE_EVERY:
-                noises, age = frame.noises(grays), 0
-            else:
-                frame.noises(grays, known=noises)
-            self.noise = (noises, age + 1)
-        est = self._fit(frame, pipeline, self.predicted(grays, predict(self.history)), c["one_pass_move"]) if self.history else None
+        if expected is UNSET:
+            expected = self.expected(frame)
+        est = self._fit(frame, pipeline, expected, c["one_pass_move"]) if self.history else None
         history = self.history
         after_miss = est is None and bool(history)
         if est is None:
@@ -328,6 +324,23 @@ class Tracker:
         else:
             self.lost = (now or [blocks(g, c["lost_block"]) for g in grays], 0)
         return est
+
+    def expected(self, frame) -> list | None:
+        """With a prior, the first step of :meth:`next`: the stream's noise for this pair and
+        the rings the prior predicts (:meth:`predicted`; None where they leave an image).
+        None without a prior. Called apart when several tools' fits are batched."""
+        if not self.history:
+            return None
+        # The cameras' noise as the stream estimated it (renewed every NOISE_EVERY
+        # frames): this pair's fits take it, those of a search or a detection after a
+        # failed prior too.
+        noises, age = self.noise
+        if noises is None or age >= NOISE_EVERY:
+            noises, age = frame.noises(frame.grays), 0
+        else:
+            frame.noises(frame.grays, known=noises)
+        self.noise = (noises, age + 1)
+        return self.predicted(frame.grays, predict(self.history))
 
     def _fit(self, frame, pipeline, predicted: list | None, first_tol: float):
         """The pipeline's fit of ``predicted`` ellipses, gated on the reprojection error."""
