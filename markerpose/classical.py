@@ -696,6 +696,8 @@ def refine_views(
 def _refine_grouped(grays: list, views: list, markers: list, c: dict, noises: list, cameras: list | None) -> list:
     """:func:`refine_views` of views whose markers may differ: one batch for the views of
     markers with the same edge windows (all of them, for one marker)."""
+    if all(mk is markers[0] for mk in markers):
+        return refine_views(grays, views, markers[0], c, noises, cameras)
     groups: dict = {}
     for v, mk in enumerate(markers):
         groups.setdefault(_edge_windows(mk), []).append(v)

@@ -395,3 +395,26 @@ def test_blur_distance_c0_c1_under_blur_along_it(tmp_path, monkeypatch):
     ):
         with pytest.raises(ValueError):
             bd.main(bad, None, progress=False)
+
+
+def test_tools_scenes_and_the_judge_of_each_pose():
+    """The tool scenes: 2 to N tools, every ring inside both images, plates apart but in the
+    pairs placed behind; a pose on its own rings is right, on another tool's rings a swap."""
+    from markerpose.experiments import tools as te
+    from markerpose.tools import tool_set
+
+    rig, tools = mp.StereoRig.default(), tool_set(3)
+    for frame, _, _, cond in te.scenes(3, rig, tools, 7, hidden_share=0.5):
+        assert 2 <= cond["tools"] == len(frame.truths) <= 3
+        assert all(v.in_image.all() for t in frame.truths.values() for v in t.views)
+        if not cond["hidden"]:
+            assert all(t.fully_visible for t in frame.truths.values())
+    a, b = list(frame.truths.values())[:2]
+
+    class Pose:  # what judge reads of an Estimate
+        def __init__(self, truth, shift=0.0):
+            self.centers = np.stack([v.centers for v in truth.views]) + shift
+
+    assert te.judge(Pose(a), a, {b.marker.name: b}, 3.0) == "right"
+    assert te.judge(Pose(b), a, {b.marker.name: b}, 3.0) == "swap"
+    assert te.judge(Pose(a, 10.0), a, {b.marker.name: b}, 3.0) == "false"

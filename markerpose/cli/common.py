@@ -132,7 +132,7 @@ def add_set_arg(p) -> None:
         action="append",
         type=setting,
         metavar="STAGE.KEY=VALUE",
-        help="a stage setting over the preset (README: stage settings), e.g. track.lost_change=0 or "
+        help="a stage setting over the preset (docs/design.md §1.4), e.g. track.lost_change=0 or "
         "match.max_fits=5; also threads=N, backend=NAME, detector=NAME; repeatable",
     )
 

@@ -156,7 +156,7 @@ def cmd_eval_tools(args):
         conf["configs"] = tuple(args.configs)
     res = tools.main(conf, args.out, progress=not args.quiet)
     print(tools.report(res))
-    print(f"Wrote {args.out}/: report.md, results.json" + (", tools.mp4" if "video" in res else ""))
+    print(f"Wrote {args.out}/: report.md, results.json" + (", tools.mp4, tools-video.png" if "video" in res else ""))
 
 
 def _eval_args(p, what: str):
@@ -215,7 +215,7 @@ def _register_pipeline(esub) -> None:
     et.add_argument("--frames", type=int, default=120, help="pairs of the 3-tool video (0: none; default 120)")
     et.add_argument("--speed-pairs", type=int, default=20, help="cold pairs timed (0: no timing; default 20)")
     et.add_argument("--configs", nargs="*", help="presets (default: default classical; the paper's decoded detector takes one marker)")
-    et.add_argument("--out", default="markerpose-tools", help="output folder: report.md, results.json, tools.mp4")
+    et.add_argument("--out", default="markerpose-tools", help="output folder: report.md, results.json, tools.mp4, tools-video.png")
     et.add_argument("--quiet", action="store_true")
     et.set_defaults(func=cmd_eval_tools)
 

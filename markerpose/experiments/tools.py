@@ -241,7 +241,8 @@ def summarize(rows: list, rel: list, free: list) -> dict:
 def main(conf: dict | None = None, out: str | Path | None = None, progress: bool = True) -> dict:
     """Every configuration of ``conf["configs"]`` on the held-out tool pairs and the
     marker-free pairs; then the video and the speed (the default preset). With ``out``
-    (a folder): results.json, report.md and the tracked video tools.mp4."""
+    (a folder): results.json, report.md, the tracked video tools.mp4 and its plot
+    tools-video.png."""
     c = {**default_conf, **(conf or {})}
     rig = StereoRig.default()
     tools = tool_set(int(c["tools"]))
@@ -287,7 +288,53 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
         (out / "report.md").write_text(report(res) + "\n")
         if "video" in res:
             write_video(out / "tools.mp4", rig, tools[:3], frames)
+            plot_video(res["video"], out / "tools-video.png")
     return res
+
+
+def plot_video(video: dict, path: Path) -> Path:
+    """Per tool along the video: how each pair's pose came (tracked, detected, missed while
+    fully visible or partly hidden, out of view, wrong) and its translation error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tools = [n for n in video if n != "frames"]
+    colors = {
+        "tracked": "tab:green",
+        "detected": "tab:blue",
+        "missed": "tab:orange",
+        "hidden": "#f7c98f",
+        "out of view": "0.85",
+        "swap": "red",
+        "false": "red",
+    }
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9, 5), sharex=True, gridspec_kw={"height_ratios": [1, 2]})
+    for row, name in enumerate(tools):
+        for k, what, _ in video[name]["log"]:
+            top.barh(row, 1, left=k - 0.5, color=colors[what], height=0.7)
+        log = [(k, t) for k, _, t in video[name]["log"] if t is not None]
+        if log:
+            bottom.semilogy(*zip(*log), ".", ms=4, label=name)
+    top.set_yticks(range(len(tools)), tools)
+    top.invert_yaxis()
+    top.legend(
+        handles=[plt.Rectangle((0, 0), 1, 1, color=colors[k]) for k in ("tracked", "detected", "missed", "hidden", "out of view", "false")],
+        labels=["tracked", "detected", "missed", "missed, partly hidden", "out of view", "wrong"],
+        ncol=6,
+        fontsize=8,
+        loc="lower center",
+        bbox_to_anchor=(0.5, 1.0),
+    )
+    bottom.set_xlabel("pair")
+    bottom.set_ylabel("translation error (mm)")
+    bottom.legend(fontsize=8)
+    bottom.grid(alpha=0.3, which="both")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def write_video(path: Path, rig: StereoRig, tools: list, frames: list) -> Path:
@@ -344,7 +391,7 @@ def track_video(tracker: MarkerPose, frames: list, tol: float = 3.0) -> dict:
     each re-entry was found on its first frame back."""
     tracker.reset()
     per = {
-        n: {"in_view": 0, "right": 0, "swaps": 0, "false_poses": 0, "missed_frames": [], "reentries": [], "tracked": 0}
+        n: {"in_view": 0, "right": 0, "swaps": 0, "false_poses": 0, "missed_frames": [], "reentries": [], "tracked": 0, "log": []}
         for n in tracker.tools
     }
     for k, f in enumerate(frames):
@@ -355,6 +402,7 @@ def track_video(tracker: MarkerPose, frames: list, tol: float = 3.0) -> dict:
             if truth is None:
                 if est is not None:
                     p["false_poses"] += 1
+                p["log"].append([k, "out of view" if est is None else "false", None])
                 continue
             back = k > 0 and n not in frames[k - 1].truths
             outcome = "missed" if est is None else judge(est, truth, {m: t for m, t in f.truths.items() if m != n}, tol)
@@ -366,6 +414,9 @@ def track_video(tracker: MarkerPose, frames: list, tol: float = 3.0) -> dict:
             p["swaps"] += outcome == "swap"
             p["false_poses"] += outcome == "false"
             p["tracked"] += est is not None and est.source == "tracked"
+            t_mm = None if outcome != "right" else _errors(est.T, truth.T_left_marker)[0]
+            what = est.source if outcome == "right" else outcome
+            p["log"].append([k, "hidden" if what == "missed" and not truth.fully_visible else what, t_mm])
             if back:
                 p["reentries"].append({"frame": k, "found": outcome == "right"})
     return per
@@ -483,4 +534,4 @@ def report(res: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["default_conf", "judge", "main", "report", "scenes", "speed", "summarize", "track_video", "video", "write_video"]
+__all__ = ["default_conf", "judge", "main", "report", "scenes", "speed", "summarize", "track_video", "plot_video", "video", "write_video"]

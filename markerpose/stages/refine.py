@@ -272,13 +272,13 @@ class Refiner:
         fits = classical.refine_ellipses_views(
             grays * len(items),
             [e for _, ellipses, _ in items for e in ellipses],
-            self.marker,
+            items[0][0],
             conf,
             cameras * len(items),
             [s for _, _, noises in items for s in (frame.noises(grays) if noises is None else noises)],
             with_blur=True,
             limits=classical.BlurLimits(frame.blur_fits, blur_gate),
-            markers=[m for m, _, _ in items for _ in range(n)],
+            markers=None if len(items) == 1 else [m for m, _, _ in items for _ in range(n)],
         )
         found = [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
         return [found[k * n : (k + 1) * n] for k in range(len(items))]
