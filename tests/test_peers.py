@@ -32,8 +32,9 @@ def test_every_system_finds_its_target_with_an_accurate_pose(scene_result):
         assert r["stereo"]["t_err"] < 0.2 and r["stereo"]["r_err"] < 0.3, (name, r["stereo"])
         if name == "markerpose":
             assert r["mono"] is None
-        else:  # mono: right within a millimetre, and IPPE's other solution is the flip
-            assert r["mono"]["t_err"] < 1.0 and r["mono"]["r_err"] < 2.0, (name, r["mono"])
+        else:  # mono: right within a millimetre (unrefined corners: a few), and IPPE's other solution is the flip
+            limit = 3.0 if name == "aruco-defaults" else 1.0
+            assert r["mono"]["t_err"] < limit and r["mono"]["r_err"] < 2.0, (name, r["mono"])
             assert len(r["mono"]["alt"]) == 1 and r["mono"]["alt"][0][1] > 20.0
     # Stereo is more accurate than mono for every square tag on the same frames.
     for name in ("apriltag", "aruco", "stag"):
@@ -54,8 +55,9 @@ def test_corners_land_where_the_target_says():
         assert obs is not None and not obs.wrong_id, name
         truth = RIG.left.project(s.target.points[obs.keys] @ T[:3, :3].T + T[:3, 3])
         err = np.linalg.norm(obs.points - truth, axis=1)
-        assert np.median(err) < 0.3, (name, err)
-        assert len(obs.keys) == (20 if name == "charuco" else 4)
+        # Unrefined ArUco corners sit on the pixel grid: within a pixel, not a fraction.
+        assert np.median(err) < (1.2 if name == "aruco-defaults" else 0.3), (name, err)
+        assert len(obs.keys) == (20 if name.startswith("charuco") else 4)
 
 
 def test_targets_share_the_plate():
@@ -142,3 +144,23 @@ def test_bad_requests_are_refused(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["peers", "--pairs", "0"])
     assert e.value.code == 2
+
+
+def test_each_peer_also_runs_at_its_library_defaults():
+    """The '-defaults' systems are the libraries as they come: AprilTag's quad_decimate 2,
+    ArUco's and ChArUco's markers without corner refinement; the others at the settings
+    for accuracy."""
+    import inspect
+
+    import cv2
+
+    pupil_apriltags = pytest.importorskip("pupil_apriltags")
+    library = {k: p.default for k, p in inspect.signature(pupil_apriltags.Detector.__init__).parameters.items() if k != "self"}
+    got = systems.make("apriltag-defaults").detector.params
+    for key in ("quad_decimate", "quad_sigma", "refine_edges", "decode_sharpening"):
+        assert got[key] == library[key], key
+    assert systems.make("apriltag").detector.params["quad_decimate"] == 1.0
+    for name in ("aruco", "charuco"):
+        refine = systems.make(f"{name}-defaults").detector.getDetectorParameters().cornerRefinementMethod
+        assert refine == cv2.aruco.DetectorParameters().cornerRefinementMethod
+    assert systems.make("aruco").detector.getDetectorParameters().cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX

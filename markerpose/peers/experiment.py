@@ -404,13 +404,16 @@ def setup_lines(conf: dict) -> list[str]:
         f"backgrounds; the renderer and sensor model of every markerpose experiment (PSF σ = {im.psf_sigma} px, "
         f"shot and read noise, 8 bits). Darkness α scales the exposure; motion blur is a line kernel in a random direction. "
         "Every system sees the same pose, lighting, blur, backgrounds and noise seed.",
-        "- **Settings**: AprilTag `pupil_apriltags.Detector(families='tag36h11', quad_decimate=1.0, quad_sigma=0.0, "
-        "refine_edges=1, decode_sharpening=0.25, nthreads=1)`, its corners moved by −0.5 px into OpenCV's pixel-centre "
-        "convention; ArUco `cv2.aruco.ArucoDetector` with `CORNER_REFINE_SUBPIX` (the most accurate of OpenCV's three "
-        "refinements on these images); ChArUco `cv2.aruco.CharucoDetector` (same marker refinement; the detector "
-        "refines the chessboard corners), at least 4 corners for a pose; STag `stag.detectMarkers(image, 21)` (its own "
-        "ellipse-based corner refinement); markerpose `MarkerPose(rig, preset='default', threads=1).estimate`. "
-        "OpenCV one thread per process.",
+        "- **Settings**: each peer twice where its library has settings: at the library's defaults (rows 'library "
+        "defaults') and at its documented settings for accuracy; none is tuned per condition. AprilTag "
+        "`pupil_apriltags.Detector(families='tag36h11', quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, "
+        "decode_sharpening=0.25, nthreads=1)` (full-resolution quads), defaults `quad_decimate=2.0` (the rest the same), its "
+        "corners moved by −0.5 px into OpenCV's pixel-centre convention; ArUco `cv2.aruco.ArucoDetector` with "
+        "`CORNER_REFINE_SUBPIX` (the most accurate of OpenCV's three refinements on these images), defaults: no "
+        "refinement; ChArUco `cv2.aruco.CharucoDetector` (same marker refinement, or none; the detector refines the "
+        "chessboard corners), at least 4 corners for a pose; STag `stag.detectMarkers(image, 21)` (its own "
+        "ellipse-based corner refinement; no other setting); markerpose `MarkerPose(rig, preset='default', "
+        "threads=1).estimate`. OpenCV one thread per process.",
         "- **Mono** (as the peers' users run them): OpenCV's IPPE from the left view with the full lens model "
         "(`SOLVEPNP_IPPE_SQUARE` for a square tag, `SOLVEPNP_IPPE` for the ChArUco corners), the better solution. "
         "**Stereo**: the points found in both views triangulated with the rig and the rigid fit markerpose uses. "
@@ -526,7 +529,13 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
 
 # --- plots -----------------------------------------------------------------------------------
 _COLORS = {"markerpose": "k", "apriltag": "tab:blue", "aruco": "tab:orange", "charuco": "tab:green", "stag": "tab:red"}
+_COLORS.update({f"{n}-defaults": f"{c}" for n, c in _COLORS.items()})
 _STYLE = {"stereo": "-", "mono": "--"}
+
+
+def _marker_style(name: str) -> str:
+    """A peer at its library's defaults: crosses, at its settings for accuracy: dots."""
+    return "x" if name.endswith("-defaults") else "o"
 
 
 def _line_label(name: str, mode: str) -> str:
@@ -552,7 +561,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
                 [float(x) for x in xs],
                 [100 * m[kind][x]["detection"]["p"] for x in xs],
                 _STYLE[mode],
-                marker="o",
+                marker=_marker_style(name),
                 ms=4,
                 color=_COLORS[name],
                 label=_line_label(name, mode),
@@ -580,7 +589,7 @@ def plots(summary: dict, out: Path) -> list[Path]:
                 b = m[key]
                 x = [(v["lo"] + v["hi"]) / 2 for v in b]
                 y = [np.nan if v[metric] is None else v[metric] for v in b]
-                ax.plot(x, y, _STYLE[mode], marker="o", ms=4, color=_COLORS[name], label=_line_label(name, mode))
+                ax.plot(x, y, _STYLE[mode], marker=_marker_style(name), ms=4, color=_COLORS[name], label=_line_label(name, mode))
             ax.set_yscale("log")
             ax.set_xlabel(xlabel)
             ax.set_ylabel(ylabel)

@@ -12,19 +12,25 @@ point keys and sub-pixel image points) and turns them into a pose two ways:
 
 markerpose itself is a stereo system: its pose is ``MarkerPose.estimate`` (no mono pose).
 
-How each peer is set up (each with its documented recommended settings for accuracy):
+How each peer is set up: twice where its library has settings a user would change, at
+the library's defaults (``NAME-defaults``) and at its documented settings for accuracy
+(``NAME``), so that neither hides what the other shows (AprilTag's decimation, for
+instance, trades corner accuracy for robustness to blur):
 
 - ``apriltag``: ``pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0,
-  quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25)``, one thread. Its corners
-  are in a pixel-corner convention (a pixel spans [i, i + 1]); half a pixel is taken
-  off so they are in OpenCV's (a pixel's centre at i), which every pose here uses.
+  quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25)``, one thread: full-resolution
+  quad detection. ``apriltag-defaults``: the library's defaults (``quad_decimate=2.0``,
+  the rest as above). Its corners are in a pixel-corner convention (a pixel spans
+  [i, i + 1]); half a pixel is taken off so they are in OpenCV's (a pixel's centre at i),
+  which every pose here uses.
 - ``aruco``: ``cv2.aruco.ArucoDetector`` on ``DICT_4X4_50`` with
-  ``cornerRefinementMethod = CORNER_REFINE_SUBPIX`` (OpenCV's sub-pixel corner refinement).
+  ``cornerRefinementMethod = CORNER_REFINE_SUBPIX`` (OpenCV's sub-pixel corner
+  refinement); ``aruco-defaults``: ``DetectorParameters()`` as they come (no refinement).
 - ``charuco``: ``cv2.aruco.CharucoDetector`` (its markers refined with
   ``CORNER_REFINE_SUBPIX``; the chessboard corners are ``cornerSubPix``-refined by the
-  detector); a pose needs at least 4 corners.
+  detector); ``charuco-defaults``: its markers unrefined. A pose needs at least 4 corners.
 - ``stag``: ``stag.detectMarkers(image, 21)`` (STag's own ellipse-based corner
-  refinement is part of its detector).
+  refinement is part of its detector; it has no other setting).
 
 A detector that finds several candidates reports the one with the expected ID; any other
 ID counts as a wrong detection.
@@ -42,17 +48,25 @@ import numpy as np
 from ..geometry import pose_rigid, triangulate
 from . import targets
 
-PEERS = ("apriltag", "aruco", "charuco", "stag")
+PEERS = ("apriltag", "apriltag-defaults", "aruco", "aruco-defaults", "charuco", "charuco-defaults", "stag")
 SYSTEMS = ("markerpose",) + PEERS
 PIP = {"apriltag": "pupil-apriltags", "stag": "stag-python"}  # the others come with OpenCV
 LABELS = {
     "markerpose": "markerpose (three rings)",
     "apriltag": "AprilTag 3 tag36h11",
+    "apriltag-defaults": "AprilTag 3 tag36h11, library defaults",
     "aruco": "ArUco 4×4",
+    "aruco-defaults": "ArUco 4×4, library defaults",
     "charuco": "ChArUco 5×6",
+    "charuco-defaults": "ChArUco 5×6, library defaults",
     "stag": "STag HD21",
 }
 _MODULE = {"apriltag": "pupil_apriltags", "stag": "stag"}
+
+
+def _base(name: str) -> str:
+    """The peer a system name is a setting of (``apriltag-defaults`` → ``apriltag``)."""
+    return name.removesuffix("-defaults")
 
 
 @dataclass
@@ -72,7 +86,7 @@ class Observation:
 
 def missing(names=PEERS) -> dict[str, str]:
     """{system: pip package} of the peers whose package is not installed."""
-    return {n: PIP[n] for n in names if n in _MODULE and importlib.util.find_spec(_MODULE[n]) is None}
+    return {n: PIP[_base(n)] for n in names if _base(n) in _MODULE and importlib.util.find_spec(_MODULE[_base(n)]) is None}
 
 
 class System:
@@ -156,10 +170,17 @@ class AprilTag(System):
     # this reorders them to the target's TL, TR, BR, BL.
     _order = np.array([1, 0, 3, 2])
 
-    def __init__(self):
+    def __init__(self, defaults: bool = False):
         super().__init__()
+        if defaults:
+            self.name = "apriltag-defaults"
         self.detector = _apriltag_detector(
-            families="tag36h11", nthreads=1, quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, decode_sharpening=0.25
+            families="tag36h11",
+            nthreads=1,
+            quad_decimate=2.0 if defaults else 1.0,
+            quad_sigma=0.0,
+            refine_edges=1,
+            decode_sharpening=0.25,
         )
 
     def make_target(self):
@@ -180,10 +201,13 @@ class Aruco(System):
     name = "aruco"
     marker_id = 0
 
-    def __init__(self):
+    def __init__(self, defaults: bool = False):
         super().__init__()
         p = cv2.aruco.DetectorParameters()
-        p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        if defaults:
+            self.name = "aruco-defaults"
+        else:
+            p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         self.detector = cv2.aruco.ArucoDetector(targets.aruco_dictionary("DICT_4X4_50"), p)
 
     def make_target(self):
@@ -203,10 +227,13 @@ class Charuco(System):
     name = "charuco"
     square = False
 
-    def __init__(self):
+    def __init__(self, defaults: bool = False):
         super().__init__()
         p = cv2.aruco.DetectorParameters()
-        p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        if defaults:
+            self.name = "charuco-defaults"
+        else:
+            p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         self.detector = cv2.aruco.CharucoDetector(targets.charuco_board(), cv2.aruco.CharucoParameters(), p)
 
     def make_target(self):
@@ -264,12 +291,12 @@ def make(name: str, rig=None) -> System:
     """The system called ``name`` (``ImportError`` naming the pip package if it is missing)."""
     if name == "markerpose":
         return Ours(rig)
-    if name not in PEER_CLASSES:
+    if name not in PEERS:
         raise ValueError(f"unknown system {name!r}; known: {list(SYSTEMS)}")
     gone = missing([name])
     if gone:
         raise ImportError(f'{name} needs the package {gone[name]}: pip install {gone[name]} (or pip install -e ".[peers]")')
-    return PEER_CLASSES[name]()
+    return PEER_CLASSES[_base(name)](defaults=True) if name.endswith("-defaults") else PEER_CLASSES[name]()
 
 
 def timed(fn, *args):
