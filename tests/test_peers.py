@@ -164,3 +164,25 @@ def test_each_peer_also_runs_at_its_library_defaults():
         refine = systems.make(f"{name}-defaults").detector.getDetectorParameters().cornerRefinementMethod
         assert refine == cv2.aruco.DetectorParameters().cornerRefinementMethod
     assert systems.make("aruco").detector.getDetectorParameters().cornerRefinementMethod == cv2.aruco.CORNER_REFINE_SUBPIX
+
+
+def test_spread_gives_the_lead_per_seed(tmp_path, capsys):
+    """--spread: the standard level under each seed, markerpose's lead over the best peer per
+    seed and its mean ± sd; seed 0 is the full run's standard level."""
+    cli.main(
+        ["peers", "--spread", "2", "--pairs", "1", "--systems", "markerpose", "aruco", "--out", str(tmp_path), "--quiet", "--jobs", "1"]
+    )
+    res = json.loads((tmp_path / "spread.json").read_text())
+    assert [s["seed"] for s in res["seeds"]] == [0, 1]
+    for s in res["seeds"]:
+        assert set(s["medians_mm"]) == {"markerpose/stereo", "aruco/stereo", "aruco/mono"}
+        best = min(("aruco/stereo", "aruco/mono"), key=lambda k: s["medians_mm"][k])
+        assert s["best_peer"] == best and s["lead"] == pytest.approx(s["medians_mm"][best] / s["medians_mm"]["markerpose/stereo"])
+    leads = [s["lead"] for s in res["seeds"]]
+    assert res["lead_mean"] == pytest.approx(np.mean(leads)) and res["lead_sd"] == pytest.approx(np.std(leads, ddof=1))
+    assert "Lead over the best peer" in (tmp_path / "spread.md").read_text()
+    full = experiment.scenes(experiment.plan(pairs=1), StereoRig.default())[0]
+    one = experiment.scenes(
+        {**experiment.plan(pairs=1), "alphas": (1.0,), "blurs": (), "jitter_poses": 0, "marker_free": 0}, StereoRig.default()
+    )
+    assert len(one) == 1 and np.array_equal(one[0]["T"], full["T"])  # seed 0: the full run's first standard scene

@@ -16,7 +16,23 @@ def cmd_peers(args):
         cmd += f" --pairs {args.pairs}"
     if args.systems:
         cmd += " --systems " + " ".join(args.systems)
+    if args.seed:
+        cmd += f" --seed {args.seed}"
     conf = experiment.plan(args.quick, pairs=args.pairs, seed=args.seed, systems=tuple(args.systems) if args.systems else None)
+    if args.spread:
+        from pathlib import Path
+
+        from ..formats import write_json
+
+        cmd += f" --spread {args.spread}"
+        res = experiment.spread(conf, args.spread, jobs=args.jobs, progress=not args.quiet)
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        write_json(out / "spread.json", res)
+        (out / "spread.md").write_text(experiment.spread_markdown(res, cmd))
+        print(experiment.spread_markdown(res, cmd))
+        print(f"wrote {out / 'spread.md'} and spread.json ({time.perf_counter() - t0:.0f} s)")
+        return
     doc = experiment.main(conf, args.out, jobs=args.jobs, command=cmd, progress=not args.quiet)
     print(f"wrote {doc['files'][0]} and the plots and results.json beside it ({time.perf_counter() - t0:.0f} s)")
 
@@ -29,10 +45,17 @@ def register(sub) -> None:
     pe.add_argument(
         "--systems",
         nargs="+",
-        choices=("markerpose", "apriltag", "aruco", "charuco", "stag"),
+        choices=("markerpose", "apriltag", "apriltag-defaults", "aruco", "aruco-defaults", "charuco", "charuco-defaults", "stag"),
         help="systems to run (default: all installed)",
     )
     pe.add_argument("--seed", type=int, default=0)
+    pe.add_argument(
+        "--spread",
+        type=positive_int,
+        metavar="SEEDS",
+        help="instead: the standard level under SEEDS seeds, each system's median position error per seed and "
+        "markerpose's lead over the best peer with its spread (spread.md, spread.json)",
+    )
     pe.add_argument("--jobs", type=positive_int, help="processes (default: up to 2)")
     pe.add_argument("--quiet", action="store_true", help="no progress bar")
     pe.set_defaults(func=cmd_peers)

@@ -643,6 +643,76 @@ def plan(quick: bool = False, **overrides) -> dict:
     return conf
 
 
+def spread(conf: dict, seeds: int, jobs: int | None = None, progress: bool = True) -> dict:
+    """The accuracy lead with its spread: the standard level (α = 1, no blur) of ``conf``
+    drawn afresh under seeds 0 .. ``seeds`` - 1; per seed, each system's and mode's median
+    position error over its detections, and markerpose's against the best peer's. Returns
+    the per-seed medians and the lead's mean, sd and range."""
+    per_seed = []
+    for seed in range(int(seeds)):
+        c = {**conf, "seed": seed, "alphas": (1.0,), "blurs": (), "jitter_poses": 0, "marker_free": 0}
+        rows = run(c, jobs=jobs, progress=progress)
+        medians = {}
+        for name in c["systems"]:
+            for mode in ("stereo", "mono"):
+                got = [r[name][mode] for _, r in rows if r[name].get(mode)]
+                good = [g["t_err"] for g in got if _ok(g, c)]
+                if got:
+                    medians[f"{name}/{mode}"] = _pct(good, 50)
+        ours = medians.get("markerpose/stereo")
+        peers = {k: v for k, v in medians.items() if not k.startswith("markerpose/") and v is not None}
+        best = min(peers, key=peers.get) if peers else None
+        per_seed.append(
+            {"seed": seed, "medians_mm": medians, "best_peer": best, "lead": None if not best or not ours else peers[best] / ours}
+        )
+    leads = np.array([s["lead"] for s in per_seed if s["lead"] is not None])
+    ours = np.array([s["medians_mm"]["markerpose/stereo"] for s in per_seed if s["medians_mm"].get("markerpose/stereo") is not None])
+    return {
+        "pairs": conf["pairs"],
+        "seeds": per_seed,
+        "lead_mean": float(leads.mean()) if len(leads) else None,
+        "lead_sd": float(leads.std(ddof=1)) if len(leads) > 1 else None,
+        "lead_range": [float(leads.min()), float(leads.max())] if len(leads) else None,
+        "markerpose_median_mm_mean": float(ours.mean()) if len(ours) else None,
+        "markerpose_median_mm_range": [float(ours.min()), float(ours.max())] if len(ours) else None,
+    }
+
+
+def spread_markdown(res: dict, command: str) -> str:
+    """The spread's report: markerpose and the best peer per seed, the lead's mean ± sd, and
+    each system's median over the seeds."""
+    L = [
+        "# The accuracy lead over seeds",
+        "",
+        f"Command: `{command}`. The standard level ({res['pairs']} scenes, α = 1, no blur) drawn under each seed (seed 0: "
+        "the full run's standard level); per seed the median position error (mm) of each system's detections, and "
+        "markerpose's lead: the best peer's median over markerpose's.",
+        "",
+        "| seed | markerpose (mm) | best peer | its median (mm) | lead |",
+        "|---|---|---|---|---|",
+    ]
+    for s in res["seeds"]:
+        best = s["best_peer"]
+        lead = "—" if s["lead"] is None else f"{s['lead']:.1f}×"
+        L.append(
+            f"| {s['seed']} | {_f(s['medians_mm'].get('markerpose/stereo'), 4)} | {best} | {_f(s['medians_mm'].get(best), 4)} | {lead} |"
+        )
+    if res["lead_mean"] is not None:
+        sd = "" if res["lead_sd"] is None else f" ± {res['lead_sd']:.1f}"
+        lo, hi = res["lead_range"]
+        L += [
+            "",
+            f"**Lead over the best peer: {res['lead_mean']:.1f}×{sd}** (mean ± sd over {len(res['seeds'])} seeds; range {lo:.1f}–{hi:.1f}×).",
+        ]
+    keys = sorted({k for s in res["seeds"] for k in s["medians_mm"]}, key=lambda k: (not k.startswith("markerpose"), k))
+    L += ["", "| system / mode | median position error over the seeds: mean (min–max), mm |", "|---|---|"]
+    for k in keys:
+        v = np.array([s["medians_mm"][k] for s in res["seeds"] if s["medians_mm"].get(k) is not None])
+        if len(v):
+            L.append(f"| {k} | {v.mean():.4f} ({v.min():.4f}–{v.max():.4f}) |")
+    return "\n".join(L) + "\n"
+
+
 def main(
     conf: dict, out_dir: str | Path = "markerpose-peers", jobs: int | None = None, command: str = "markerpose peers", progress: bool = True
 ) -> dict:
