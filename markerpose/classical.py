@@ -519,17 +519,17 @@ def _edge_windows(marker: Marker) -> tuple[float, float, float]:
     return rho, w_out, w_in
 
 
-def _inner_starts(rings: list, outer: list, rho: float) -> list:
+def _inner_starts(rings: list, outer: list, rho: np.ndarray) -> list:
     """Per ring, the inner ellipse's start (centre, Q) where its outer edge fitted: the
-    hole's, or the fitted outer one scaled by rho; None elsewhere."""
+    hole's, or the fitted outer one scaled by its marker's rho (K,); None elsewhere."""
     inner_cqs = [None] * len(rings)
     for k, (r, out) in enumerate(zip(rings, outer)):
         if out is not None:
-            inner_cqs[k] = r._inner_cq if r._inner_cq is not None and not r.from_hole else (out[0][0], out[0][1] / rho**2)
+            inner_cqs[k] = r._inner_cq if r._inner_cq is not None and not r.from_hole else (out[0][0], out[0][1] / rho[k] ** 2)
     return inner_cqs
 
 
-def _refine_inner(grays: list, view: np.ndarray, inner_cqs: list, w_in: float, c: dict, floor: np.ndarray, cameras: list) -> list:
+def _refine_inner(grays: list, view: np.ndarray, inner_cqs: list, w_in: np.ndarray, c: dict, floor: np.ndarray, cameras: list) -> list:
     """One batch of edge fits of the inner edges from ``inner_cqs`` (where not None), when
     conf["refine_inner"] or the concentric centre asks for them; None per ring elsewhere."""
     inner: list = [None] * len(inner_cqs)
@@ -540,7 +540,7 @@ def _refine_inner(grays: list, view: np.ndarray, inner_cqs: list, w_in: float, c
             view[todo],
             np.array([inner_cqs[k][0] for k in todo]),
             np.array([inner_cqs[k][1] for k in todo]),
-            w_in,
+            w_in[todo],
             False,
             c,
             floor[todo],
@@ -584,14 +584,19 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
     )
 
 
-def _refine_batch(grays: list, view: list, rings: list, others: list, marker: Marker, c: dict, noises: list, cameras: list) -> list:
+def _refine_batch(grays: list, view: list, rings: list, others: list, marker, c: dict, noises: list, cameras: list) -> list:
     """:func:`refine_ring` of several rings at once (of one or more images; ring k is in
-    ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``): one
-    batch of edge fits (:func:`markerpose.edges.refine_edges`) for all outer edges, one for
-    all inner ones."""
+    ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``, its
+    marker ``marker`` or ``marker[k]``): one batch of edge fits
+    (:func:`markerpose.edges.refine_edges`, each ring with its marker's windows) for all
+    outer edges, one for all inner ones."""
     if not rings:
         return []
-    rho, w_out, w_in = _edge_windows(marker)
+    if isinstance(marker, Marker):
+        rho, w_out, w_in = (np.full(len(rings), w) for w in _edge_windows(marker))
+    else:
+        windows = {id(mk): _edge_windows(mk) for mk in marker}
+        rho, w_out, w_in = np.array([windows[id(mk)] for mk in marker], np.float64).T
     view = np.asarray(view, np.intp)
     floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
     oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
@@ -664,7 +669,7 @@ def _noises(grays: list, noises: list | None) -> list:
 def refine_views(
     grays: list,
     rings: list,
-    marker: Marker = Marker(),
+    marker: Marker | list = Marker(),
     conf: dict | None = None,
     noises: list | None = None,
     cameras: list | None = None,
@@ -673,8 +678,11 @@ def refine_views(
     neighbours being the other rings of its view.
 
     Args:
-        grays: per view, a (H, W) float32 grey image.
+        grays: per view, a (H, W) float32 grey image (an image may come more than once,
+            with another marker's rings).
         rings: per view, a list of :class:`Ring` or None (kept None).
+        marker: the marker, or per view the marker whose rings they are (each ring is
+            fitted with its marker's edge windows, all in one batch).
         noises: per view, the noise sigma if known (else :func:`noise_sigma`).
         cameras: per view, a :class:`~markerpose.camera.Camera` or None.
     Returns:
@@ -684,29 +692,11 @@ def refine_views(
     noises = _noises(grays, noises)
     flat = [(v, k, r) for v, rs in enumerate(rings) for k, r in enumerate(rs) if r is not None]
     present = [[r for r in rs if r is not None] for rs in rings]
-    done = _refine_batch(
-        grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], marker, c, noises, cameras
-    )
+    per = marker if isinstance(marker, Marker) else [marker[v] for v, _, _ in flat]
+    done = _refine_batch(grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], per, c, noises, cameras)
     out = [list(rs) for rs in rings]
     for (v, k, _), r in zip(flat, done):
         out[v][k] = r
-    return out
-
-
-def _refine_grouped(grays: list, views: list, markers: list, c: dict, noises: list, cameras: list | None) -> list:
-    """:func:`refine_views` of views whose markers may differ: one batch for the views of
-    markers with the same edge windows (all of them, for one marker)."""
-    if all(mk is markers[0] for mk in markers):
-        return refine_views(grays, views, markers[0], c, noises, cameras)
-    groups: dict = {}
-    for v, mk in enumerate(markers):
-        groups.setdefault(_edge_windows(mk), []).append(v)
-    out: list = [None] * len(views)
-    for vs in groups.values():
-        cams = None if cameras is None else [cameras[v] for v in vs]
-        done = refine_views([grays[v] for v in vs], [views[v] for v in vs], markers[vs[0]], c, [noises[v] for v in vs], cams)
-        for v, rings in zip(vs, done):
-            out[v] = rings
     return out
 
 
@@ -1110,8 +1100,7 @@ def refine_ellipses_views(
     markers: list | None = None,
 ) -> list:
     """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
-    fits in one batch (one per set of edge windows, :func:`_edge_windows`, when the views'
-    markers differ).
+    fits in one batch (each ring with its marker's edge windows, :func:`_edge_windows`).
 
     Args:
         images: per view, uint8 gray (H, W) or BGR.
@@ -1146,7 +1135,12 @@ def refine_ellipses_views(
             )
         views.append(rings)
     out = []
-    for gray, noise, rings, mk in zip(grays, noises, _refine_grouped(grays, views, markers, c, noises, cameras), markers):
+    for gray, noise, rings, mk in zip(
+        grays,
+        noises,
+        refine_views(grays, views, markers[0] if all(mk is markers[0] for mk in markers) else markers, c, noises, cameras),
+        markers,
+    ):
         rings = refine_blurred(gray, rings, mk, c, noise, limits)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)

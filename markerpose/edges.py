@@ -496,16 +496,17 @@ def _ray_frame(L, cen, n, S, half, hw, u, r, lam, dl, xy, ok):  # pragma: no cov
     """The rays of K ellipses (L = Q^(-1/2)): ray i of n[k] from the centre at angle
     2 pi i / n[k] on the unit circle, u[k, :, i] its edge point at lambda 1 relative to
     the centre, r its length (px per unit lambda), xy the edge point itself; the window's
-    lambda = 1 + linspace(-half, half, S[k]) (as numpy computes it: window tests compare
+    lambda = 1 + linspace(-half[k], half[k], S[k]) (as numpy computes it: window tests compare
     run lengths times this step against fractions of the window), its padding repeating
     the last sample, and its step dl; ``ok``: a real ray whose window (a segment) lies in
     its image (height, width ``hw[k]``)."""
     K, N = r.shape
     Sm = lam.shape[1]
     for k in range(K):
-        step = (2 * half) / (S[k] - 1)
+        hk = half[k]
+        step = (2 * hk) / (S[k] - 1)
         for s in range(Sm):
-            lam[k, s] = 1.0 + (half if s >= S[k] - 1 else min(s, S[k] - 1) * step + (-half))
+            lam[k, s] = 1.0 + (hk if s >= S[k] - 1 else min(s, S[k] - 1) * step + (-hk))
         dl[k] = lam[k, 1] - lam[k, 0]
         lo, hi = lam[k, 0], lam[k, Sm - 1]
         for i in range(N):
@@ -563,7 +564,7 @@ def _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, min_free, ok, far, n_use
         for i in range(N):
             # A blurred neighbour darkens this profile's outer plateau when its edge is
             # closer than the window plus the blur's reach (~0.65 of the 10-90 % width) to ours.
-            reach = half * r[k, i] + 0.65 * width[k] + 1.0
+            reach = half[k] * r[k, i] + 0.65 * width[k] + 1.0
             dx, dy = xy[k, i, 0] - co[p, 0], xy[k, i, 1] - co[p, 1]
             lam_o = np.sqrt(dx * (Qo[p, 0, 0] * dx + Qo[p, 0, 1] * dy) + dy * (Qo[p, 1, 0] * dx + Qo[p, 1, 1] * dy))
             if not (lam_o - 1.0) * b_o[p] > reach:  # lower bound on the distance to its edge, px
@@ -669,15 +670,15 @@ def _ray_edges(
         for k in range(K):
             for i in range(N):
                 h = (aw0 * width[k] + aw1) / r[k, i]
-                xs[0, k, i] = min(e[k, i] + h, 1.0 + half)
+                xs[0, k, i] = min(e[k, i] + h, 1.0 + half[k])
                 xs[1, k, i] = max(e[k, i] - h, lam[k, 0])
         _ray_integrals(v, v_out, dd, lam, dl, S, xs, at)
         for k in range(K):
             for i in range(N):
                 e[k, i] = xs[1, k, i] + at[0, k, i] - at[1, k, i]
     # The edge must lie well inside the window.
-    lo, hi = 1.0 - half + 0.15 * 2 * half, 1.0 + half - 0.15 * 2 * half
     for k in range(K):
+        lo, hi = 1.0 - half[k] + 0.15 * 2 * half[k], 1.0 + half[k] - 0.15 * 2 * half[k]
         for i in range(N):
             ok[k, i] = ok[k, i] and e[k, i] > lo and e[k, i] < hi
             # Edge position noise ~ noise x transition width / contrast: under motion blur
@@ -693,7 +694,7 @@ def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
 
 
 def edge_points(
-    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict, floor: np.ndarray, others: list
+    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half, dark_inside: bool, c: dict, floor: np.ndarray, others: list
 ):
     """Sub-pixel edge points along rays of K ellipses (x - cen)^T Q (x - cen) = 1.
 
@@ -710,7 +711,7 @@ def edge_points(
     Args:
         grays: the images; ellipse k is in ``grays[view[k]]``.
         cen, Q: (K, 2), (K, 2, 2) the current ellipses.
-        half: half-window in units of the ellipse.
+        half: half-window in units of the ellipse: one for all, or (K,) one per ellipse.
         dark_inside: polarity (True for the outer edge of a ring).
         c: the classical detector's settings.
         floor: (K,) smallest inner/outer level difference, grey levels.
@@ -722,6 +723,7 @@ def edge_points(
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,)).
     """
+    half = _per_ellipse(half, len(cen))
     L, a, b, n, S, m = _ray_counts(Q, half, c)
     cen = np.ascontiguousarray(cen, np.float64)
     u, r, xy, lam, dl, ok, v, v_in, v_out = _sampled_rays(grays, view, cen, L, n, S, m, half)
@@ -734,7 +736,7 @@ def edge_points(
     far, n_use = _free_rays(others, xy, r, width, half, n, c, ok)
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
-    clean = sane & far & (w1090 < 1.2 * half * r)
+    clean = sane & far & (w1090 < 1.2 * half[:, None] * r)
     _plateau_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, c, ok)
     e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
@@ -743,7 +745,12 @@ def edge_points(
     return P, mask, n_use, Wc, width
 
 
-def _ray_counts(Q: np.ndarray, half: float, c: dict) -> tuple:
+def _per_ellipse(half, K: int) -> np.ndarray:
+    """(K,) float64 half-windows from one for all or one per ellipse."""
+    return np.ascontiguousarray(np.broadcast_to(np.asarray(half, np.float64), (K,)))
+
+
+def _ray_counts(Q: np.ndarray, half: np.ndarray, c: dict) -> tuple:
     """The rays of the K ellipses Q (K, 2, 2): (L (K, 2, 2) = Q^-1/2, semi-axes a and b
     (K,), even numbers of rays n (K,) about conf["edge_spacing"] px apart along the
     perimeter, samples per ray S (K,) about conf["edge_step"] px apart, samples per
@@ -758,7 +765,7 @@ def _ray_counts(Q: np.ndarray, half: float, c: dict) -> tuple:
 
 
 def _sampled_rays(
-    grays: list, view: np.ndarray, cen: np.ndarray, L: np.ndarray, n: np.ndarray, S: np.ndarray, m: np.ndarray, half: float
+    grays: list, view: np.ndarray, cen: np.ndarray, L: np.ndarray, n: np.ndarray, S: np.ndarray, m: np.ndarray, half: np.ndarray
 ) -> tuple:
     """The rays' frame (:func:`_ray_frame`: directions u (K, 2, N), radii r (K, N), points
     on the ellipse xy (K, N, 2), samples lam (K, Sm), their spacing dl (K,), in the image
@@ -769,7 +776,7 @@ def _sampled_rays(
     hw = np.array([grays[g].shape for g in range(len(grays))], np.float64)[view]
     u, r, xy = np.empty((K, 2, N)), np.empty((K, N)), np.empty((K, N, 2))
     lam, dl, ok = np.empty((K, Sm)), np.empty(K), np.empty((K, N), bool)
-    _ray_frame(np.ascontiguousarray(L), cen, n, S, float(half), hw, u, r, lam, dl, xy, ok)
+    _ray_frame(np.ascontiguousarray(L), cen, n, S, half, hw, u, r, lam, dl, xy, ok)
     v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
     ux, uy = np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1])
     cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
@@ -779,7 +786,7 @@ def _sampled_rays(
 
 
 def _free_rays(
-    others: list, xy: np.ndarray, r: np.ndarray, width: np.ndarray, half: float, n: np.ndarray, c: dict, ok: np.ndarray
+    others: list, xy: np.ndarray, r: np.ndarray, width: np.ndarray, half: np.ndarray, n: np.ndarray, c: dict, ok: np.ndarray
 ) -> tuple:
     """(far (K, N): the rays whose window ends clear of every neighbour's blurred outer
     ellipse, per ellipse the number of rays not dropped for a neighbour (K,)); ``ok`` is
@@ -793,7 +800,7 @@ def _free_rays(
         co = np.array([p[1] for p in pairs], np.float64)
         Qo = np.array([p[2] for p in pairs], np.float64)
         b_o = 1 / np.sqrt(_spd2(Qo, 0.5)[1][:, 1])
-        _neighbours(xy, r, width, float(half), kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
+        _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
     return far, n_use
 
 
@@ -811,7 +818,7 @@ def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> None:
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
 
 
-def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, half: float, c: dict) -> tuple:
+def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, half: np.ndarray, c: dict) -> tuple:
     """The edge on each ray (:func:`_ray_edges`): (positions e, fit weights W, 10-90 %
     widths (K, N), the 75th percentile of the valid widths per ellipse (K,))."""
     K, N = r.shape
@@ -828,7 +835,7 @@ def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, 
         ok,
         floor,
         bool(dark_inside),
-        float(half),
+        half,
         c["edge_method"] == "area",
         float(aw[0]),
         float(aw[1]),
@@ -1258,7 +1265,15 @@ def _spd2_rows(Q, inverse, out, eig):  # pragma: no cover - compiled
 
 
 def _fit_passes(
-    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half: float, dark_inside: bool, c: dict, floor: np.ndarray, others: list
+    grays: list,
+    view: np.ndarray,
+    cen: np.ndarray,
+    Q: np.ndarray,
+    half: np.ndarray,
+    dark_inside: bool,
+    c: dict,
+    floor: np.ndarray,
+    others: list,
 ) -> tuple:
     """The passes of edge sampling and robust fit of :func:`refine_edges`, each on the
     ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
@@ -1271,7 +1286,7 @@ def _fit_passes(
         a = np.nonzero(active)[0]
         if not len(a):
             break
-        P, M, n_use, W, wd = edge_points(grays, view[a], cen[a], Q[a], half, dark_inside, c, floor[a], [others[k] for k in a])
+        P, M, n_use, W, wd = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, c, floor[a], [others[k] for k in a])
         need = np.maximum(6, c["min_valid_frac"] * n_use)
         go = M.sum(1) >= need
         active[a[~go]] = False
@@ -1318,7 +1333,7 @@ def refine_edges(
     view: np.ndarray,
     cen: np.ndarray,
     Q: np.ndarray,
-    half: float,
+    half,
     dark_inside: bool,
     c: dict,
     floor: np.ndarray,
@@ -1326,7 +1341,7 @@ def refine_edges(
     cameras: list | None = None,
 ) -> list:
     """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
-    arguments; ``cameras[view[k]]`` undistorts ellipse k's points, or None).
+    arguments: ``half`` one for all or (K,); ``cameras[view[k]]`` undistorts ellipse k's points, or None).
 
     Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
     unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
@@ -1337,7 +1352,7 @@ def refine_edges(
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
-    found, width = _fit_passes(grays, view, cen, Q, half, dark_inside, c, floor, others)
+    found, width = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1382,7 +1397,18 @@ def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
     n, S1 = np.full(K, N, np.int64), np.full(K, Sm, np.int64)
     u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
     _ray_frame(
-        np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2)), n, S1, 0.5, np.ones((K, 2)), u, f2.copy(), np.empty((K, Sm)), np.empty(K), xy, ok
+        np.tile(np.eye(2), (K, 1, 1)),
+        np.zeros((K, 2)),
+        n,
+        S1,
+        np.full(K, 0.5),
+        np.ones((K, 2)),
+        u,
+        f2.copy(),
+        np.empty((K, Sm)),
+        np.empty(K),
+        xy,
+        ok,
     )
     _normalisers(f2, f2, True)
     _first_look(v, f2, f2, lam, np.full(K, 1 / 3), S1, f2, b2, np.ones(K), True, f2.copy(), ok, np.empty(K))
@@ -1390,7 +1416,7 @@ def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
         xy,
         f2,
         np.ones(K),
-        0.5,
+        np.full(K, 0.5),
         np.zeros(1, np.int64),
         np.zeros((1, 2)),
         np.tile(np.eye(2), (1, 1, 1)),
@@ -1416,7 +1442,7 @@ def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
         b2.copy(),
         np.ones(K),
         True,
-        0.5,
+        np.full(K, 0.5),
         True,
         0.5,
         0.5,

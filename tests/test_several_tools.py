@@ -176,3 +176,24 @@ def test_tracked_tools_fitted_in_one_batch_as_each_alone(rig, tools):
             np.testing.assert_array_equal(a[n].T, b[n].T)
             assert a[n].source == b[n].source == ("detected" if k == 0 else "tracked")
     assert calls == [3, 3]  # frames 1 and 2: one batch of the three tools
+
+
+def test_rings_of_different_windows_fitted_in_one_edge_batch(rig, tools, scene, monkeypatch):
+    """Tools whose ring gaps differ (other edge windows) share one batch of outer-edge fits,
+    each ring with its own marker's window: the same fit as the ring's alone."""
+    from markerpose import classical, edges
+
+    assert len({classical._edge_windows(t)[1] for t in tools}) > 1
+    from markerpose.geometry import ring_ellipses
+
+    gray = classical.to_gray(scene.images[0])
+    ellipses = [ring_ellipses(rig.cameras[0], scene.truths[t.name].T_left_marker, t.points3d, t.outer_radius) for t in tools]
+    calls = []
+    fit = edges.refine_edges
+    monkeypatch.setattr(edges, "refine_edges", lambda *a, **k: (calls.append(len(a[2])), fit(*a, **k))[1])
+    together = classical.refine_ellipses_views([gray] * 3, ellipses, tools[0], markers=list(tools), cameras=[rig.cameras[0]] * 3)
+    assert calls[0] == 9  # the nine outer edges in one batch
+    for t, e, (c, ok, _) in zip(tools, ellipses, together):
+        alone = classical.refine_ellipses_views([gray], [e], t, cameras=[rig.cameras[0]])[0]
+        assert ok.all()
+        np.testing.assert_array_equal(c, alone[0])
