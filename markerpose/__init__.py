@@ -4,7 +4,7 @@ from .camera import Camera, StereoRig
 from .marker import Marker, write_target
 from .pipeline import MarkerPose
 from .presets import PRESETS
-from .results import Detection, Estimate, relative_poses
+from .results import Detection, Estimate, relative_covariances, relative_poses
 
 __version__ = "0.33.0"
 __all__ = [
@@ -16,6 +16,7 @@ __all__ = [
     "Detection",
     "Estimate",
     "write_target",
+    "relative_covariances",
     "relative_poses",
     "__version__",
 ]

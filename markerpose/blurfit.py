@@ -435,7 +435,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         conf: overrides of :data:`default_conf`.
     Returns:
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
-        ``sigma`` (px), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
+        ``sigma`` (px), ``center_covs`` ((k, 2, 2) the centres' covariances, px^2), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
         level minus paper level at the marker's middle, grey levels), ``nfev`` and
         ``gave_up``: True when a centre went farther than ``max_move`` from its start and
         the fit stopped there (its ellipses are where it stopped, not a fit); or None when
@@ -499,12 +499,28 @@ def _fit_pixels(prob, motion, c):
     return True
 
 
+def _center_covs(prob, p) -> np.ndarray:
+    """(k, 2, 2) covariances of the rings' centres, px^2: s^2 H^-1 of the robustly weighted
+    normal equations at ``p`` (the residuals in noise sigmas; s^2 their weighted variance,
+    so the image's own residuals set the scale), NaN where H is singular."""
+    try:
+        r, _, (H, _) = prob.evaluate(p, jac=True)
+        s2 = float(prob.w @ (r * r)) / max(float(prob.w.sum()) - len(p) - 6, 1.0)  # the levels' six coefficients are fitted too
+        cov = s2 * np.linalg.inv(H)
+    except (np.linalg.LinAlgError, ValueError):
+        return np.full((prob.k, 2, 2), np.nan)
+    idx = [np.array([7 * j, 7 * j + 1]) for j in range(prob.k)]
+    return np.stack([cov[np.ix_(i, i)] for i in idx])
+
+
 def _fit_result(prob, p, nfev, gave_up):
     """The result dict of :func:`fit_blurred_rings` for the fitted parameters ``p``."""
+    covs = _center_covs(prob, p)
     r, beta, _ = prob.evaluate(p)
     rings, theta, L, sigma = prob.unpack(p)
     return {
         "cqs": [(cen.copy(), Q) for cen, Q, _ in rings],
+        "center_covs": covs,
         "theta": float(theta % np.pi),
         "length": float(L),
         "sigma": float(sigma),

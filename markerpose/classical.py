@@ -184,6 +184,7 @@ class Ring:
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
     _rejected: bool = field(default=False, repr=False)  # under heavy blur the edge fit is not trusted: the blurred-ring
     #                                                     fit disagreed with it, or was due and could not run
+    _center_cov: np.ndarray | None = field(default=None, repr=False)  # (2, 2) the centre's covariance, px^2 (None: not fitted)
 
 
 # --- input handling ------------------------------------------------------------------------
@@ -557,12 +558,18 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
     :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
     the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
     conf["center"] = "concentric", the two ellipses' concentric centre."""
-    outer_cq, outer_ideal, width = outer
+    outer_cq, outer_ideal, width, cov = outer
     inner_ideal = None
     if inner is not None:
-        inner_cq, inner_ideal, _ = inner
+        inner_cq, inner_ideal = inner[:2]
     use_ideal = camera is not None and outer_ideal is not None
-    center = _ideal_to_pixels(camera, outer_ideal[0])[0] if use_ideal else outer_cq[0].copy()
+    if use_ideal:  # the centre and, through the lens's local map, its covariance in the image's pixels
+        h = 0.5
+        mapped = _ideal_to_pixels(camera, outer_ideal[0] + np.array([[0.0, 0.0], [h, 0.0], [0.0, h]]))
+        center, J = mapped[0], (mapped[1:] - mapped[0]).T / h
+        cov = J @ cov @ J.T
+    else:
+        center = outer_cq[0].copy()
     if c["center"] == "concentric" and inner is not None:
         if use_ideal and inner_ideal is not None:
             cc = concentric_center(outer_ideal, inner_ideal)
@@ -571,7 +578,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
             cc = concentric_center(outer_cq, inner_cq)
         # Guard against a degenerate eigen-decomposition (the bias is a few % of a radius).
         if cc is not None and np.linalg.norm(cc - center) < 0.1 * max(ring.outer[1]) + 1.0:
-            center = cc
+            center, cov = cc, np.full((2, 2), np.nan)  # the two ellipses' centre: no covariance from one fit
     return replace(
         ring,
         center=center,
@@ -581,6 +588,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
         _edge_width=width,
+        _center_cov=cov,
     )
 
 
@@ -698,6 +706,15 @@ def refine_views(
     for (v, k, _), r in zip(flat, done):
         out[v][k] = r
     return out
+
+
+def _center_covs(rings: list) -> np.ndarray:
+    """(n, 2, 2) the rings' centre covariances, px^2: NaN for a ring missing, not refined
+    or rejected."""
+    nan = np.full((2, 2), np.nan)
+    return np.array(
+        [nan if r is None or not r.refined or r._rejected or r._center_cov is None else r._center_cov for r in rings], np.float64
+    ).reshape(-1, 2, 2)
 
 
 def _blur_length(rings: list) -> float:
@@ -818,9 +835,11 @@ def _blur_fitted(rings: list, fit: dict) -> list:
     """``rings`` with the blurred-ring fit's outer ellipses, each centre moved as its edge
     fit's distortion correction moved it."""
     out = []
-    for r, (cen, Q) in zip(rings, fit["cqs"]):
+    for r, (cen, Q), cov in zip(rings, fit["cqs"], fit["center_covs"]):
         shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
-        out.append(replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q), _blur=fit["length"]))
+        out.append(
+            replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q), _blur=fit["length"], _center_cov=cov)
+        )
     return out
 
 
@@ -944,6 +963,7 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera,
         score=float(np.exp(-0.5 * cost)),
         refined=np.array([not r._rejected for r in chosen]),
         blur_px=_blur_length(chosen),
+        center_cov=_center_covs(chosen) if subpixel else None,
     )
 
 
@@ -1020,7 +1040,7 @@ def refine_points(
     subpixel: bool = True,
     conf: dict | None = None,
     camera: Camera | None = None,
-    with_blur: bool = False,
+    detail: bool = False,
     noise: float | None = None,
     limits: BlurLimits | None = None,
 ) -> tuple:
@@ -1034,13 +1054,15 @@ def refine_points(
         image: uint8 gray (H, W) or BGR.
         points: (3, 2) rough centres c0, c1, c2, px.
         marker, subpixel, conf, camera: as in :func:`detect`.
-        with_blur: also return the motion blur (as :func:`refine_ellipses_views` does).
+        detail: also return the motion blur and the centres' covariances (as
+            :func:`refine_ellipses_views` does).
         noise: the image's noise sigma if known (else :func:`noise_sigma`).
         limits: what may stop the blurred-ring fit (:class:`BlurLimits`; None: nothing).
     Returns:
         (centers (3, 2), found (3,) bool, ellipses): where no ring is found near a point,
         its centre is the input point, ``found`` is False and its ellipse None; with
-        ``with_blur``, the blur length (px) as a fourth item.
+        ``detail``, the blur length (px) and the centres' covariances (3, 2, 2) as a
+        fourth and fifth item.
     """
     c = _merge_conf(conf)
     gray = to_gray(image)
@@ -1059,7 +1081,7 @@ def refine_points(
         found = np.array([r is not None for r in rings])
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
     out = (centers, found, [None if r is None else r.outer for r in rings])
-    return (*out, _blur_length(rings)) if with_blur else out
+    return (*out, _blur_length(rings), _center_covs(rings)) if detail else out
 
 
 def refine_ellipses(
@@ -1095,7 +1117,7 @@ def refine_ellipses_views(
     conf: dict | None = None,
     cameras: list | None = None,
     noises: list | None = None,
-    with_blur: bool = False,
+    detail: bool = False,
     limits: BlurLimits | None = None,
     markers: list | None = None,
 ) -> list:
@@ -1109,12 +1131,15 @@ def refine_ellipses_views(
             image may come more than once, with another marker's rings.
         cameras: per view, a Camera or None.
         noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
-        with_blur: also return each view's motion blur.
+        detail: also return each view's motion blur and its centres' covariances.
         limits: what may stop the blurred-ring fits (:class:`BlurLimits`; None: nothing).
     Returns:
         per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them;
-        with ``with_blur`` (centers, refined, ellipses, blur): ``blur`` is the motion blur
-        length (px) the blurred-ring fit found, 0 where it did not run or was not kept.
+        with ``detail`` (centers, refined, ellipses, blur, covariances): ``blur`` is the motion blur
+        length (px) the blurred-ring fit found, 0 where it did not run or was not kept;
+        ``covariances`` (n, 2, 2) the centres' covariances, px^2, from their fits' residuals
+        (:func:`markerpose.edges.center_covariances`, or the blurred-ring fit's), NaN where
+        a centre is not refined.
     """
     c = _merge_conf(conf)
     grays = [as_gray(im, f"view {v}", allow_float=True) for v, im in enumerate(images)]  # 8-bit stays 8-bit: no float copy
@@ -1145,7 +1170,7 @@ def refine_ellipses_views(
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])
-        out.append((*found, _blur_length(rings)) if with_blur else found)
+        out.append((*found, _blur_length(rings), _center_covs(rings)) if detail else found)
     return out
 
 

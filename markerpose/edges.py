@@ -1309,9 +1309,53 @@ def _fit_passes(
     return found, width
 
 
+def center_covariances(fits: list) -> np.ndarray:
+    """(K, 2, 2) covariances of ellipse centres from their fits' residuals: ``fits`` per
+    ellipse (edge points (M, 2), weights (M,), centre (2,), Q (2, 2)) of a weighted
+    least-squares fit of (x - c)^T Q (x - c) = 1. Each point's geometric distance from
+    the ellipse is linearised in the five parameters (c, Q); the covariance is
+    s^2 (J^T W J)^-1, s^2 the weighted residuals' variance (the weights are relative:
+    the residuals set the scale, so that the image's noise and the edges' quality at
+    this ring show), and its centre block is returned (NaN where fewer than 8 points)."""
+    K = len(fits)
+    out = np.full((K, 2, 2), np.nan)
+    if not K:
+        return out
+    M = max(len(f[0]) for f in fits)
+    d, w = np.zeros((K, M, 2)), np.zeros((K, M))
+    Q = np.stack([np.asarray(f[3], np.float64) for f in fits])
+    for k, (P, W, c, _) in enumerate(fits):
+        d[k, : len(P)] = np.asarray(P, np.float64) - np.asarray(c, np.float64)
+        w[k, : len(P)] = W
+    g = np.einsum("kij,kmj->kmi", Q, d)  # Q (x - c): half the gradient of lambda^2
+    lam = np.sqrt(np.maximum(np.einsum("kmi,kmi->km", d, g), 1e-12))
+    px = lam / np.maximum(np.linalg.norm(g, axis=2), 1e-12)  # px per unit of lambda, along the normal
+    r = (lam - 1.0) * px  # geometric distance from the ellipse, px
+    J = np.stack([-g[..., 0], -g[..., 1], 0.5 * d[..., 0] ** 2, d[..., 0] * d[..., 1], 0.5 * d[..., 1] ** 2], -1) / lam[..., None]
+    J *= px[..., None]
+    H = np.einsum("kmi,km,kmj->kij", J, w, J)
+    n = (w > 0).sum(1)
+    s2 = (w * r * r).sum(1) / np.maximum(n - 5, 1)  # the residuals' variance per unit weight
+    # Neighbouring rays sample overlapping pixels (and share the optics' blur and any
+    # misfit of the ellipse's shape): their errors are correlated, and the points carry
+    # less information than their number says. The residuals' own lag-1 correlation
+    # along the ring gives the variance inflation of a correlated (first-order) sequence.
+    rw = np.sqrt(w) * r
+    rho = np.clip((rw[:, 1:] * rw[:, :-1]).sum(1) / np.maximum((rw * rw).sum(1), 1e-300), 0.0, 0.9)
+    s2 = s2 * (1 + rho) / (1 - rho)
+    B = np.einsum("kmi,km,kmj->kij", J, (w * r) ** 2, J) * (n / np.maximum(n - 5, 1))[:, None, None]
+    for k in np.nonzero(n >= 8)[0]:
+        try:
+            Hi = np.linalg.inv(H[k])
+        except np.linalg.LinAlgError:
+            continue
+        out[k] = (Hi @ B[k] @ Hi)[:2, :2] * ((1 + rho[k]) / (1 - rho[k]))
+    return out
+
+
 def _ideal_fits(found: list, use: list, view: np.ndarray, cameras: list) -> dict:
-    """Ellipses k -> (centre, Q) in ideal (undistorted) px, fitted to the edge points
-    ``found[k]`` = (points (M, 2), weights (M,)) of the ellipses ``use`` once undistorted
+    """Ellipses k -> (centre, Q, points (M, 2)) in ideal (undistorted) px, fitted to the edge
+    points ``found[k]`` = (points (M, 2), weights (M,)) of the ellipses ``use`` once undistorted
     by ``cameras[view[k]]`` (one undistortion per view); the fits that fail are left out."""
     pts: dict = {}
     for g in sorted({view[k] for k in use}):  # one undistortion per view
@@ -1325,7 +1369,7 @@ def _ideal_fits(found: list, use: list, view: np.ndarray, cameras: list) -> dict
     for i, (k, p) in enumerate(zip(use, pts)):
         Pp[i, : len(p)], Mp[i, : len(p)], Wp[i, : len(p)] = p, True, found[k][1]
     ci, Qi, ok = fit_ellipses(Pp, Mp, Wp)
-    return {k: (ci[i], Qi[i]) for i, k in enumerate(use) if ok[i]}
+    return {k: (ci[i], Qi[i], pts[i]) for i, k in enumerate(use) if ok[i]}
 
 
 def refine_edges(
@@ -1348,7 +1392,9 @@ def refine_edges(
     levels are only reached near the true edge, so each pass halves the error at best.
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
-    width px) or None when too few edge points are found.
+    width px, the centre's covariance (2, 2) in the px of the fit the centre comes from:
+    ideal where there is one, :func:`center_covariances`) or None when too few edge points
+    are found.
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
@@ -1362,8 +1408,10 @@ def refine_edges(
         use = [k for k in ks if cameras[view[k]] is not None]
         if use:
             ideal = _ideal_fits(found, use, view, cameras)
-    for k in ks:
-        out[k] = ((cen[k], Q[k]), ideal.get(k), float(width[k]))
+    fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2]) if k in ideal else (*found[k], cen[k], Q[k]) for k in ks]
+    covs = center_covariances(fits)
+    for i, k in enumerate(ks):
+        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i])
     return out
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +24,8 @@ class Detection:
         blur_px: the motion blur's length (px) that the blurred-ring model fit found in
             this view; 0 where that fit did not run (sharp edges) or its result was not
             kept (see :func:`markerpose.classical.refine_blurred`).
+        center_cov: (3, 2, 2) the centres' covariances, px^2, from their own fits (NaN
+            where a centre was not edge-fitted), or None where no fit gave any.
     """
 
     centers: np.ndarray
@@ -30,6 +33,7 @@ class Detection:
     score: float = 1.0
     refined: np.ndarray | None = None
     blur_px: float = 0.0
+    center_cov: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self):
         if self.refined is None:
@@ -50,6 +54,11 @@ class Estimate:
         residual_px: RMS distance (px) of the six centres from the marker's centres
             projected under the pose.
         source: how it was obtained: "detected" (cold detection).
+        cov: (6, 6) covariance of (tx, ty, tz) mm, the marker's origin in the left-camera
+            frame, and (wx, wy, wz) rad, the rotation error ``R_true @ R_est.T`` as a
+            rotation vector in the left-camera frame (:mod:`markerpose.uncertainty`); None
+            where a centre has no covariance (the paper's contour centres). Computed on
+            first access.
     """
 
     T: np.ndarray
@@ -58,6 +67,39 @@ class Estimate:
     detections: tuple = field(default=(), repr=False)
     residual_px: float | None = None
     source: str = "detected"
+    _context: tuple | None = field(default=None, repr=False, compare=False)  # (rig, model, pose method) for cov
+
+    @functools.cached_property
+    def cov(self) -> np.ndarray | None:
+        if self._context is None or len(self.detections) != 2 or any(d is None or d.center_cov is None for d in self.detections):
+            return None
+        from .uncertainty import pose_covariance
+
+        rig, model, method = self._context
+        covs = np.stack([d.center_cov for d in self.detections])
+        return pose_covariance(rig, model, self.T, self.points3d, self.centers, covs, method)
+
+    @property
+    def sd_mm(self) -> float:
+        """The marker origin's RMS 3D error at one standard deviation, mm (sqrt of the
+        trace of ``cov``'s translation block; NaN without ``cov``)."""
+        from .uncertainty import sd_mm
+
+        return sd_mm(self.cov, self.T)
+
+    @property
+    def sd_deg(self) -> float:
+        """The RMS rotation error at one standard deviation, degrees (NaN without ``cov``)."""
+        from .uncertainty import sd_deg
+
+        return sd_deg(self.cov)
+
+    def point_sd_mm(self, point) -> float:
+        """The RMS 3D error at one standard deviation of a point fixed to the marker
+        (``point`` (3,) mm in the marker's frame, e.g. a tool's tip), mm."""
+        from .uncertainty import sd_mm
+
+        return sd_mm(self.cov, self.T, point)
 
     @property
     def R(self) -> np.ndarray:
@@ -82,4 +124,20 @@ def relative_poses(found: dict[str, Estimate], reference: str) -> dict[str, np.n
     return {name: inv @ est.T for name, est in found.items() if name != reference}
 
 
-__all__ = ["Detection", "Estimate", "relative_poses"]
+def relative_covariances(found: dict[str, Estimate], reference: str) -> dict[str, np.ndarray | None]:
+    """The (6, 6) covariance of each T_reference_tool of :func:`relative_poses` (translation
+    mm, rotation vector rad, in the reference's frame; :func:`markerpose.uncertainty.relative_covariance`),
+    None where either pose has none; ``{}`` without the reference."""
+    from .uncertainty import relative_covariance
+
+    if reference not in found:
+        return {}
+    ref = found[reference]
+    return {
+        name: None if ref.cov is None or est.cov is None else relative_covariance(ref.T, ref.cov, est.T, est.cov)
+        for name, est in found.items()
+        if name != reference
+    }
+
+
+__all__ = ["Detection", "Estimate", "relative_covariances", "relative_poses"]

@@ -31,7 +31,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".pp
 CSV_HEADER = (
     ["frame", "timestamp_s", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
     + [f"T{i}{j}" for i in range(4) for j in range(4)]
-    + ["residual_px"]
+    + ["residual_px", "sd_mm", "sd_deg"]
 )
 # Long form, one row a frame and tool: which tool, and the frame its pose is in ("camera":
 # T_left_tool, as CSV_HEADER's; else the reference tool's name: T_reference_tool).
@@ -146,9 +146,10 @@ def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream
     return StereoStream(left, right, fps)
 
 
-def _pose_cells(T, residual_px) -> list:
-    """``valid`` and the pose fields of :data:`CSV_HEADER` for the pose ``T`` (4, 4, mm),
-    or valid 0 and empty fields when ``T`` is None."""
+def _pose_cells(T, residual_px, cov=None) -> list:
+    """``valid`` and the pose fields of :data:`CSV_HEADER` for the pose ``T`` (4, 4, mm)
+    with covariance ``cov`` (6, 6; its standard deviations, empty without one), or valid 0
+    and empty fields when ``T`` is None."""
     if T is None:
         return [0] + [""] * (len(CSV_HEADER) - 3)
     from scipy.spatial.transform import Rotation
@@ -157,13 +158,18 @@ def _pose_cells(T, residual_px) -> list:
 
     T = np.asarray(T)
     R = Rotation.from_matrix(nearest_rotation(T[:3, :3]))
+    from .uncertainty import sd_deg, sd_mm
+
     vals = [*T[:3, 3], *R.as_quat(), *R.as_rotvec(), *T.ravel(), residual_px]
-    return [1, *(f"{v:.9g}" for v in vals)]
+    sds = ["", ""] if cov is None else [f"{sd_mm(cov, T):.6g}", f"{sd_deg(cov):.6g}"]
+    return [1, *(f"{v:.9g}" for v in vals), *sds]
 
 
 def pose_row(k: int, t: float, est) -> list:
     """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds."""
-    return [k, f"{t:.6f}", *_pose_cells(None if est is None else est.T, None if est is None else est.residual_px)]
+    if est is None:
+        return [k, f"{t:.6f}", *_pose_cells(None, None)]
+    return [k, f"{t:.6f}", *_pose_cells(est.T, est.residual_px, est.cov)]
 
 
 class ToolReport(NamedTuple):
@@ -177,6 +183,8 @@ class ToolReport(NamedTuple):
         est: the tool's own :class:`~markerpose.results.Estimate` (left camera), or None.
         why: None when ``T`` is reported, else why not: the tracker's reason, or
             :data:`REFERENCE_NOT_SEEN`.
+        cov: (6, 6) the covariance of ``T`` (:attr:`~markerpose.results.Estimate.cov`;
+            relative to the reference, :func:`~markerpose.results.relative_covariances`), or None.
     """
 
     name: str
@@ -184,6 +192,7 @@ class ToolReport(NamedTuple):
     T: np.ndarray | None
     est: object
     why: str | None
+    cov: np.ndarray | None = None
 
     @property
     def valid(self) -> bool:
@@ -196,19 +205,20 @@ def tool_reports(found: dict, names, reference: str | None = None, whys: dict | 
     tracker's ``whys``). With ``reference``, every other tool is reported relative to it
     (:func:`markerpose.results.relative_poses`), and not at all when the reference is not
     in ``found``; the reference itself in the camera's frame."""
-    from .results import relative_poses
+    from .results import relative_covariances, relative_poses
 
     whys = whys or {}
     relative = relative_poses(found, reference) if reference is not None else {}
+    covs = relative_covariances(found, reference) if reference is not None else {}
     out = []
     for name in names:
         est = found.get(name)
         missing = None if est is not None else whys.get(name, "not found")
         if reference is None or name == reference:
-            out.append(ToolReport(name, CAMERA, None if est is None else est.T, est, missing))
+            out.append(ToolReport(name, CAMERA, None if est is None else est.T, est, missing, None if est is None else est.cov))
         else:
             T = relative.get(name)
-            out.append(ToolReport(name, reference, T, est, missing or (None if T is not None else REFERENCE_NOT_SEEN)))
+            out.append(ToolReport(name, reference, T, est, missing or (None if T is not None else REFERENCE_NOT_SEEN), covs.get(name)))
     return out
 
 
@@ -216,7 +226,7 @@ def tools_row(k: int, t: float, report: ToolReport) -> list:
     """One CSV row (see :data:`TOOLS_CSV_HEADER`) of one tool in frame ``k`` at ``t``
     seconds; the residual is the tool's own, also for a pose relative to the reference."""
     residual = report.est.residual_px if report.valid else None
-    return [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual)]
+    return [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual, report.cov if report.valid else None)]
 
 
 def igtl_device_name(tool: str, relative_to: str = CAMERA) -> str:
@@ -359,11 +369,19 @@ def _json_row(k: int, t: float, est) -> str:
                 "valid": est is not None,
                 "T_left_marker": None if est is None else est.T.tolist(),
                 "residual_px": None if est is None else est.residual_px,
+                "sd_mm": None if est is None else _finite(est.sd_mm),
+                "sd_deg": None if est is None else _finite(est.sd_deg),
                 "source": None if est is None else est.source,
             }
         )
         + "\n"
     )
+
+
+def _sd(cov, T) -> float:
+    from .uncertainty import sd_mm
+
+    return sd_mm(cov, T)
 
 
 def _finite(x) -> float | None:
@@ -379,6 +397,7 @@ def _json_tools_row(k: int, t: float, reports: list[ToolReport]) -> str:
             "relative_to": r.relative_to,
             "T": r.T.tolist() if r.valid else None,
             "residual_px": _finite(r.est.residual_px) if r.valid else None,
+            "sd_mm": _finite(_sd(r.cov, r.T)) if r.valid else None,
             "source": r.est.source if r.valid else None,
             "why": r.why,
         }

@@ -155,7 +155,9 @@ def test_edge_refit_never_poses_from_a_poor_mask(rig, monkeypatch):
     monkeypatch.setattr(
         classical,
         "refine_points",
-        lambda img, pts, *a, **k: (np.asarray(pts, float), np.zeros(3, bool), [None] * 3, 0.0)[: 4 if k.get("with_blur") else 3],
+        lambda img, pts, *a, **k: (np.asarray(pts, float), np.zeros(3, bool), [None] * 3, 0.0, np.full((3, 2, 2), np.nan))[
+            : 5 if k.get("detail") else 3
+        ],
     )
     assert tr.estimate(*f.images) is None
 

@@ -159,6 +159,14 @@ def cmd_eval_tools(args):
     print(f"Wrote {args.out}/: report.md, results.json" + (", tools.mp4, tools-video.png" if "video" in res else ""))
 
 
+def cmd_eval_uncertainty(args):
+    from ..experiments import uncertainty
+
+    res = uncertainty.main({"pairs": args.pairs, "model_pairs": args.model_pairs}, args.out, progress=not args.quiet)
+    print(uncertainty.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json")
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -218,6 +226,12 @@ def _register_pipeline(esub) -> None:
     et.add_argument("--out", default="markerpose-tools", help="output folder: report.md, results.json, tools.mp4, tools-video.png")
     et.add_argument("--quiet", action="store_true")
     et.set_defaults(func=cmd_eval_tools)
+    eu = esub.add_parser("uncertainty", help="is Estimate.cov calibrated: chi-square coverage of the true errors per condition")
+    eu.add_argument("--pairs", type=positive_int, default=60, help="pairs per condition (default 60)")
+    eu.add_argument("--model-pairs", type=int, default=30, help="noise-free pairs for the edge fit's own error (0: none; default 30)")
+    eu.add_argument("--out", default="markerpose-uncertainty", help="output folder: report.md, results.json")
+    eu.add_argument("--quiet", action="store_true")
+    eu.set_defaults(func=cmd_eval_uncertainty)
 
 
 def register(sub) -> None:

@@ -73,7 +73,7 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
     """Yield (frame, conditions) for ``n`` pairs with the marker anywhere in the working
     volume: ``spec`` gives the ``seed`` (anything ``default_rng`` takes), the ``alpha``
     and ``blur`` (a value or a (lo, hi) range) and optionally the ``distance`` range in mm
-    (default: the paper's 350-800)."""
+    (default: the paper's 350-800) and ``noise`` (False: the sensor's noise left out)."""
     rng = np.random.default_rng(spec["seed"])
     if spec.get("marker_free"):
         yield from marker_free_pairs(spec, n, rig, marker, rng)
@@ -90,7 +90,7 @@ def random_pairs(spec: dict, n: int, rig: StereoRig, marker: Marker):
         angle = rng.uniform(0, 180)
         effect = spec.get("effect")
         extra = realism.imaging_settings(effect, rng, marker) if effect else {}
-        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle, **extra)
+        im = Imaging(alpha=alpha, motion_blur=blur, motion_angle=angle, noise=spec.get("noise", True), **extra)
         bgs = None
         if effect == "ring_object":
             bgs = realism.ring_object_backgrounds(rig, T, marker, tuple(clutter_background(c.image_size, rng) for c in rig.cameras), rng)

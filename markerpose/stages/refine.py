@@ -119,18 +119,18 @@ class Refiner:
             if self.conf["method"] == "none":
                 out.append(Detection(centers=pts, score=score, refined=np.zeros(3, bool)))
                 continue
-            centers, ok, ellipses, blur = classical.refine_points(
+            centers, ok, ellipses, blur, cov = classical.refine_points(
                 gray,
                 pts,
                 self.marker,
                 subpixel=self.conf["subpixel"],
                 conf=conf,
                 camera=cam,
-                with_blur=True,
+                detail=True,
                 noise=frame.noises([gray])[0],
                 limits=limits,
             )
-            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur))
+            out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur, center_cov=cov))
         return out
 
     def layout_ellipses(self, points: np.ndarray) -> list | None:
@@ -172,12 +172,12 @@ class Refiner:
                 {**self.classical, "blur_fit_unrefined": False},
                 [cameras[k] for k in views],
                 frame.noises([grays[k] for k in views]),
-                with_blur=True,
+                detail=True,
                 limits=limits,
             )
-            for k, (centers, ok, ellipses, blur) in zip(views, fits):
+            for k, (centers, ok, ellipses, blur, cov) in zip(views, fits):
                 if ok.all():
-                    out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
+                    out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur, center_cov=cov)
 
     def _from_masks(self, frame: Frame, grays: list, cameras: list, points: list, seen: list, limits, out: list) -> None:
         """Into ``out``, per view of ``seen``, the Detection from EllipSegNet's masks (all
@@ -194,39 +194,40 @@ class Refiner:
                 conf,
                 [cameras[k] for k in seen],
                 frame.noises([grays[k] for k in seen]),
-                with_blur=True,
+                detail=True,
                 limits=limits,
             )
         for k, found, fit in zip(seen, refined, fits):
             centers, ok = found[0], found[1]
-            ellipses, blur = None, 0.0
+            ellipses, blur, cov = None, 0.0, None
             if fit is not None:
-                c2, ok2, ellipses, blur = self._mended(frame, grays[k], cameras[k], centers, fit, limits)
+                c2, ok2, ellipses, blur, cov = self._mended(frame, grays[k], cameras[k], centers, fit, limits)
                 # Only edge-fitted centres count as refined: a mask's centre can be
                 # pixels off, and a pose from it is wrong by a millimetre.
                 centers, ok = np.where(ok2[:, None], c2, centers), ok2
-            out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur)
+            out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur, center_cov=cov)
 
     def _mended(self, frame: Frame, gray: np.ndarray, camera, centers: np.ndarray, fit: tuple, limits) -> tuple:
-        """The edge refit ``fit`` = (centres (3, 2), refined (3,), ellipses, blur px) of a
+        """The edge refit ``fit`` = (centres (3, 2), refined (3,), ellipses, blur px, covariances) of a
         view's masks, where a ring's mask was poor (not refined) the classical ring fit
         near its mask's centre (``centers`` (3, 2)) instead."""
-        c2, ok2, ellipses, blur = fit
+        c2, ok2, ellipses, blur, cov = fit
         if not ok2.all():  # a poor mask: the classical ring fit near the point instead
-            c3, ok3, e3, b3 = classical.refine_points(
+            c3, ok3, e3, b3, cov3 = classical.refine_points(
                 gray,
                 centers,
                 self.marker,
                 conf=self.classical,
                 camera=camera,
-                with_blur=True,
+                detail=True,
                 noise=frame.noises([gray])[0],
                 limits=limits,
             )
             c2, blur = np.where(ok2[:, None], c2, c3), max(blur, b3)
             ellipses = [e if o else f for e, o, f in zip(ellipses, ok2, e3)]
+            cov = np.where(ok2[:, None, None], cov, cov3)
             ok2 = ok2 | ok3
-        return c2, ok2, ellipses, blur
+        return c2, ok2, ellipses, blur, cov
 
     def from_ellipses(
         self,
@@ -276,11 +277,14 @@ class Refiner:
             conf,
             cameras * len(items),
             [s for _, _, noises in items for s in (frame.noises(grays) if noises is None else noises)],
-            with_blur=True,
+            detail=True,
             limits=classical.BlurLimits(frame.blur_fits, blur_gate),
             markers=None if len(items) == 1 else [m for m, _, _ in items for _ in range(n)],
         )
-        found = [Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b) if ok.all() else None for c, ok, e, b in fits]
+        found = [
+            Detection(centers=c, ellipses=e, score=score, refined=ok, blur_px=b, center_cov=v) if ok.all() else None
+            for c, ok, e, b, v in fits
+        ]
         return [found[k * n : (k + 1) * n] for k in range(len(items))]
 
     def triple(self, frame: Frame, view: tuple, tri: tuple, cost: float, camera) -> Detection:

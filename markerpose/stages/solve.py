@@ -52,6 +52,7 @@ def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: 
         detections=(det_left, det_right),
         residual_px=reprojection_rms(rig, marker, T, centers),
         source=source,
+        _context=(rig, marker.points3d, conf["pose"]),
     )
 
 
