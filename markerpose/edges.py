@@ -746,8 +746,9 @@ def edge_points(
 
 
 def _per_ellipse(half, K: int) -> np.ndarray:
-    """(K,) float64 half-windows from one for all or one per ellipse."""
-    return np.ascontiguousarray(np.broadcast_to(np.asarray(half, np.float64), (K,)))
+    """(K,) float64 half-windows from one for all or one per ellipse (a writable copy: the
+    kernels are compiled for writable arrays)."""
+    return np.array(np.broadcast_to(np.asarray(half, np.float64), (K,)))
 
 
 def _ray_counts(Q: np.ndarray, half: np.ndarray, c: dict) -> tuple:
