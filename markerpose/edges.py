@@ -721,7 +721,8 @@ def edge_points(
     Returns:
         (P (K, M, 2) edge points, valid first: mask (K, M), number of rays not dropped
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
-        widths of the valid points in px (K,)).
+        widths of the valid points in px (K,), the covariance of the edges' shared shift
+        (K, 2, 2), :func:`_shared_shift`).
     """
     half = _per_ellipse(half, len(cen))
     L, a, b, n, S, m = _ray_counts(Q, half, c)
@@ -737,12 +738,48 @@ def edge_points(
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
     clean = sane & far & (w1090 < 1.2 * half[:, None] * r)
-    _plateau_levels(v_in, v_out, xy, cen, (0.15 * np.sqrt(a * b)) ** 2, clean, n, c, ok)
+    local = (v_in.copy(), v_out.copy())
+    pen = (0.15 * np.sqrt(a * b)) ** 2
+    planes = _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c, ok)
     e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
+    shared = _shared_shift(local, (v_in, v_out), xy, cen, pen, clean, planes, ok, width, c)
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
-    return P, mask, n_use, Wc, width
+    return P, mask, n_use, Wc, width, shared
+
+
+def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, width, c: dict) -> np.ndarray:
+    """(K, 2, 2) per ring, the covariance of ``g`` in the edges' shared shift g . (x - c), px:
+    the plateau planes' gradient errors (each plane's least-squares covariance from its
+    rays' scatter about it, the ridge included) move every edge of the ring together, each
+    by the level error over the contrast times the edge locator's reach (the integral's
+    half window; for the mid-level crossing, the 10-90 % width over 1.6). Zero where the
+    levels are not planes (too few clean rays)."""
+    K = len(cen)
+    out = np.zeros((K, 2, 2))
+    reach = (c["area_window"][0] * width + c["area_window"][1]) if c["edge_method"] == "area" else width / 1.6
+    for k in np.nonzero(planes)[0]:
+        use = clean[k]
+        m = int(use.sum())
+        if m < 6:
+            continue
+        d = xy[k, use] - cen[k]
+        X = np.column_stack([np.ones(m), d])
+        A = X.T @ X + np.diag([0.0, m * pen[k], m * pen[k]])
+        try:
+            Ai = np.linalg.inv(A)
+        except np.linalg.LinAlgError:
+            continue
+        Sg = np.zeros((2, 2))
+        for loc, fit in zip(local, fitted):
+            res = loc[k, use] - fit[k, use]
+            s2 = float(res @ res) / max(m - 3, 1)
+            Sg += s2 * (Ai @ X.T @ X @ Ai)[1:, 1:]
+        contrast = np.median(np.abs(fitted[0][k, ok[k]] - fitted[1][k, ok[k]])) if ok[k].any() else np.nan
+        if np.isfinite(contrast) and contrast > 0:
+            out[k] = (reach[k] / contrast) ** 2 * Sg
+    return out
 
 
 def _per_ellipse(half, K: int) -> np.ndarray:
@@ -805,10 +842,11 @@ def _free_rays(
     return far, n_use
 
 
-def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> None:
+def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> np.ndarray:
     """The rays' plateau levels v_in, v_out (K, N), in place: planes fitted on the
     ``clean`` rays (:func:`_ray_levels`, ridge penalty ``pen``) or, where too few are
-    clean, the local levels smoothed along the ellipse (circularly)."""
+    clean, the local levels smoothed along the ellipse (circularly). Returns which rings
+    have planes (K,)."""
     K = len(n)
     planes = np.empty(K, bool)
     _ray_levels(v_in, v_out, xy, cen, pen, clean, n, float(c["level_tol"]), ok, planes)
@@ -817,6 +855,7 @@ def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> None:
         if w > 1:
             v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
             v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
+    return planes
 
 
 def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, half: np.ndarray, c: dict) -> tuple:
@@ -1278,23 +1317,25 @@ def _fit_passes(
 ) -> tuple:
     """The passes of edge sampling and robust fit of :func:`refine_edges`, each on the
     ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
-    ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,))."""
+    ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,),
+    the covariances of the edges' shared shift (K, 2, 2))."""
     K = len(cen)
     active = np.ones(K, bool)
     found: list = [None] * K
     width = np.zeros(K)
+    shared = np.zeros((K, 2, 2))
     for it in range(max(1, c["refine_iters"])):
         a = np.nonzero(active)[0]
         if not len(a):
             break
-        P, M, n_use, W, wd = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, c, floor[a], [others[k] for k in a])
+        P, M, n_use, W, wd, sh = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, c, floor[a], [others[k] for k in a])
         need = np.maximum(6, c["min_valid_frac"] * n_use)
         go = M.sum(1) >= need
         active[a[~go]] = False
         if not go.any():
             break
         g = a[go]
-        Pg, Wg, wdg = P[go], W[go], wd[go]
+        Pg, Wg, wdg, shg = P[go], W[go], wd[go], sh[go]
         cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg)
         okf = fitted & (keep.sum(1) >= need[go])
         active[g[~okf]] = False
@@ -1305,15 +1346,17 @@ def _fit_passes(
             cen[k], Q[k] = cf[i], Qf[i]
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
+            shared[k] = shg[i]
             if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
                 active[k] = False
-    return found, width
+    return found, width, shared
 
 
 def center_covariances(fits: list) -> np.ndarray:
     """(K, 2, 2) covariances of ellipse centres from their fits' residuals: ``fits`` per
-    ellipse (edge points (M, 2), weights (M,), centre (2,), Q (2, 2)) of a weighted
-    least-squares fit of (x - c)^T Q (x - c) = 1. Each point's geometric distance from
+    ellipse (edge points (M, 2), weights (M,), centre (2,), Q (2, 2), optionally the
+    covariance (2, 2) of a shift g . (x - c) that all its edges share, :func:`_shared_shift`)
+    of a weighted least-squares fit of (x - c)^T Q (x - c) = 1. Each point's geometric distance from
     the ellipse is linearised in the five parameters (c, Q); the covariance is
     s^2 (J^T W J)^-1, s^2 the weighted residuals' variance (the weights are relative:
     the residuals set the scale, so that the image's noise and the edges' quality at
@@ -1325,7 +1368,7 @@ def center_covariances(fits: list) -> np.ndarray:
     M = max(len(f[0]) for f in fits)
     d, w = np.zeros((K, M, 2)), np.zeros((K, M))
     Q = np.stack([np.asarray(f[3], np.float64) for f in fits])
-    for k, (P, W, c, _) in enumerate(fits):
+    for k, (P, W, c) in enumerate(f[:3] for f in fits):
         d[k, : len(P)] = np.asarray(P, np.float64) - np.asarray(c, np.float64)
         w[k, : len(P)] = W
     g = np.einsum("kij,kmj->kmi", Q, d)  # Q (x - c): half the gradient of lambda^2
@@ -1351,6 +1394,9 @@ def center_covariances(fits: list) -> np.ndarray:
         except np.linalg.LinAlgError:
             continue
         out[k] = (Hi @ B[k] @ Hi)[:2, :2] * ((1 + rho[k]) / (1 - rho[k]))
+        if len(fits[k]) > 4:  # the shared shift: every edge moved by g . (x - c), through the fit
+            G = (Hi @ (J[k] * w[k][:, None]).T @ d[k])[:2]
+            out[k] += G @ fits[k][4] @ G.T
     return out
 
 
@@ -1399,7 +1445,7 @@ def refine_edges(
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
-    found, width = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others)
+    found, width, shared = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1409,7 +1455,7 @@ def refine_edges(
         use = [k for k in ks if cameras[view[k]] is not None]
         if use:
             ideal = _ideal_fits(found, use, view, cameras)
-    fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2]) if k in ideal else (*found[k], cen[k], Q[k]) for k in ks]
+    fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2], shared[k]) if k in ideal else (*found[k], cen[k], Q[k], shared[k]) for k in ks]
     covs = center_covariances(fits)
     for i, k in enumerate(ks):
         out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i])

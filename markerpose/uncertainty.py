@@ -13,15 +13,16 @@ small rotation of the marker. The covariance is of (tx, ty, tz) in mm, the marke
 in the left-camera frame, and (wx, wy, wz) in rad, the rotation error ``R_true @ R_est.T``
 as a rotation vector in the left-camera frame.
 
-A fit's residuals show the noise, not the fitting method's own error: on noise-free
-renders the edge fit's centres are still off by an amount that varies from ring to ring
-(the edges' sampling by the pixel grid, the edge model's approximations), comparable to
-the noise's effect on a well-lit ring. Each centre's covariance therefore gets
-``MODEL_PX`` squared on its diagonal, the method's own error per axis as
-``markerpose eval uncertainty`` measures it on noise-free renders (its report prints the
-figure). What the covariance leaves out: the rig's calibration error (common to every
-pose of a rig) and the perspective-bias correction's own error (a small fraction of a
-bias that is itself small).
+A fit's residuals show each edge's own noise, not the errors that a ring's edges share:
+the plateau levels are planes fitted over all of its rays, the blur's reach is judged per
+ring, and an error there moves every edge of the ring together. Each centre's covariance
+therefore gets ``MODEL_PX`` squared on its diagonal: the centres' scatter beyond their
+fits' covariances on rendered pairs of the standard conditions, as
+``markerpose eval uncertainty`` measures it (on pairs of their own, apart from the
+held-out ones it checks the covariance on; its report prints the figure). What the
+covariance leaves out: the rig's calibration error (common to every pose of a rig) and
+the perspective-bias correction's own error (a small fraction of a bias that is itself
+small).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import numpy as np
 from .geometry import pose_from_points, triangulate
 
 H_PX = 0.01  # step of the numerical derivative of the triangulation, px
-MODEL_PX = 0.004  # the edge fit's own error per axis, px (see the module's docstring)
+MODEL_PX = 0.0015  # the centres' error per axis that their fits do not show, px (see the module's docstring)
 
 
 def skew(v: np.ndarray) -> np.ndarray:

@@ -36,6 +36,9 @@ CSV_HEADER = (
 # Long form, one row a frame and tool: which tool, and the frame its pose is in ("camera":
 # T_left_tool, as CSV_HEADER's; else the reference tool's name: T_reference_tool).
 TOOLS_CSV_HEADER = CSV_HEADER[:2] + ["tool", "relative_to"] + CSV_HEADER[2:]
+# Where a tool has a tip (a pointer's, ``Marker.tip``): its position in the pose's frame and
+# its RMS 3D standard deviation, after the columns above.
+TIP_COLUMNS = ["tip_x_mm", "tip_y_mm", "tip_z_mm", "tip_sd_mm"]
 CAMERA = "camera"
 REFERENCE_NOT_SEEN = "reference not seen"
 
@@ -146,6 +149,44 @@ def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream
     return StereoStream(left, right, fps)
 
 
+def read_track_csv(path, tool: str | None = None) -> tuple[np.ndarray, list, str]:
+    """Times (s), poses (4 x 4, or None where not found) and the frame they are in
+    (:data:`CAMERA` or a reference tool's name) of a ``markerpose track`` CSV: one
+    marker's (:data:`CSV_HEADER`), or with several tools (:data:`TOOLS_CSV_HEADER`) the
+    rows of ``tool`` (which may be left out when the file has one tool)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such file")
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    need = ["timestamp_s", "valid"] + [f"T{i}{j}" for i in range(4) for j in range(4)]
+    if not rows or any(k not in rows[0] for k in need):
+        raise ValueError(f"{path}: not a markerpose track CSV (needs the columns timestamp_s, valid, T00 … T33)")
+    frame = CAMERA
+    if "tool" in rows[0]:
+        names = list(dict.fromkeys(r["tool"] for r in rows))
+        if tool is None and len(names) > 1:
+            raise ValueError(f"{path}: poses of several tools ({', '.join(names)}): name one (--tool)")
+        tool = names[0] if tool is None else tool
+        rows = [r for r in rows if r["tool"] == tool]
+        if not rows:
+            raise ValueError(f"{path}: no rows of tool {tool!r} (tools: {', '.join(names)})")
+        frame = rows[0].get("relative_to") or CAMERA
+    elif tool is not None:
+        raise ValueError(f"{path}: one marker's poses, no tool column; leave out the tool ({tool!r})")
+    times, poses = [], []
+    for k, r in enumerate(rows):
+        try:
+            times.append(float(r["timestamp_s"]))
+            if r["valid"] not in ("1", "True", "true"):
+                poses.append(None)
+                continue
+            poses.append(np.array([float(r[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4))
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: row {k + 2} is not a complete pose row") from None
+    return np.array(times), poses, frame
+
+
 def _pose_cells(T, residual_px, cov=None) -> list:
     """``valid`` and the pose fields of :data:`CSV_HEADER` for the pose ``T`` (4, 4, mm)
     with covariance ``cov`` (6, 6; its standard deviations, empty without one), or valid 0
@@ -165,8 +206,23 @@ def _pose_cells(T, residual_px, cov=None) -> list:
     return [1, *(f"{v:.9g}" for v in vals), *sds]
 
 
-def pose_row(k: int, t: float, est) -> list:
-    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds."""
+def _tip_cells(T, cov, tip) -> list:
+    """:data:`TIP_COLUMNS` of a tool with ``tip`` (marker frame, mm) at pose ``T`` (empty
+    without a pose)."""
+    if T is None or tip is None:
+        return [""] * len(TIP_COLUMNS)
+    from .uncertainty import sd_mm
+
+    p = T[:3, :3] @ np.asarray(tip, np.float64) + T[:3, 3]
+    sd = sd_mm(cov, T, tip)
+    return [*(f"{v:.9g}" for v in p), "" if not np.isfinite(sd) else f"{sd:.6g}"]
+
+
+def pose_row(k: int, t: float, est, tip=None) -> list:
+    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds; with ``tip``
+    (the marker's, mm), :data:`TIP_COLUMNS` after it."""
+    if tip is not None:
+        return pose_row(k, t, est) + _tip_cells(None if est is None else est.T, None if est is None else est.cov, tip)
     if est is None:
         return [k, f"{t:.6f}", *_pose_cells(None, None)]
     return [k, f"{t:.6f}", *_pose_cells(est.T, est.residual_px, est.cov)]
@@ -222,11 +278,16 @@ def tool_reports(found: dict, names, reference: str | None = None, whys: dict | 
     return out
 
 
-def tools_row(k: int, t: float, report: ToolReport) -> list:
+def tools_row(k: int, t: float, report: ToolReport, tips: dict | None = None) -> list:
     """One CSV row (see :data:`TOOLS_CSV_HEADER`) of one tool in frame ``k`` at ``t``
-    seconds; the residual is the tool's own, also for a pose relative to the reference."""
+    seconds; the residual is the tool's own, also for a pose relative to the reference.
+    With ``tips`` (``{name: tip or None}``, when any tool has one), :data:`TIP_COLUMNS`
+    after it (in the pose's frame)."""
     residual = report.est.residual_px if report.valid else None
-    return [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual, report.cov if report.valid else None)]
+    row = [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual, report.cov if report.valid else None)]
+    if tips is not None:
+        row += _tip_cells(report.T, report.cov, tips.get(report.name))
+    return row
 
 
 def igtl_device_name(tool: str, relative_to: str = CAMERA) -> str:
@@ -481,10 +542,11 @@ def track_stream(
     a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
     share, frames per second, longest run of frames without a pose."""
     c = {"n": 0, "found": 0, "tracked": 0, "gap": 0, "longest": 0}
+    tip = tracker.marker.tip
 
     def step(k, t, left, right, out):
         est = tracker.track(left, right)
-        out.rows([pose_row(k, t, est)])
+        out.rows([pose_row(k, t, est, tip)])
         if send is not None:
             send(k, t, est)
         for sink in sinks:
@@ -497,7 +559,7 @@ def track_stream(
         c["longest"] = max(c["longest"], c["gap"])
         return {"found": f"{c['found']}/{c['n']}"}
 
-    run = _run(tracker, stream, out_csv, jsonl, CSV_HEADER, step, progress)
+    run = _run(tracker, stream, out_csv, jsonl, CSV_HEADER + (TIP_COLUMNS if tip is not None else []), step, progress)
     n, found = run["frames"], c["found"]
     return {
         "frames": n,
@@ -541,11 +603,13 @@ def track_tools_stream(
         stream.close()
         raise ValueError(f"reference {reference!r} is none of the tools: {', '.join(names)}")
     c = {name: {"found": 0, "tracked": 0, "reported": 0, "gap": 0, "longest": 0} for name in names}
+    tips = {name: p.marker.tip for name, p in tracker.tools.items()}
+    tips = tips if any(v is not None for v in tips.values()) else None
 
     def step(k, t, left, right, out):
         found = tracker.track_all(left, right)
         reports = tool_reports(found, names, reference, tracker.whys)
-        out.rows([tools_row(k, t, r) for r in reports])
+        out.rows([tools_row(k, t, r, tips) for r in reports])
         if send is not None:
             send(k, t, reports)
         for sink in sinks:
@@ -560,7 +624,7 @@ def track_tools_stream(
             s["longest"] = max(s["longest"], s["gap"])
         return {"found": ",".join(str(c[n]["found"]) for n in names) + f"/{k + 1}"}
 
-    run = _run(tracker, stream, out_csv, jsonl, TOOLS_CSV_HEADER, step, progress)
+    run = _run(tracker, stream, out_csv, jsonl, TOOLS_CSV_HEADER + (TIP_COLUMNS if tips is not None else []), step, progress)
     n = run["frames"]
     tools = {
         name: {
@@ -577,6 +641,8 @@ def track_tools_stream(
 __all__ = [
     "CAMERA",
     "CSV_HEADER",
+    "TIP_COLUMNS",
+    "read_track_csv",
     "IGTLSender",
     "IGTLToolsSender",
     "REFERENCE_NOT_SEEN",

@@ -167,6 +167,14 @@ def cmd_eval_uncertainty(args):
     print(f"Wrote {args.out}/: report.md, results.json")
 
 
+def cmd_eval_pivot(args):
+    from ..experiments import pivot
+
+    res = pivot.main({"trials": args.trials, "frames": args.frames}, args.out, progress=not args.quiet)
+    print(pivot.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json")
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -228,10 +236,23 @@ def _register_pipeline(esub) -> None:
     et.set_defaults(func=cmd_eval_tools)
     eu = esub.add_parser("uncertainty", help="is Estimate.cov calibrated: chi-square coverage of the true errors per condition")
     eu.add_argument("--pairs", type=positive_int, default=60, help="pairs per condition (default 60)")
-    eu.add_argument("--model-pairs", type=int, default=30, help="noise-free pairs for the edge fit's own error (0: none; default 30)")
+    eu.add_argument(
+        "--model-pairs",
+        type=int,
+        default=60,
+        help="pairs (of their own) for the centres' error their fits do not show (0: none; default 60)",
+    )
     eu.add_argument("--out", default="markerpose-uncertainty", help="output folder: report.md, results.json")
     eu.add_argument("--quiet", action="store_true")
     eu.set_defaults(func=cmd_eval_uncertainty)
+    ep = esub.add_parser(
+        "pivot", help="pivot calibration against the truth: simulated pivoting with noise and outliers, a rendered sequence"
+    )
+    ep.add_argument("--trials", type=positive_int, default=20, help="simulated calibrations per tracker noise (default 20)")
+    ep.add_argument("--frames", type=int, default=120, help="pairs of the rendered pivoting sequence (0: none; default 120)")
+    ep.add_argument("--out", default="markerpose-pivot", help="output folder: report.md, results.json")
+    ep.add_argument("--quiet", action="store_true")
+    ep.set_defaults(func=cmd_eval_pivot)
 
 
 def register(sub) -> None:

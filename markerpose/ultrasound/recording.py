@@ -36,24 +36,12 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 
 def read_track_csv(path: str | Path) -> tuple[np.ndarray, list]:
-    """Times (s) and poses (4x4 T_left_marker, or None where not found) of a
-    ``markerpose track`` CSV."""
-    path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"{path}: no such file")
-    with open(path, newline="") as f:
-        rows = list(csv.DictReader(f))
-    need = ["timestamp_s", "valid"] + [f"T{i}{j}" for i in range(4) for j in range(4)]
-    if not rows or any(k not in rows[0] for k in need):
-        raise ValueError(f"{path}: not a markerpose track CSV (needs the columns timestamp_s, valid, T00 … T33)")
-    times, poses = [], []
-    for r in rows:
-        times.append(float(r["timestamp_s"]))
-        if r["valid"] not in ("1", "True", "true"):
-            poses.append(None)
-            continue
-        poses.append(np.array([float(r[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4))
-    return np.array(times), poses
+    """Times (s) and poses (4x4 T_left_marker, or None where not found) of a one-marker
+    ``markerpose track`` CSV (:func:`markerpose.video.read_track_csv`)."""
+    from ..video import read_track_csv as read
+
+    times, poses, _ = read(path)
+    return times, poses
 
 
 def read_frames(folder: str | Path, fps: float | None = None) -> tuple[list[Path], np.ndarray]:
