@@ -274,6 +274,7 @@ class _Problem:
             inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
         yi, xi = yy[inside], xx[inside]
         self.x, self.y = xi.astype(np.float64), yi.astype(np.float64)
+        self.stride = stride
         if self.box > 1:  # each pixel's value: the mean of the box around it
             r = self.box // 2
             ya, xa = max(y0 - r, 0), max(x0 - r, 0)
@@ -506,11 +507,33 @@ def _center_covs(prob, p) -> np.ndarray:
     try:
         r, _, (H, _) = prob.evaluate(p, jac=True)
         s2 = float(prob.w @ (r * r)) / max(float(prob.w.sum()) - len(p) - 6, 1.0)  # the levels' six coefficients are fitted too
-        cov = s2 * np.linalg.inv(H)
+        cov = s2 * _correlation_inflation(prob, np.sqrt(prob.w) * r) * np.linalg.inv(H)
     except (np.linalg.LinAlgError, ValueError):
         return np.full((prob.k, 2, 2), np.nan)
     idx = [np.array([7 * j, 7 * j + 1]) for j in range(prob.k)]
     return np.stack([cov[np.ix_(i, i)] for i in idx])
+
+
+def _correlation_inflation(prob, r) -> float:
+    """The variance inflation of a fit to residuals ``r`` (one per sample of ``prob``'s grid)
+    correlated with their neighbours: where the model misfits (its blur and optics only
+    approximate the image's), the misfit spans several samples, and the samples carry
+    less information than their number says. For a field correlated as a first-order
+    process along each axis (lag-one correlations rho_x, rho_y of the residuals on the
+    grid), the inflation is prod (1 + rho) / (1 - rho)."""
+    st = getattr(prob, "stride", 1)
+    ix = np.round((prob.x - prob.x.min()) / st).astype(np.intp)
+    iy = np.round((prob.y - prob.y.min()) / st).astype(np.intp)
+    grid = np.full((iy.max() + 1, ix.max() + 1), np.nan)
+    grid[iy, ix] = r
+    f = 1.0
+    for a, b in ((grid[:, 1:], grid[:, :-1]), (grid[1:], grid[:-1])):
+        both = np.isfinite(a) & np.isfinite(b)
+        if both.sum() < 10:
+            continue
+        rho = float(np.clip((a[both] * b[both]).sum() / max(np.sqrt((a[both] ** 2).sum() * (b[both] ** 2).sum()), 1e-300), 0.0, 0.9))
+        f *= (1 + rho) / (1 - rho)
+    return f
 
 
 def _fit_result(prob, p, nfev, gave_up):

@@ -7,6 +7,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+# A pose whose origin's RMS 3D error at one standard deviation (``Estimate.sd_mm``) exceeds
+# this is of "low accuracy": the tracker's claim is sub-0.1 mm.
+LOW_ACCURACY_MM = 0.1
+STATUSES = ("ok", "low accuracy", "unrated")
+
 
 @dataclass
 class Detection:
@@ -94,6 +99,15 @@ class Estimate:
 
         return sd_deg(self.cov)
 
+    def status(self, max_sd_mm: float = LOW_ACCURACY_MM, point=None) -> str:
+        """ "ok"; "low accuracy" where the RMS 3D error at one standard deviation (of the
+        origin, or of ``point`` in the marker's frame, e.g. a tip) exceeds ``max_sd_mm``;
+        "unrated" without a covariance (the paper's contour centres)."""
+        if self.cov is None:
+            return "unrated"
+        sd = self.sd_mm if point is None else self.point_sd_mm(point)
+        return "ok" if sd <= max_sd_mm else "low accuracy"
+
     def point_sd_mm(self, point) -> float:
         """The RMS 3D error at one standard deviation of a point fixed to the marker
         (``point`` (3,) mm in the marker's frame, e.g. a tool's tip), mm."""
@@ -140,4 +154,4 @@ def relative_covariances(found: dict[str, Estimate], reference: str) -> dict[str
     }
 
 
-__all__ = ["Detection", "Estimate", "relative_covariances", "relative_poses"]
+__all__ = ["LOW_ACCURACY_MM", "STATUSES", "Detection", "Estimate", "relative_covariances", "relative_poses"]

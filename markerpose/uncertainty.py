@@ -32,7 +32,7 @@ import numpy as np
 from .geometry import pose_from_points, triangulate
 
 H_PX = 0.01  # step of the numerical derivative of the triangulation, px
-MODEL_PX = 0.0015  # the centres' error per axis that their fits do not show, px (see the module's docstring)
+MODEL_PX = 0.005  # the centres' error per axis that their fits do not show, px (see the module's docstring)
 
 
 def skew(v: np.ndarray) -> np.ndarray:

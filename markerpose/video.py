@@ -432,6 +432,7 @@ def _json_row(k: int, t: float, est) -> str:
                 "residual_px": None if est is None else est.residual_px,
                 "sd_mm": None if est is None else _finite(est.sd_mm),
                 "sd_deg": None if est is None else _finite(est.sd_deg),
+                "status": None if est is None else est.status(),
                 "source": None if est is None else est.source,
             }
         )
@@ -459,6 +460,7 @@ def _json_tools_row(k: int, t: float, reports: list[ToolReport]) -> str:
             "T": r.T.tolist() if r.valid else None,
             "residual_px": _finite(r.est.residual_px) if r.valid else None,
             "sd_mm": _finite(_sd(r.cov, r.T)) if r.valid else None,
+            "status": r.est.status() if r.valid else None,
             "source": r.est.source if r.valid else None,
             "why": r.why,
         }

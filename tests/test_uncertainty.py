@@ -124,3 +124,35 @@ def test_estimate_cov_on_rendered_pairs(rig):
     assert dark.sd_mm > 1.5 * est.sd_mm
     # The paper's contour centres have no fit to take a covariance from.
     assert mp.MarkerPose(rig, preset="paper-classical").estimate(*f.images).cov is None
+
+
+def test_shared_edge_shift_moves_the_centre_by_the_radius():
+    """A shift g . (x - c) shared by every edge of a circle of radius R moves the fitted
+    centre by R g: its covariance adds R^2 cov(g)."""
+    R = 25.0
+    t = np.linspace(0, 2 * np.pi, 48, endpoint=False)
+    rng = np.random.default_rng(3)
+    P = np.column_stack([50 + R * np.cos(t), 40 + R * np.sin(t)]) + rng.normal(0, 0.05, (48, 2))
+    W = np.ones(48)
+    c, Q = np.array([50.0, 40.0]), np.eye(2) / R**2
+    S = np.array([[4e-8, 1e-8], [1e-8, 2e-8]])
+    alone, shared = center_covariances([(P, W, c, Q), (P, W, c, Q, S)])
+    np.testing.assert_allclose(shared - alone, R**2 * S, rtol=0.05)
+
+
+def test_blurred_ring_fit_gives_centre_covariances(rig):
+    T = look_at_pose(np.array([0.0, 0.0, 560.0]), 20, 30, 10)
+    f = render_stereo(rig, T, mp.Marker(), Imaging(alpha=0.6, motion_blur=25.0, motion_angle=30.0), seed=7)
+    est = mp.MarkerPose(rig).estimate(*f.images)
+    assert est is not None and max(d.blur_px for d in est.detections) > 5  # the blurred-ring fit ran
+    assert est.cov is not None and np.all(np.isfinite(est.cov)) and 0 < est.sd_mm < 0.2
+
+
+def test_status_rules(rig):
+    f = render_stereo(rig, look_at_pose(np.array([0.0, 0.0, 560.0]), 20, 30, 10), mp.Marker(), Imaging(alpha=0.6), seed=8)
+    est = mp.MarkerPose(rig).estimate(*f.images)
+    assert est.status() == "ok"
+    assert est.status(max_sd_mm=0.5 * est.sd_mm) == "low accuracy"
+    far_tip = [0.0, -5000.0, 0.0]  # a tip 5 m away: its error is the rotation's lever
+    assert est.status(point=far_tip) == "low accuracy"
+    assert mp.MarkerPose(rig, preset="paper-classical").estimate(*f.images).status() == "unrated"
