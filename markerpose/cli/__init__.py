@@ -14,11 +14,27 @@ import sys
 
 from .. import __version__
 from ..jit import CompileError
-from . import bench, calibrate, demo, estimate, evaluate, experiments, marker, peers, pivot, render, tools, track, train, ultrasound
+from . import (
+    bench,
+    calibrate,
+    demo,
+    estimate,
+    evaluate,
+    experiments,
+    handeye,
+    marker,
+    peers,
+    pivot,
+    render,
+    tools,
+    track,
+    train,
+    ultrasound,
+)
 from .common import EXIT_BAD_INPUT, EXIT_NOT_FOUND
 
 # The commands in the order ``markerpose --help`` lists them (calibrate adds pattern too).
-COMMANDS = (demo, marker, tools, render, estimate, calibrate, track, pivot, peers, ultrasound, bench, experiments, train, evaluate)
+COMMANDS = (demo, marker, tools, render, estimate, calibrate, track, pivot, handeye, peers, ultrasound, bench, experiments, train, evaluate)
 
 
 def build_parser() -> argparse.ArgumentParser:

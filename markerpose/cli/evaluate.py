@@ -175,6 +175,14 @@ def cmd_eval_pivot(args):
     print(f"Wrote {args.out}/: report.md, results.json")
 
 
+def cmd_eval_handeye(args):
+    from ..experiments import handeye
+
+    res = handeye.main({"trials": args.trials}, args.out, progress=not args.quiet)
+    print(handeye.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json")
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -253,6 +261,11 @@ def _register_pipeline(esub) -> None:
     ep.add_argument("--out", default="markerpose-pivot", help="output folder: report.md, results.json")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pivot)
+    eh = esub.add_parser("handeye", help="hand-eye calibration against the truth: simulated eye-to-hand and eye-in-hand sessions")
+    eh.add_argument("--trials", type=positive_int, default=50, help="simulated sessions per setup and number of poses (default 50)")
+    eh.add_argument("--out", default="markerpose-handeye", help="output folder: report.md, results.json")
+    eh.add_argument("--quiet", action="store_true")
+    eh.set_defaults(func=cmd_eval_handeye)
 
 
 def register(sub) -> None:
