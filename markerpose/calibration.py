@@ -113,6 +113,7 @@ class Calibration:
             "pairs_rejected": self.pairs_rejected,
             "f_left_px": [float(self.rig.left.K[0, 0]), float(self.rig.left.K[1, 1])],
             "f_right_px": [float(self.rig.right.K[0, 0]), float(self.rig.right.K[1, 1])],
+            "volume_mm": None if self.rig.volume is None else self.rig.volume.tolist(),
         }
 
 
@@ -137,6 +138,12 @@ def _consistent(left: np.ndarray, right: np.ndarray, grid: CircleGrid) -> np.nda
     q = right.reshape(grid.rows, grid.cols, 2)
     options = [q, q[::-1], q[::-1, ::-1], q[:, ::-1]]
     return max(options, key=lambda o: float(axes(o.reshape(-1, 2)) @ a)).reshape(-1, 2)
+
+
+def _grid_volume(obj: np.ndarray, rvecs, tvecs) -> np.ndarray:
+    """(2, 3) the box (left-camera frame, mm) the grid's points filled over the pairs used."""
+    pts = np.concatenate([obj.astype(np.float64) @ cv2.Rodrigues(rv)[0].T + np.ravel(tv) for rv, tv in zip(rvecs, tvecs)])
+    return np.stack([pts.min(0), pts.max(0)])
 
 
 def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibration:
@@ -171,7 +178,7 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
             f"at least {min_pairs} are needed (rejected: {rejected[:10]}{' ...' if len(rejected) > 10 else ''})"
         )
     objs = [obj] * len(used)
-    rms1, K1, d1, _, _ = cv2.calibrateCamera(objs, P1, size, None, None)
+    rms1, K1, d1, rv1, tv1 = cv2.calibrateCamera(objs, P1, size, None, None)
     rms2, K2, d2, _, _ = cv2.calibrateCamera(objs, P2, size, None, None)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-9)
     rms, K1, d1, K2, d2, R, t, _, _ = cv2.stereoCalibrate(objs, P1, P2, K1, d1, K2, d2, size, criteria=crit, flags=cv2.CALIB_FIX_INTRINSIC)
@@ -180,6 +187,7 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
         Camera(K2, d2.ravel(), image_size=tuple(int(v) for v in size)),
         R,
         t.ravel(),
+        volume=_grid_volume(obj, rv1, tv1),
     )
     return Calibration(rig, float(rms1), float(rms2), float(rms), used, rejected, (np.concatenate(P1), np.concatenate(P2)))
 

@@ -87,6 +87,20 @@ def _as_intrinsics(value, name="K") -> np.ndarray:
     return K
 
 
+def _as_volume(value, name: str = "volume") -> np.ndarray:
+    """(2, 3) float64: the lowest and highest corner of a box, finite, lowest < highest."""
+    try:
+        v = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be 2 x 3 numbers (lowest and highest corner, mm)") from None
+    if v.size != 6 or not np.all(np.isfinite(v)):
+        raise ValueError(f"{name} must be 2 x 3 finite numbers (lowest and highest corner, mm), got shape {v.shape}")
+    v = v.reshape(2, 3)
+    if not np.all(v[0] < v[1]):
+        raise ValueError(f"{name}: the lowest corner {v[0].tolist()} must be below the highest {v[1].tolist()} on every axis")
+    return v
+
+
 def _as_image_size(value, name="image_size") -> tuple[int, int]:
     """(width, height) as Python ints in 1..MAX_IMAGE_SIDE; the values must be whole numbers."""
     try:
@@ -312,6 +326,9 @@ class StereoRig:
         R: (3, 3) rotation left→right.
         t: (3,) translation left→right, mm; the baseline |t| must be in
             ``MIN_BASELINE..MAX_BASELINE`` (1e-3..1e9 mm), so the default zeros are refused.
+        volume: optional (2, 3) the calibrated volume: the lowest and highest corner, in the
+            left-camera frame (mm), of the box the calibration grid's points filled
+            (``markerpose calibrate`` writes it); None where unknown.
 
     Invalid values (also ``Camera``'s: K, dist, image_size) raise ``ValueError`` naming the field.
     """
@@ -320,10 +337,23 @@ class StereoRig:
     right: Camera
     R: np.ndarray = field(default_factory=lambda: np.eye(3))
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    volume: np.ndarray | None = None
 
     def __post_init__(self):
         self.R = _as_rotation(self.R, "R")
         self.t = _as_translation(self.t, "t")
+        if self.volume is not None:
+            self.volume = _as_volume(self.volume)
+
+    def in_volume(self, points_left, margin: float = 0.1) -> bool:
+        """Whether every point (N, 3, left-camera frame, mm) lies in the calibrated volume
+        enlarged by ``margin`` of its size on every side (True where the volume is unknown)."""
+        if self.volume is None:
+            return True
+        lo, hi = self.volume
+        pad = margin * (hi - lo)
+        p = np.asarray(points_left, np.float64).reshape(-1, 3)
+        return bool(np.all((p >= lo - pad) & (p <= hi + pad)))
 
     @property
     def cameras(self) -> tuple[Camera, Camera]:
@@ -398,6 +428,9 @@ class StereoRig:
                 if arr.size != 2:
                     raise ValueError(bad_size)
                 vals["image_size"] = arr.ravel()
+            vol = storage_array(fs, "volume", path)
+            if vol is not None:
+                vals["volume"] = vol
         finally:
             fs.release()
 
@@ -416,8 +449,9 @@ class StereoRig:
         R = build("R", _as_rotation, "R")
         t = build("t", _as_translation, "t")
         size = build("image_size", _as_image_size, "image_size") if "image_size" in vals else None
+        volume = build("volume", _as_volume) if "volume" in vals else None
         try:
-            return cls(Camera(K1, d1, size), Camera(K2, d2, size), R, t)
+            return cls(Camera(K1, d1, size), Camera(K2, d2, size), R, t, volume)
         except ValueError as e:  # not expected: the keys passed the same checks above
             raise ValueError(f"{path}: {e}") from None
 
@@ -438,6 +472,8 @@ class StereoRig:
         fs.write("t", self.t.reshape(3, 1))
         if self.left.image_size is not None:
             fs.write("image_size", np.array(self.left.image_size, dtype=np.int32).reshape(1, 2))
+        if self.volume is not None:
+            fs.write("volume", self.volume)
         fs.release()
         return path
 

@@ -10,7 +10,7 @@ import numpy as np
 # A pose whose origin's RMS 3D error at one standard deviation (``Estimate.sd_mm``) exceeds
 # this is of "low accuracy": the tracker's claim is sub-0.1 mm.
 LOW_ACCURACY_MM = 0.1
-STATUSES = ("ok", "low accuracy", "unrated")
+STATUSES = ("ok", "low accuracy", "outside the calibrated volume", "unrated")
 
 
 @dataclass
@@ -100,9 +100,14 @@ class Estimate:
         return sd_deg(self.cov)
 
     def status(self, max_sd_mm: float = LOW_ACCURACY_MM, point=None) -> str:
-        """ "ok"; "low accuracy" where the RMS 3D error at one standard deviation (of the
-        origin, or of ``point`` in the marker's frame, e.g. a tip) exceeds ``max_sd_mm``;
-        "unrated" without a covariance (the paper's contour centres)."""
+        """The pose's rating: "outside the calibrated volume" where a ring centre lies
+        outside the rig's calibrated volume enlarged by 10 % of its size
+        (:meth:`markerpose.camera.StereoRig.in_volume`; never where the rig has none); else
+        "unrated" without a covariance (the paper's contour centres); else "low accuracy"
+        where the RMS 3D error at one standard deviation (of the origin, or of ``point`` in
+        the marker's frame, e.g. a tip) exceeds ``max_sd_mm``; else "ok"."""
+        if self._context is not None and not self._context[0].in_volume(self.points3d):
+            return "outside the calibrated volume"
         if self.cov is None:
             return "unrated"
         sd = self.sd_mm if point is None else self.point_sd_mm(point)

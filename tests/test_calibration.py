@@ -52,6 +52,10 @@ def test_calibration_recovers_the_rig(rendered):
     assert max(c["f_left_rel_error"], c["f_right_rel_error"]) < 0.002
     assert c["baseline_mm_error"] < 0.1 and c["R_deg_error"] < 0.05
     assert max(cal.rms_left_px, cal.rms_right_px, cal.rms_stereo_px) <= 0.15
+    # The calibrated volume: the box the grid's points filled, in the left camera's frame.
+    lo, hi = cal.rig.volume
+    assert np.all(hi - lo > 10) and 100 < lo[2] < hi[2] < 3000
+    assert cal.rig.in_volume((lo + hi) / 2) and not cal.rig.in_volume(hi + 0.5 * (hi - lo))
 
 
 def test_a_view_found_from_the_other_end_is_put_in_step(rendered):

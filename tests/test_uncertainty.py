@@ -156,3 +156,17 @@ def test_status_rules(rig):
     far_tip = [0.0, -5000.0, 0.0]  # a tip 5 m away: its error is the rotation's lever
     assert est.status(point=far_tip) == "low accuracy"
     assert mp.MarkerPose(rig, preset="paper-classical").estimate(*f.images).status() == "unrated"
+
+
+def test_calibrated_volume_in_rig_files_and_status(rig, tmp_path):
+    import dataclasses
+
+    f = render_stereo(rig, look_at_pose(np.array([0.0, 0.0, 560.0]), 20, 30, 10), mp.Marker(), Imaging(alpha=0.6), seed=9)
+    near = dataclasses.replace(rig, volume=np.array([[-150.0, -150.0, 300.0], [150.0, 150.0, 450.0]]))
+    saved = mp.StereoRig.load(near.save(tmp_path / "rig.yaml"))
+    np.testing.assert_allclose(saved.volume, near.volume)
+    assert mp.MarkerPose(saved).estimate(*f.images).status() == "outside the calibrated volume"  # 560 mm > 450 + 15
+    wide = dataclasses.replace(rig, volume=np.array([[-150.0, -150.0, 300.0], [150.0, 150.0, 900.0]]))
+    assert mp.MarkerPose(wide).estimate(*f.images).status() == "ok"
+    with pytest.raises(ValueError, match="lowest corner"):
+        dataclasses.replace(rig, volume=np.array([[0.0, 0.0, 900.0], [1.0, 1.0, 300.0]]))

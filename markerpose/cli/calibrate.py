@@ -61,6 +61,12 @@ def cmd_calibrate(args):
         f"RMS reprojection error left {s['rms_left_px']:.3f} px, right {s['rms_right_px']:.3f} px, stereo {s['rms_stereo_px']:.3f} px; "
         f"baseline {s['baseline_mm']:.2f} mm"
     )
+    if s["volume_mm"] is not None:
+        lo, hi = s["volume_mm"]
+        print(
+            f"calibrated volume (where the grid was, left camera's frame): x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}, "
+            f"z {lo[2]:.0f}..{hi[2]:.0f} mm; poses beyond it (by 10 %) are rated 'outside the calibrated volume'"
+        )
     if args.coverage:
         print(f"wrote {plot_coverage(cal, args.coverage)}: where the grid was seen in each image")
     if args.rendered:
