@@ -33,6 +33,7 @@ from .geometry import ring_ellipses
 from .images import as_gray, check_size, gray_pair
 from .marker import Marker
 from .results import Detection, Estimate
+from .rigcheck import RigCheck
 from .stages import refine, solve, track, verify
 from .tools import check_tools
 
@@ -226,6 +227,7 @@ class MarkerPose:
         self.timings: dict = {}  # seconds per stage of the last call (see markerpose bench)
         self.why: str | None = None  # after a call that found nothing: the first reason met
         self.whys: dict[str, str] = {}  # after estimate_all / track_all: why each tool not found was not
+        self.rig_check = RigCheck(rig)  # the calibration checked by every tracked pose (track, track_all)
         self._busy = threading.Lock()
 
     def __repr__(self):
@@ -297,7 +299,7 @@ class MarkerPose:
         """
         tool = self._one("track")
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return tool.tracker.next(frame, tool)
+            return self._checked(tool.tracker.next(frame, tool), tool)
 
     def estimate_all(self, left, right) -> dict[str, Estimate]:
         """Each tool's pose from a stereo pair, detected from scratch: ``{name: Estimate}``
@@ -316,7 +318,15 @@ class MarkerPose:
         with self._call(gray_pair(left, right, self.rig)) as frame:
             expected = {t.name: t.tracker.expected(frame) for t in tools if t.tracker.history}
             self._fit_together(frame, expected)
-            return self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET)), tools)
+            found = self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET)), tools)
+        return {name: self._checked(est, self.tools[name]) for name, est in found.items()}
+
+    def _checked(self, est: Estimate | None, tool: ToolPipeline) -> Estimate | None:
+        """``est`` fed to the rig check (:mod:`markerpose.rigcheck`); once that has fired, the
+        pose carries its reason (``rig_warning``, status "rig changed")."""
+        if est is not None:
+            est.rig_warning = self.rig_check.update(est, tool.marker.points3d)
+        return est
 
     def _fit_together(self, frame: Frame, expected: dict) -> None:
         """The first edge fits of the tools with a prior (``expected``: each one's predicted

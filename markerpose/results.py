@@ -10,7 +10,7 @@ import numpy as np
 # A pose whose origin's RMS 3D error at one standard deviation (``Estimate.sd_mm``) exceeds
 # this is of "low accuracy": the tracker's claim is sub-0.1 mm.
 LOW_ACCURACY_MM = 0.1
-STATUSES = ("ok", "low accuracy", "outside the calibrated volume", "unrated")
+STATUSES = ("ok", "low accuracy", "outside the calibrated volume", "unrated", "rig changed")
 
 
 @dataclass
@@ -64,6 +64,8 @@ class Estimate:
             rotation vector in the left-camera frame (:mod:`markerpose.uncertainty`); None
             where a centre has no covariance (the paper's contour centres). Computed on
             first access.
+        rig_warning: with ``track()``, the rig check's reason once it has fired (a camera
+            moved since calibration, :mod:`markerpose.rigcheck`), else None.
     """
 
     T: np.ndarray
@@ -73,6 +75,7 @@ class Estimate:
     residual_px: float | None = None
     source: str = "detected"
     _context: tuple | None = field(default=None, repr=False, compare=False)  # (rig, model, pose method) for cov
+    rig_warning: str | None = field(default=None, repr=False, compare=False)
 
     @functools.cached_property
     def cov(self) -> np.ndarray | None:
@@ -100,12 +103,15 @@ class Estimate:
         return sd_deg(self.cov)
 
     def status(self, max_sd_mm: float = LOW_ACCURACY_MM, point=None) -> str:
-        """The pose's rating: "outside the calibrated volume" where a ring centre lies
+        """The pose's rating: "rig changed" where the rig check has fired (``rig_warning``);
+        else "outside the calibrated volume" where a ring centre lies
         outside the rig's calibrated volume enlarged by 10 % of its size
         (:meth:`markerpose.camera.StereoRig.in_volume`; never where the rig has none); else
         "unrated" without a covariance (the paper's contour centres); else "low accuracy"
         where the RMS 3D error at one standard deviation (of the origin, or of ``point`` in
         the marker's frame, e.g. a tip) exceeds ``max_sd_mm``; else "ok"."""
+        if self.rig_warning is not None:
+            return "rig changed"
         if self._context is not None and not self._context[0].in_volume(self.points3d):
             return "outside the calibrated volume"
         if self.cov is None:

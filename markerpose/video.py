@@ -31,7 +31,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".pp
 CSV_HEADER = (
     ["frame", "timestamp_s", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
     + [f"T{i}{j}" for i in range(4) for j in range(4)]
-    + ["residual_px", "sd_mm", "sd_deg"]
+    + ["residual_px", "sd_mm", "sd_deg", "status"]
 )
 # Long form, one row a frame and tool: which tool, and the frame its pose is in ("camera":
 # T_left_tool, as CSV_HEADER's; else the reference tool's name: T_reference_tool).
@@ -187,10 +187,11 @@ def read_track_csv(path, tool: str | None = None) -> tuple[np.ndarray, list, str
     return np.array(times), poses, frame
 
 
-def _pose_cells(T, residual_px, cov=None) -> list:
+def _pose_cells(T, residual_px, cov=None, status: str = "") -> list:
     """``valid`` and the pose fields of :data:`CSV_HEADER` for the pose ``T`` (4, 4, mm)
-    with covariance ``cov`` (6, 6; its standard deviations, empty without one), or valid 0
-    and empty fields when ``T`` is None."""
+    with covariance ``cov`` (6, 6; its standard deviations, empty without one) and
+    ``status`` (:meth:`~markerpose.results.Estimate.status`), or valid 0 and empty fields
+    when ``T`` is None."""
     if T is None:
         return [0] + [""] * (len(CSV_HEADER) - 3)
     from scipy.spatial.transform import Rotation
@@ -203,7 +204,7 @@ def _pose_cells(T, residual_px, cov=None) -> list:
 
     vals = [*T[:3, 3], *R.as_quat(), *R.as_rotvec(), *T.ravel(), residual_px]
     sds = ["", ""] if cov is None else [f"{sd_mm(cov, T):.6g}", f"{sd_deg(cov):.6g}"]
-    return [1, *(f"{v:.9g}" for v in vals), *sds]
+    return [1, *(f"{v:.9g}" for v in vals), *sds, status]
 
 
 def _tip_cells(T, cov, tip) -> list:
@@ -225,7 +226,7 @@ def pose_row(k: int, t: float, est, tip=None) -> list:
         return pose_row(k, t, est) + _tip_cells(None if est is None else est.T, None if est is None else est.cov, tip)
     if est is None:
         return [k, f"{t:.6f}", *_pose_cells(None, None)]
-    return [k, f"{t:.6f}", *_pose_cells(est.T, est.residual_px, est.cov)]
+    return [k, f"{t:.6f}", *_pose_cells(est.T, est.residual_px, est.cov, _status(est))]
 
 
 class ToolReport(NamedTuple):
@@ -284,7 +285,13 @@ def tools_row(k: int, t: float, report: ToolReport, tips: dict | None = None) ->
     With ``tips`` (``{name: tip or None}``, when any tool has one), :data:`TIP_COLUMNS`
     after it (in the pose's frame)."""
     residual = report.est.residual_px if report.valid else None
-    row = [k, f"{t:.6f}", report.name, report.relative_to, *_pose_cells(report.T, residual, report.cov if report.valid else None)]
+    row = [
+        k,
+        f"{t:.6f}",
+        report.name,
+        report.relative_to,
+        *_pose_cells(report.T, residual, report.cov if report.valid else None, _status(report.est) if report.valid else ""),
+    ]
     if tips is not None:
         row += _tip_cells(report.T, report.cov, tips.get(report.name))
     return row
@@ -438,6 +445,12 @@ def _json_row(k: int, t: float, est) -> str:
         )
         + "\n"
     )
+
+
+def _status(est) -> str:
+    """The pose's status (:meth:`~markerpose.results.Estimate.status`), "" for an object
+    without one."""
+    return est.status() if hasattr(est, "status") else ""
 
 
 def _sd(cov, T) -> float:

@@ -183,6 +183,14 @@ def cmd_eval_handeye(args):
     print(f"Wrote {args.out}/: report.md, results.json")
 
 
+def cmd_eval_rigcheck(args):
+    from ..experiments import rigcheck
+
+    res = rigcheck.main({"stable": args.stable, "before": args.before, "after": args.after}, args.out, progress=not args.quiet)
+    print(rigcheck.report(res))
+    print(f"Wrote {args.out}/: report.md, results.json")
+
+
 def _eval_args(p, what: str):
     p.add_argument("--weights", help=f"{what} checkpoint (default: the shipped weights)")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -266,6 +274,15 @@ def _register_pipeline(esub) -> None:
     eh.add_argument("--out", default="markerpose-handeye", help="output folder: report.md, results.json")
     eh.add_argument("--quiet", action="store_true")
     eh.set_defaults(func=cmd_eval_handeye)
+    er = esub.add_parser(
+        "rigcheck", help="the rig check on rendered sequences: a stable rig (false alarms), a right camera turned or shifted"
+    )
+    er.add_argument("--stable", type=positive_int, default=200, help="pairs of the stable rig per condition (default 200)")
+    er.add_argument("--before", type=positive_int, default=10, help="pairs before the change (default 10)")
+    er.add_argument("--after", type=positive_int, default=30, help="pairs after the change (default 30)")
+    er.add_argument("--out", default="markerpose-rigcheck", help="output folder: report.md, results.json")
+    er.add_argument("--quiet", action="store_true")
+    er.set_defaults(func=cmd_eval_rigcheck)
 
 
 def register(sub) -> None:

@@ -90,6 +90,9 @@ def cmd_track(args):
         for sink in sinks:
             sink.close()
     wrote = f"wrote {s['csv']}" + (f" and {args.jsonl}" if args.jsonl else "")
+    check = pose_tracker.rig_check
+    if check.fired is not None:
+        print(f"warning: {check.fired} (fired at tracked pose {check.fired_at}; later poses have status 'rig changed')", file=sys.stderr)
     if names is not None:
         print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, {s['fps']:.1f} frames/s; {_tools_summary(s)}; {wrote}")
         return
