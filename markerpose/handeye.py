@@ -191,7 +191,9 @@ def _random_pose(rng, deg: float, mm: float, offset=(0.0, 0.0, 0.0)) -> np.ndarr
     return _pose(cv2.Rodrigues(np.radians(deg) * rng.normal(size=3) / np.sqrt(3))[0], rng.normal(0, mm, 3) + np.asarray(offset))
 
 
-def _perturbed(rng, T: np.ndarray, mm: float, deg: float) -> np.ndarray:
+def perturbed(rng: np.random.Generator, T: np.ndarray, mm: float, deg: float) -> np.ndarray:
+    """``T`` (4, 4) with Gaussian noise of ``mm`` (per axis) on its translation and a
+    rotation of ``deg`` (per axis) applied to it: a robot's or a tracker's reading of it."""
     return _pose(cv2.Rodrigues(np.radians(deg) * rng.normal(size=3))[0] @ T[:3, :3], T[:3, 3] + rng.normal(0, mm, 3))
 
 
@@ -206,7 +208,7 @@ def simulated(setup: str, n: int, rng: np.random.Generator, robot=(0.05, 0.01), 
         B = np.stack([np.linalg.inv(Z) @ a @ X for a in A])
     else:
         B = np.stack([np.linalg.inv(a @ X) @ Z for a in A])
-    return X, Z, np.stack([_perturbed(rng, a, *robot) for a in A]), np.stack([_perturbed(rng, b, *tracker) for b in B])
+    return X, Z, np.stack([perturbed(rng, a, *robot) for a in A]), np.stack([perturbed(rng, b, *tracker) for b in B])
 
 
 __all__ = [
@@ -217,6 +219,7 @@ __all__ = [
     "advice",
     "hand_eye",
     "pair_by_time",
+    "perturbed",
     "residuals",
     "simulated",
     "solve_linear",

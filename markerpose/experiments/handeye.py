@@ -12,7 +12,7 @@ import numpy as np
 
 from ..camera import StereoRig
 from ..formats import write_json
-from ..handeye import SETUPS, _perturbed, hand_eye, simulated
+from ..handeye import SETUPS, hand_eye, perturbed, simulated
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..synth import Imaging, look_at_pose, render_stereo
@@ -83,7 +83,7 @@ def rendered(c: dict, rng: np.random.Generator, n_cal: int = 20, steps: int = 20
         )
         Bh = seen(B_true)
         if Bh is not None:
-            A.append(_perturbed(rng, Z @ B_true @ np.linalg.inv(X), *c["robot"]))  # the robot's reading of its pose
+            A.append(perturbed(rng, Z @ B_true @ np.linalg.inv(X), *c["robot"]))  # the robot's reading of its pose
             B.append(Bh)
     cal = hand_eye(np.stack(A), np.stack(B), "eye-to-hand")["refined"]
     # The commanded moves: the gripper stepped 10 mm along the base's x from a start before the rig.
