@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -58,14 +59,53 @@ __all__ = [
 
 
 # --- OpenCV FileStorage (rig and probe calibration files) ----------------------------
+MAX_STORAGE_BYTES = 1 << 20  # a rig file is a few kB
+MAX_STORAGE_DEPTH = 32  # nesting of sequences, maps or XML elements (a rig file needs 3)
+
+
+def storage_depth(text: str) -> int:
+    """The deepest nesting of flow sequences / maps (``[`` ``{``), XML elements and block
+    indentation (in steps of the smallest indent) in a FileStorage text, counted without
+    parsing it: OpenCV's reader recurses per level and crashes the process on deep
+    nesting, so the depth is bounded before it sees the file."""
+    depth = best = 0
+    for ch in text:
+        if ch in "[{":
+            depth += 1
+            best = max(best, depth)
+        elif ch in "]}":
+            depth = max(depth - 1, 0)
+    xml = 0
+    for m in re.finditer(r"<(/?)[A-Za-z_][^<>]*?(/?)>", text):
+        if m.group(1):
+            xml = max(xml - 1, 0)
+        elif not m.group(2):
+            xml += 1
+            best = max(best, xml)
+    indents = [len(line) - len(line.lstrip(" ")) for line in text.splitlines() if line.strip()]
+    step = min((i for i in indents if i > 0), default=0)
+    if step:
+        best = max(best, max(indents) // step + 1)
+    return best
+
+
 def open_storage(path: str | Path):
     """An OpenCV FileStorage opened for reading, or a ValueError naming the file.
 
-    Opened in two steps: a parse error inside the constructor surfaces as a bare
-    SystemError in the Python bindings, whereas ``open()`` raises ``cv2.error``.
+    The file's size and nesting are bounded first (:data:`MAX_STORAGE_BYTES`,
+    :data:`MAX_STORAGE_DEPTH`, :func:`storage_depth`). Opened in two steps: a parse error
+    inside the constructor surfaces as a bare SystemError in the Python bindings, whereas
+    ``open()`` raises ``cv2.error``.
     """
     import cv2
 
+    size = Path(path).stat().st_size
+    if size > MAX_STORAGE_BYTES:
+        raise ValueError(f"{path}: {size} bytes; a rig file is a few kB (at most {MAX_STORAGE_BYTES} bytes read)")
+    text = Path(path).read_bytes().decode("utf-8", errors="replace")
+    depth = storage_depth(text)
+    if depth > MAX_STORAGE_DEPTH:
+        raise ValueError(f"{path}: nested {depth} levels deep; a rig file needs 3 (at most {MAX_STORAGE_DEPTH} read)")
     fs = cv2.FileStorage()
     try:
         fs.open(str(path), cv2.FILE_STORAGE_READ)

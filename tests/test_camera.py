@@ -730,3 +730,27 @@ def _check_perturbed_rigs(rig: StereoRig, tmp: Path) -> None:
             assert 0 < w <= 100000 and 0 < h <= 100000
 
     check()
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "%YAML:1.0\nK1: " + "[" * 40000 + "]" * 40000 + "\n",
+        '<?xml version="1.0"?>\n<opencv_storage>' + "<a>" * 40000 + "</a>" * 40000 + "</opencv_storage>\n",
+        "%YAML:1.0\nK1:\n" + "".join(" " * (2 * k) + f"k{k}:\n" for k in range(1, 200)),
+    ],
+    ids=["yaml-flow", "xml", "yaml-block"],
+)
+def test_deeply_nested_rig_files_are_refused_before_opencv_reads_them(tmp_path, text):
+    """OpenCV's reader recurses per level and crashes the process on deep nesting."""
+    path = tmp_path / ("rig.xml" if text.startswith("<?xml") else "rig.yaml")
+    path.write_text(text)
+    with pytest.raises(ValueError, match="nested .* levels deep"):
+        StereoRig.load(path)
+
+
+def test_oversized_rig_files_are_refused(tmp_path):
+    path = tmp_path / "rig.yaml"
+    path.write_text("%YAML:1.0\n" + "# padding\n" * 200_000)
+    with pytest.raises(ValueError, match="bytes; a rig file is a few kB"):
+        StereoRig.load(path)
