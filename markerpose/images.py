@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -59,4 +61,22 @@ def gray_pair(left, right, rig) -> list[np.ndarray]:
     return [gl, gr]
 
 
-__all__ = ["MIN_SIDE", "as_gray", "check_size", "gray_pair"]
+def read_image(path) -> np.ndarray:
+    """An image file as OpenCV decodes it (gray, BGR, ...), or a ValueError naming the file
+    and what is wrong (missing, empty, not an image), never OpenCV's own error."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"cannot read image {path}: no such file")
+    data = np.fromfile(path, np.uint8)
+    if data.size == 0:
+        raise ValueError(f"cannot read image {path}: the file is empty")
+    try:
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
+    if img is None:
+        raise ValueError(f"cannot read image {path}: not an image format OpenCV can decode")
+    return img
+
+
+__all__ = ["read_image", "MIN_SIDE", "as_gray", "check_size", "gray_pair"]

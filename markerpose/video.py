@@ -51,11 +51,10 @@ class _Folder:
         self.name, self.count, self.fps = str(path), len(self.files), None
 
     def frames(self) -> Iterator[tuple[float | None, np.ndarray]]:
+        from .images import read_image
+
         for p in self.files:
-            img = cv2.imdecode(np.fromfile(p, np.uint8), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise ValueError(f"cannot read image {p}")
-            yield None, img
+            yield None, read_image(p)
 
     def close(self):
         pass
@@ -66,11 +65,15 @@ class _Capture:
         # OpenCV prints a warning per backend it tries; our own error names the source.
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        self.name = f"camera {source}" if isinstance(source, int) else str(source)
+        if isinstance(source, int) and not 0 <= source < 2**31:
+            raise ValueError(f"cannot open {self.name}: a camera index is a small whole number (0, 1, ...)")
         try:
             self.cap = cv2.VideoCapture(source)
+        except (cv2.error, OverflowError, TypeError) as exc:
+            raise ValueError(f"cannot open {self.name}: {exc}") from None
         finally:
             cv2.utils.logging.setLogLevel(level)
-        self.name = f"camera {source}" if isinstance(source, int) else str(source)
         if not self.cap.isOpened():
             raise ValueError(f"cannot open {self.name}")
         n = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT))
@@ -513,8 +516,9 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
     """The loop of :func:`track_stream` and :func:`track_tools_stream`: ``step(k, t,
     left, right, out)`` handles each pair (``out``: :class:`_Out`) and returns the
     progress bar's counts. The CSV (``header`` first) and JSON lines are written to
-    ``.partial`` files and renamed when the stream ends or Ctrl-C stops it; deleted
-    when the first pair fails. Returns frames, frames per second, stopped and csv."""
+    ``.partial`` files and renamed when the stream ends, Ctrl-C stops it or a later pair
+    fails (the error then says where it stopped); deleted when the first pair fails.
+    Returns frames, frames per second, stopped and csv."""
     out_csv = Path(out_csv)
     partial = out_csv.with_name(out_csv.name + ".partial")
     partial_jsonl = None if jsonl is None else Path(jsonl).with_name(Path(jsonl).name + ".partial")
@@ -534,16 +538,23 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
                 bar.set_postfix(fps=f"{n / (time.perf_counter() - t0):.1f}", **counts)
         except KeyboardInterrupt:
             stopped = True
-        except BaseException:
+        except BaseException as exc:
             if n == 0:  # nothing tracked (e.g. images that do not match the rig): no file
                 _discard(f, partial, fj, partial_jsonl)
-            raise
+                raise
+            failed = exc  # the rows so far land under the requested names, then the error
+        else:
+            failed = None
         finally:
             bar.close()
             stream.close()
     partial.replace(out_csv)
     if partial_jsonl:
         partial_jsonl.replace(jsonl)
+    if failed is not None:
+        if isinstance(failed, ValueError):
+            raise ValueError(f"{failed} (stopped there: the {n} pair{'s' if n != 1 else ''} before it are in {out_csv})") from failed
+        raise failed
     seconds = time.perf_counter() - t0
     return {"frames": n, "fps": n / seconds if seconds > 0 else 0.0, "stopped": stopped, "csv": str(out_csv)}
 

@@ -106,6 +106,43 @@ def test_track_bad_input_is_one_line_and_leaves_no_file(folders, tmp_path, capsy
         assert not out.exists() and not list(tmp_path.glob("*.partial"))
 
 
+def test_a_bad_frame_mid_stream_keeps_the_rows_before_it(folders, tmp_path, capsys):
+    """An unreadable image part-way: one line naming it and where it stopped (rc 2), and the
+    rows so far under the requested name, not left in a .partial."""
+    root, _ = folders
+    left, right = tmp_path / "L", tmp_path / "R"
+    left.mkdir()
+    right.mkdir()
+    for p in sorted((root / "L").iterdir())[:4]:
+        (left / p.name).write_bytes(p.read_bytes())
+    for p in sorted((root / "R").iterdir())[:4]:
+        (right / p.name).write_bytes(p.read_bytes())
+    (left / sorted(p.name for p in left.iterdir())[2]).write_bytes(b"")  # the third left image: empty
+    out = tmp_path / "poses.csv"
+    assert cli.main(["track", str(left), str(right), "--out", str(out), "--quiet", "--detector", "classical"]) == 2
+    err = capsys.readouterr().err
+    assert "the file is empty" in err and "the 2 pairs before it are in" in err and err.count("\n") == 1, err
+    rows = list(csv.DictReader(out.open()))
+    assert len(rows) == 2 and not list(tmp_path.glob("*.partial"))
+
+
+def test_camera_index_and_port_out_of_range_are_one_line_errors(folders, tmp_path, capsys):
+    root, _ = folders
+    assert cli.main(["track", "99999999999999999999", "1", "--out", str(tmp_path / "p.csv")]) == 2
+    assert "a camera index is a small whole number" in capsys.readouterr().err
+    for port in ("70000", "-1"):
+        with pytest.raises(SystemExit) as e:
+            cli.main(["track", str(root / "L"), str(root / "R"), "--igtl", port, "--out", str(tmp_path / "p.csv")])
+        assert e.value.code == 2 and "a port is 1 to 65535" in capsys.readouterr().err
+
+
+def test_estimate_refuses_an_empty_image_in_one_line(tmp_path, capsys):
+    (tmp_path / "e.png").write_bytes(b"")
+    assert cli.main(["estimate", str(tmp_path / "e.png"), str(tmp_path / "e.png")]) == 2
+    err = capsys.readouterr().err
+    assert "the file is empty" in err and err.count("\n") == 1
+
+
 def test_track_reads_two_lossless_videos(folders, tmp_path):
     """The same frames as FFV1 videos: the same poses as from the PNG folders."""
     root, truth = folders

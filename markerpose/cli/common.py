@@ -50,6 +50,17 @@ def geometry_given(args) -> list[str]:
     return ["--" + k.replace("_", "-") for k, v in MARKER_DEFAULTS.items() if getattr(args, k, v) != v]
 
 
+def port(text: str) -> int:
+    """A TCP port number, 1 to 65535 (argparse type)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port number, got {text!r}") from None
+    if not 1 <= n <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 1 to 65535, got {n}")
+    return n
+
+
 def positive_int(text: str) -> int:
     try:
         n = int(text)

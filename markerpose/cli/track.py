@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import add_marker_args, add_preset_args, add_rig_arg, add_set_arg, tracker
+from .common import add_marker_args, add_preset_args, add_rig_arg, add_set_arg, port, tracker
 
 
 def _sinks(args, pose_tracker, stream) -> list:
@@ -120,7 +120,7 @@ def register(sub) -> None:
     add_preset_args(k)
     k.add_argument(
         "--igtl",
-        type=int,
+        type=port,
         nargs="?",
         const=18944,
         metavar="PORT",
