@@ -147,9 +147,28 @@ def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream
     """The frames of two sources (folders of images sorted by name, video files, or camera
     indices), paired in order; ``ValueError`` naming the source that cannot be read.
     ``fps`` times image folders, which carry no timestamps of their own."""
-    if fps is not None and not fps > 0:
-        raise ValueError(f"fps must be > 0, got {fps}")
+    if fps is not None and not MIN_FPS <= fps <= MAX_FPS:
+        raise ValueError(f"fps must be a frame rate between {MIN_FPS:g} and {MAX_FPS:g} frames/s, got {fps}")
     return StereoStream(left, right, fps)
+
+
+MIN_FPS, MAX_FPS = 1e-3, 1e6  # frame rates that give finite, distinct timestamps
+
+
+def check_output(path, what: str = "--out") -> Path:
+    """``path`` if a file can be written there (its folder exists and is writable, it is not
+    a folder itself), else a ValueError naming it: checked before a run, not after it."""
+    import os
+
+    path = Path(path)
+    if path.is_dir() or not path.name:
+        raise ValueError(f"{what} {path}: a folder; give a file name")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise ValueError(f"{what} {path}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise ValueError(f"{what} {path}: not writable here")
+    return path
 
 
 def read_track_csv(path, tool: str | None = None) -> tuple[np.ndarray, list, str]:
@@ -519,7 +538,9 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
     ``.partial`` files and renamed when the stream ends, Ctrl-C stops it or a later pair
     fails (the error then says where it stopped); deleted when the first pair fails.
     Returns frames, frames per second, stopped and csv."""
-    out_csv = Path(out_csv)
+    out_csv = check_output(out_csv)
+    if jsonl is not None:
+        check_output(jsonl, "--jsonl")
     partial = out_csv.with_name(out_csv.name + ".partial")
     partial_jsonl = None if jsonl is None else Path(jsonl).with_name(Path(jsonl).name + ".partial")
     tracker.reset()
@@ -668,6 +689,7 @@ __all__ = [
     "CAMERA",
     "CSV_HEADER",
     "TIP_COLUMNS",
+    "check_output",
     "read_track_csv",
     "IGTLSender",
     "IGTLToolsSender",

@@ -422,3 +422,20 @@ def test_demo_writes_the_report_results_and_files(tmp_path):
         assert (tmp_path / name).is_file(), name
     assert "15.999" in path.read_text()
     assert len(formats.read_sequence(tmp_path / "sweep.seq.nrrd")["images"]) == 16
+
+
+def test_timestamps_files_with_a_missing_time_or_going_back_are_refused(tmp_path):
+    import cv2
+
+    from markerpose.ultrasound.recording import read_frames
+
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), np.zeros((8, 8), np.uint8))
+    (tmp_path / "timestamps.csv").write_text("file,timestamp_s\nf0.png,0.0\nf1.png\nf2.png,0.2\n")
+    with pytest.raises(ValueError, match="row 3 has no time"):
+        read_frames(tmp_path)
+    (tmp_path / "timestamps.csv").write_text("file,timestamp_s\nf0.png,0.0\nf1.png,0.3\nf2.png,0.2\n")
+    with pytest.raises(ValueError, match="f2.png .* is not after f1.png"):
+        read_frames(tmp_path)
+    (tmp_path / "timestamps.csv").write_text("file,timestamp_s\nf0.png,0.0\nf1.png,0.1\nf2.png,0.2\n")
+    np.testing.assert_allclose(read_frames(tmp_path)[1], [0.0, 0.1, 0.2])

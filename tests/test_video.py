@@ -136,6 +136,24 @@ def test_camera_index_and_port_out_of_range_are_one_line_errors(folders, tmp_pat
         assert e.value.code == 2 and "a port is 1 to 65535" in capsys.readouterr().err
 
 
+def test_outputs_and_frame_rates_are_checked_before_the_run(folders, tmp_path, capsys):
+    root, _ = folders
+    cases = [
+        (["--out", str(tmp_path)], "a folder; give a file name"),
+        (["--out", str(tmp_path / "no" / "p.csv")], "does not exist"),
+        (["--out", str(tmp_path / "p.csv"), "--jsonl", str(tmp_path)], "--jsonl .*: a folder"),
+        (["--out", str(tmp_path / "p.csv"), "--fps", "inf"], "frame rate between"),
+        (["--out", str(tmp_path / "p.csv"), "--fps", "1e-320"], "frame rate between"),
+    ]
+    import re
+
+    for extra, message in cases:
+        assert cli.main(["track", str(root / "L"), str(root / "R"), "--quiet", *extra]) == 2
+        err = capsys.readouterr().err
+        assert re.search(message, err) and err.count("\n") == 1, err
+        assert not (tmp_path / "p.csv").exists()
+
+
 def test_estimate_refuses_an_empty_image_in_one_line(tmp_path, capsys):
     (tmp_path / "e.png").write_bytes(b"")
     assert cli.main(["estimate", str(tmp_path / "e.png"), str(tmp_path / "e.png")]) == 2

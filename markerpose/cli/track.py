@@ -66,10 +66,13 @@ def _tools_summary(s: dict) -> str:
 
 
 def cmd_track(args):
-    from ..video import open_stereo, track_stream, track_tools_stream
+    from ..video import check_output, open_stereo, track_stream, track_tools_stream
 
     if args.reference is not None and not args.tools:
         raise ValueError("--reference needs --tools: the reference is one of the tools")
+    for path, what in ((args.out, "--out"), (args.jsonl, "--jsonl"), (args.video, "--video")):
+        if path is not None:
+            check_output(path, what)
     pose_tracker = tracker(args)
     names = list(pose_tracker.tools) if args.tools else None
     if names is not None:

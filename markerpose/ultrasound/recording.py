@@ -59,11 +59,27 @@ def read_frames(folder: str | Path, fps: float | None = None) -> tuple[list[Path
             rows = list(csv.DictReader(f))
         if not rows or "file" not in rows[0] or "timestamp_s" not in rows[0]:
             raise ValueError(f"{ts_file}: needs the columns file,timestamp_s")
-        by_name = {r["file"]: float(r["timestamp_s"]) for r in rows}
+        by_name = {}
+        for k, r in enumerate(rows):
+            try:
+                t = float(r["timestamp_s"])
+            except (TypeError, ValueError):
+                raise ValueError(f"{ts_file}: row {k + 2} has no time (file,timestamp_s)") from None
+            if not np.isfinite(t):
+                raise ValueError(f"{ts_file}: row {k + 2}: the time must be finite, got {r['timestamp_s']}")
+            by_name[r["file"]] = t
         missing = [p.name for p in files if p.name not in by_name]
         if missing:
             raise ValueError(f"{ts_file}: no time for {len(missing)} frame(s), e.g. {missing[0]}")
-        return files, np.array([by_name[p.name] for p in files])
+        times = np.array([by_name[p.name] for p in files])
+        back = np.nonzero(np.diff(times) <= 0)[0]
+        if len(back):
+            i = int(back[0])
+            raise ValueError(
+                f"{ts_file}: the times must increase with the frames' names: {files[i + 1].name} ({times[i + 1]:g} s) "
+                f"is not after {files[i].name} ({times[i]:g} s)"
+            )
+        return files, times
     if fps is None:
         raise ValueError(f"{folder}: no timestamps.csv; give the frame rate (--fps)")
     if not fps > 0:
