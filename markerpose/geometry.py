@@ -17,6 +17,9 @@ import numpy as np
 from .camera import StereoRig
 
 POSE_METHODS = ("paper", "rigid")
+# A pose's rotation part read from a file may depart from a rotation by this much (max of
+# |R^T R - I|): the paper's construction R = [x y x×y] is not exactly orthonormal.
+POSE_ROTATION_TOL = 0.02
 
 
 # --- the marker's layout in an image -----------------------------------------------------

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .geometry import POSE_ROTATION_TOL
+
 SETUPS = ("eye-to-hand", "eye-in-hand")
 METHODS = ("linear", "refined")
 MIN_POSES = 6  # robot poses at least (15-25 recommended)
@@ -137,7 +139,7 @@ def hand_eye(T_base_gripper, T_camera_marker, setup: str = "eye-to-hand") -> dic
             raise ValueError(f"{name} poses must be (N, 4, 4), got {T.shape}")
         if not np.all(np.isfinite(T)):
             raise ValueError(f"{name} poses must be finite")
-        bad = np.abs(np.einsum("nki,nkj->nij", T[:, :3, :3], T[:, :3, :3]) - np.eye(3)).max(axis=(1, 2)) > 1e-3
+        bad = np.abs(np.einsum("nki,nkj->nij", T[:, :3, :3], T[:, :3, :3]) - np.eye(3)).max(axis=(1, 2)) > POSE_ROTATION_TOL
         if bad.any():
             raise ValueError(
                 f"{int(bad.sum())} {name} pose(s) have a rotation part that is not a rotation (first: pair {int(np.argmax(bad))})"

@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from .geometry import POSE_ROTATION_TOL
+
 MIN_POSES = 20  # poses kept, at least
 MIN_SPREAD_DEG = 5.0  # the rotations' spread (sd) in their second-widest direction, at least
 REJECT_K = 3.0  # a pose is an outlier beyond this many robust sigmas of the residuals ...
@@ -112,7 +114,7 @@ def pivot_calibration(poses, max_rounds: int = 10) -> PivotResult:
     if not np.all(np.isfinite(T)):
         raise ValueError("poses must be finite")
     R, t = T[:, :3, :3], T[:, :3, 3]
-    bad = np.abs(np.einsum("nki,nkj->nij", R, R) - np.eye(3)).max(axis=(1, 2)) > 1e-3
+    bad = np.abs(np.einsum("nki,nkj->nij", R, R) - np.eye(3)).max(axis=(1, 2)) > POSE_ROTATION_TOL
     if bad.any():
         raise ValueError(f"{int(bad.sum())} pose(s) have a rotation part that is not a rotation (first: pose {int(np.argmax(bad))})")
     keep = np.ones(len(T), bool)

@@ -203,9 +203,15 @@ def read_track_csv(path, tool: str | None = None) -> tuple[np.ndarray, list, str
             if r["valid"] not in ("1", "True", "true"):
                 poses.append(None)
                 continue
-            poses.append(np.array([float(r[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4))
+            T = np.array([float(r[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
         except (TypeError, ValueError):
             raise ValueError(f"{path}: row {k + 2} is not a complete pose row") from None
+        from .geometry import POSE_ROTATION_TOL
+
+        R = T[:3, :3]
+        if not (np.all(np.isfinite(T)) and np.abs(R.T @ R - np.eye(3)).max() <= POSE_ROTATION_TOL and np.linalg.det(R) > 0):
+            raise ValueError(f"{path}: row {k + 2}: T00 … T33 is not a rigid transform (its rotation part is not a rotation)")
+        poses.append(T)
     return np.array(times), poses, frame
 
 

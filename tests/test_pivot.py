@@ -137,3 +137,26 @@ def test_tip_columns_follow_the_pose():
     np.testing.assert_allclose([float(v) for v in row[-4:-1]], T[:3, :3] @ TIP + T[:3, 3], atol=1e-6)
     assert float(row[-1]) > np.sqrt(3e-4)  # the tip's sd: the origin's and the rotation's lever
     assert pose_row(3, 0.1, None, tip=TIP)[-4:] == [""] * 4
+
+
+def test_pose_rows_that_are_not_rigid_are_refused(tmp_path):
+    T = pivoting_poses(TIP, PIVOT, 5, 30, np.random.default_rng(6), R0)
+
+    class E:
+        def __init__(self, T):
+            self.T, self.residual_px, self.cov = T, 0.1, None
+
+    bad = T[3].copy()
+    bad[:3, :3] *= 1.5
+    rows = [pose_row(k, k / 30, E(Ti)) for k, Ti in enumerate([*T[:3], bad])]
+    _write(tmp_path / "p.csv", rows, CSV_HEADER)
+    with pytest.raises(ValueError, match="row 5: T00 … T33 is not a rigid transform"):
+        read_track_csv(tmp_path / "p.csv")
+
+
+def test_ultrasound_pixel_sizes_are_bounded(capsys):
+    for bad in ("1e300,1e300", "0,0.1", "nan,0.1"):
+        with pytest.raises(SystemExit):
+            main(["ultrasound", "calibrate", "--poses", "p.csv", "--images", "us", "--spacing", bad, "--out", "probe.yaml"])
+        err = capsys.readouterr().err
+        assert "pixel size" in err or "finite" in err, err

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 EXIT_NOT_FOUND = 1
 EXIT_BAD_INPUT = 2
@@ -72,11 +73,22 @@ def positive_int(text: str) -> int:
 
 
 def pixel(text: str) -> tuple[float, float]:
+    """Two finite numbers ``A,B`` (argparse type)."""
     try:
         u, v = (float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected two numbers A,B, got {text!r}") from None
+    if not (math.isfinite(u) and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected two finite numbers A,B, got {text!r}")
     return u, v
+
+
+def spacing(text: str) -> tuple[float, float]:
+    """An ultrasound pixel size ``SX,SY`` in mm, each in (0, 10] (argparse type)."""
+    sx, sy = pixel(text)
+    if not (0 < sx <= 10 and 0 < sy <= 10):
+        raise argparse.ArgumentTypeError(f"a pixel size is over 0 and at most 10 mm, got {text!r}")
+    return sx, sy
 
 
 def setting(text: str) -> tuple[str, str | None, object]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .common import pixel
+from .common import pixel, spacing
 
 
 def cmd_ultrasound_demo(args):
@@ -122,7 +122,7 @@ def _register_calibrate(usub) -> None:
         "--images", required=True, help="folder of ultrasound frames showing the wire crossing, with timestamps.csv (file,timestamp_s)"
     )
     uc.add_argument(
-        "--spacing", required=True, type=pixel, metavar="SX,SY", help="pixel size in mm (lateral, depth), as the scanner reports it"
+        "--spacing", required=True, type=spacing, metavar="SX,SY", help="pixel size in mm (lateral, depth), as the scanner reports it"
     )
     uc.add_argument("--out", default="probe.yaml", help="calibration file to write (default probe.yaml)")
     _add_clock_args(uc)
