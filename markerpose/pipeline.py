@@ -167,6 +167,9 @@ class ToolPipeline:
         return est
 
 
+MIN_IMAGE_SIDE = 64  # px: smaller images cannot hold three rings that the detector resolves
+
+
 class MarkerPose:
     """Stereo pose of the three-ring marker, or of several tools at once.
 
@@ -205,6 +208,12 @@ class MarkerPose:
     ):
         if not isinstance(rig, StereoRig):
             raise ValueError(f"rig must be a StereoRig, got {type(rig).__name__}")
+        for cam, view in zip(rig.cameras, ("left", "right")):
+            if cam.image_size is not None and min(cam.image_size) < MIN_IMAGE_SIDE:
+                raise ValueError(
+                    f"the rig's {view} camera is calibrated for {cam.image_size[0]}x{cam.image_size[1]} px images: too small to hold "
+                    f"the marker's rings (at least {MIN_IMAGE_SIDE} px a side)"
+                )
         self.conf = c = presets.resolve(preset, detector, **overrides)
         self.preset = preset
         self.markers = _markers(marker, markers)
@@ -386,4 +395,4 @@ def _markers(marker: Marker | None, markers) -> list[Marker]:
     return check_tools(loaded, [str(m) if not isinstance(m, Marker) else m.name for m in markers])
 
 
-__all__ = ["MarkerPose", "ToolPipeline", "serial_blas"]
+__all__ = ["MIN_IMAGE_SIDE", "MarkerPose", "ToolPipeline", "serial_blas"]

@@ -84,10 +84,16 @@ class _Capture:
 
     def frames(self) -> Iterator[tuple[float | None, np.ndarray]]:
         t0 = time.perf_counter()
+        n = 0
         while True:
             ok, img = self.cap.read()
             if not ok:
+                # A file that ends well before the length its header gives is truncated or
+                # damaged: said, not taken as the end (a header's count may be off by a frame).
+                if self.count is not None and n < self.count - max(1.0, 0.02 * self.count):
+                    raise ValueError(f"{self.name}: no frame can be read after frame {n} of {self.count} (truncated or damaged)")
                 return
+            n += 1
             if self.live:
                 yield time.perf_counter() - t0, img
             else:

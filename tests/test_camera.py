@@ -754,3 +754,14 @@ def test_oversized_rig_files_are_refused(tmp_path):
     path.write_text("%YAML:1.0\n" + "# padding\n" * 200_000)
     with pytest.raises(ValueError, match="bytes; a rig file is a few kB"):
         StereoRig.load(path)
+
+
+def test_a_rig_for_tiny_images_is_refused_by_the_tracker():
+    import dataclasses
+
+    import markerpose as mp
+
+    rig = StereoRig.default()
+    tiny = dataclasses.replace(rig, left=Camera(rig.left.K, rig.left.dist, (8, 8)), right=Camera(rig.right.K, rig.right.dist, (8, 8)))
+    with pytest.raises(ValueError, match="8x8 px images: too small"):
+        mp.MarkerPose(tiny)

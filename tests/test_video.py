@@ -177,6 +177,14 @@ def test_track_reads_two_lossless_videos(folders, tmp_path):
     assert len(va) == len(vb) == len(truth)
     assert [r["x_mm"] for r in va] == [r["x_mm"] for r in vb]  # lossless: the very same poses
     assert float(va[1]["timestamp_s"]) == pytest.approx(1 / 60, abs=1e-3)
+    # Cut short: the run stops with one line saying where, the rows before it kept.
+    for side in "LR":
+        data = (tmp_path / f"{side}.avi").read_bytes()
+        (tmp_path / f"{side}-cut.avi").write_bytes(data[: len(data) // 2])
+    cut = tmp_path / "cut.csv"
+    assert cli.main(["track", str(tmp_path / "L-cut.avi"), str(tmp_path / "R-cut.avi"), "--out", str(cut), "--quiet"]) == 2
+    rows = list(csv.DictReader(cut.open()))
+    assert 0 < len(rows) < len(truth)
 
 
 def test_a_camera_that_does_not_open(tmp_path, capsys):
