@@ -259,6 +259,11 @@ def load_network(
         return (*_openvino_runner(path, kind, threads, backend == "openvino-bf16"), path)
     if path.suffix == ".onnx":
         return (*_onnx_runner(path, kind, threads), path)
+    if importlib.util.find_spec("torch") is None:
+        raise ValueError(
+            f"{path}: PyTorch checkpoints need PyTorch (the train extra); inference runs the .onnx copy that "
+            f"`markerpose train {kind} --export` writes beside it"
+        )
     return (*_torch_runner(path, kind, build, device, required), path)
 
 

@@ -765,3 +765,15 @@ def test_a_rig_for_tiny_images_is_refused_by_the_tracker():
     tiny = dataclasses.replace(rig, left=Camera(rig.left.K, rig.left.dist, (8, 8)), right=Camera(rig.right.K, rig.right.dist, (8, 8)))
     with pytest.raises(ValueError, match="8x8 px images: too small"):
         mp.MarkerPose(tiny)
+
+
+def test_pytorch_weights_without_pytorch_are_a_one_line_error(tmp_path, monkeypatch):
+    import importlib.util
+
+    import markerpose as mp
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "torch" else real(name, *a))
+    (tmp_path / "w.pt").write_bytes(b"")
+    with pytest.raises(ValueError, match="PyTorch checkpoints need PyTorch"):
+        mp.MarkerPose(StereoRig.default(), propose={"weights": str(tmp_path / "w.pt")})
