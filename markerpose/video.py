@@ -557,7 +557,7 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
     partial_jsonl = None if jsonl is None else Path(jsonl).with_name(Path(jsonl).name + ".partial")
     tracker.reset()
     n = 0
-    stopped = False
+    stopped, failed = False, None
     t0 = time.perf_counter()
     bar = tqdm(total=stream.count, desc="track", unit="pair", disable=not progress)
     with open(partial, "w", newline="") as f, open(partial_jsonl, "w") if partial_jsonl else contextlib.nullcontext() as fj:
@@ -576,8 +576,6 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
                 _discard(f, partial, fj, partial_jsonl)
                 raise
             failed = exc  # the rows so far land under the requested names, then the error
-        else:
-            failed = None
         finally:
             bar.close()
             stream.close()

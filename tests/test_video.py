@@ -252,3 +252,34 @@ def test_openigtlink_client_receives_the_tracked_poses(folders, tmp_path):
         expected = np.array([float(row[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
         np.testing.assert_allclose(M, expected, atol=1e-4)  # float32 on the wire
         assert stamp == pytest.approx(float(row["timestamp_s"]), abs=1e-6)
+
+
+def test_sigterm_stops_track_like_ctrl_c(folders, tmp_path):
+    """kill -TERM: every row so far under the requested name, the summary printed, rc 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, _ = folders
+    big = tmp_path / "L"
+    big.mkdir()
+    bigr = tmp_path / "R"
+    bigr.mkdir()
+    files = sorted((root / "L").iterdir())
+    for k in range(200):  # long enough to be stopped part-way
+        (big / f"{k:04d}.png").write_bytes(files[k % len(files)].read_bytes())
+        (bigr / f"{k:04d}.png").write_bytes(sorted((root / "R").iterdir())[k % len(files)].read_bytes())
+    out = tmp_path / "p.csv"
+    cmd = [sys.executable, "-m", "markerpose.cli", "track", str(big), str(bigr), "--out", str(out), "--quiet", "--detector", "classical"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (tmp_path / "p.csv.partial").exists():
+        time.sleep(0.2)
+    time.sleep(2.0)
+    p.send_signal(signal.SIGTERM)
+    stdout, stderr = p.communicate(timeout=120)
+    assert p.returncode == 130, stderr
+    assert stdout.startswith("stopped: ") and "Traceback" not in stderr
+    rows = list(csv.DictReader(out.open()))
+    assert 0 < len(rows) < 200 and not list(tmp_path.glob("*.partial"))

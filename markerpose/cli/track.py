@@ -65,6 +65,16 @@ def _tools_summary(s: dict) -> str:
     return "; ".join(parts)
 
 
+def _stop_on_sigterm() -> None:
+    """``kill -TERM`` stops a run as Ctrl-C does: every row kept, the summary printed."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+
+
 def cmd_track(args):
     from ..video import check_output, open_stereo, track_stream, track_tools_stream
 
@@ -80,6 +90,7 @@ def cmd_track(args):
     stream = open_stereo(args.left, args.right, args.fps)
     sinks = _sinks(args, pose_tracker, stream)
     send = _sender(args, stream, names)
+    _stop_on_sigterm()
     try:
         if names is None:
             s = track_stream(pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks))
@@ -98,11 +109,12 @@ def cmd_track(args):
         print(f"warning: {check.fired} (fired at tracked pose {check.fired_at}; later poses have status 'rig changed')", file=sys.stderr)
     if names is not None:
         print(f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, {s['fps']:.1f} frames/s; {_tools_summary(s)}; {wrote}")
-        return
-    print(
-        f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
-        f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; {wrote}"
-    )
+    else:
+        print(
+            f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
+            f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; {wrote}"
+        )
+    return 130 if s["stopped"] else 0  # stopped (Ctrl-C, kill -TERM): every row kept, the run incomplete
 
 
 def register(sub) -> None:
