@@ -266,20 +266,19 @@ def test_sigterm_stops_track_like_ctrl_c(folders, tmp_path):
     big.mkdir()
     bigr = tmp_path / "R"
     bigr.mkdir()
-    files = sorted((root / "L").iterdir())
-    for k in range(200):  # long enough to be stopped part-way
-        (big / f"{k:04d}.png").write_bytes(files[k % len(files)].read_bytes())
-        (bigr / f"{k:04d}.png").write_bytes(sorted((root / "R").iterdir())[k % len(files)].read_bytes())
-    out = tmp_path / "p.csv"
+    files = {side: sorted((root / side).iterdir()) for side in "LR"}
+    for k in range(2000):  # long enough to be stopped part-way (links: no copies)
+        for side, folder in (("L", big), ("R", bigr)):
+            (folder / f"{k:05d}.png").symlink_to(files[side][k % len(files[side])])
+    out, partial = tmp_path / "p.csv", tmp_path / "p.csv.partial"
     cmd = [sys.executable, "-m", "markerpose.cli", "track", str(big), str(bigr), "--out", str(out), "--quiet", "--detector", "classical"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
-    while time.time() < deadline and not (tmp_path / "p.csv.partial").exists():
-        time.sleep(0.2)
-    time.sleep(2.0)
+    while time.time() < deadline and p.poll() is None and not (partial.exists() and partial.read_text().count("\n") > 3):
+        time.sleep(0.1)
     p.send_signal(signal.SIGTERM)
     stdout, stderr = p.communicate(timeout=120)
-    assert p.returncode == 130, stderr
-    assert stdout.startswith("stopped: ") and "Traceback" not in stderr
+    assert p.returncode == 130, (p.returncode, stdout, stderr)
+    assert stdout.startswith("stopped: ") and "Traceback" not in stderr, (stdout, stderr)
     rows = list(csv.DictReader(out.open()))
-    assert 0 < len(rows) < 200 and not list(tmp_path.glob("*.partial"))
+    assert 0 < len(rows) < 2000 and not list(tmp_path.glob("*.partial"))
