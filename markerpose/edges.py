@@ -755,31 +755,30 @@ def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, 
     rays' scatter about it, the ridge included) move every edge of the ring together, each
     by the level error over the contrast times the edge locator's reach (the integral's
     half window; for the mid-level crossing, the 10-90 % width over 1.6). Zero where the
-    levels are not planes (too few clean rays)."""
+    levels are not planes (too few clean rays). All rings at once."""
     K = len(cen)
     out = np.zeros((K, 2, 2))
+    use = clean & planes[:, None]
+    m = use.sum(1).astype(np.float64)
+    good = m >= 6
+    if not good.any():
+        return out
     reach = (c["area_window"][0] * width + c["area_window"][1]) if c["edge_method"] == "area" else width / 1.6
-    for k in np.nonzero(planes)[0]:
-        use = clean[k]
-        m = int(use.sum())
-        if m < 6:
-            continue
-        d = xy[k, use] - cen[k]
-        X = np.column_stack([np.ones(m), d])
-        A = X.T @ X + np.diag([0.0, m * pen[k], m * pen[k]])
-        try:
-            Ai = np.linalg.inv(A)
-        except np.linalg.LinAlgError:
-            continue
-        Sg = np.zeros((2, 2))
-        for loc, fit in zip(local, fitted):
-            res = loc[k, use] - fit[k, use]
-            s2 = float(res @ res) / max(m - 3, 1)
-            Sg += s2 * (Ai @ X.T @ X @ Ai)[1:, 1:]
-        contrast = np.median(np.abs(fitted[0][k, ok[k]] - fitted[1][k, ok[k]])) if ok[k].any() else np.nan
-        if np.isfinite(contrast) and contrast > 0:
-            out[k] = (reach[k] / contrast) ** 2 * Sg
-    return out
+    w = use.astype(np.float64)
+    X = np.concatenate([np.ones(use.shape + (1,)), xy - cen[:, None, :]], axis=2)  # (K, N, 3)
+    XtX = np.einsum("kn,kni,knj->kij", w, X, X)
+    A = XtX + (m * pen)[:, None, None] * np.diag([0.0, 1.0, 1.0])
+    A[~good] = np.eye(3)
+    Ai = np.linalg.inv(A)
+    V = Ai @ XtX @ Ai
+    s2 = sum(np.sum(w * (lo - fi) ** 2, axis=1) for lo, fi in zip(local, fitted)) / np.maximum(m - 3, 1)
+    diff = np.where(ok, np.abs(fitted[0] - fitted[1]), np.nan)
+    has = ok.any(1)
+    contrast = np.full(K, np.nan)
+    if has.any():
+        contrast[has] = np.nanmedian(diff[has], axis=1)
+    scale = np.where(good & np.isfinite(contrast) & (contrast > 0), (reach / np.where(contrast > 0, contrast, 1.0)) ** 2, 0.0)
+    return (scale * s2)[:, None, None] * V[:, 1:, 1:]
 
 
 def _per_ellipse(half, K: int) -> np.ndarray:
@@ -1388,15 +1387,15 @@ def center_covariances(fits: list) -> np.ndarray:
     rho = np.clip((rw[:, 1:] * rw[:, :-1]).sum(1) / np.maximum((rw * rw).sum(1), 1e-300), 0.0, 0.9)
     s2 = s2 * (1 + rho) / (1 - rho)
     B = np.einsum("kmi,km,kmj->kij", J, (w * r) ** 2, J) * (n / np.maximum(n - 5, 1))[:, None, None]
-    for k in np.nonzero(n >= 8)[0]:
-        try:
-            Hi = np.linalg.inv(H[k])
-        except np.linalg.LinAlgError:
-            continue
-        out[k] = (Hi @ B[k] @ Hi)[:2, :2] * ((1 + rho[k]) / (1 - rho[k]))
-        if len(fits[k]) > 4:  # the shared shift: every edge moved by g . (x - c), through the fit
-            G = (Hi @ (J[k] * w[k][:, None]).T @ d[k])[:2]
-            out[k] += G @ fits[k][4] @ G.T
+    ks = np.nonzero((n >= 8) & (np.abs(np.linalg.det(H)) > 1e-300))[0]
+    if not len(ks):
+        return out
+    Hi = np.linalg.inv(H[ks])
+    out[ks] = (Hi @ B[ks] @ Hi)[:, :2, :2] * ((1 + rho[ks]) / (1 - rho[ks]))[:, None, None]
+    # The shared shift: every edge moved by g . (x - c), carried through the fit.
+    S = np.stack([fits[k][4] if len(fits[k]) > 4 else np.zeros((2, 2)) for k in ks])
+    G = (Hi @ np.einsum("kmi,km,kmj->kij", J[ks], w[ks], d[ks]))[:, :2]  # (k, 2, 2)
+    out[ks] += G @ S @ np.swapaxes(G, 1, 2)
     return out
 
 
