@@ -36,6 +36,15 @@ def dumps(obj, indent: int | None = 1) -> str:
     return json.dumps(jsonable(obj), indent=indent, allow_nan=False)
 
 
+def write_report(out: str | Path, res: dict, report: str) -> Path:
+    """An experiment's folder ``out``: ``results.json`` (``res``) and ``report.md`` (``report``)."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "results.json", res)
+    (out / "report.md").write_text(report + "\n")
+    return out
+
+
 def write_json(path: str | Path, obj, indent: int | None = 1) -> Path:
     """Write ``obj`` as strict JSON; returns the path."""
     path = Path(path)

@@ -159,36 +159,25 @@ def cmd_eval_tools(args):
     print(f"Wrote {args.out}/: report.md, results.json" + (", tools.mp4, tools-video.png" if "video" in res else ""))
 
 
-def cmd_eval_uncertainty(args):
-    from ..experiments import uncertainty
+def _experiment(name: str, keys: tuple):
+    """The handler of ``markerpose eval NAME``: the experiment module's ``main`` with the
+    options ``keys`` as its settings, its report printed, its folder written."""
 
-    res = uncertainty.main({"pairs": args.pairs, "model_pairs": args.model_pairs}, args.out, progress=not args.quiet)
-    print(uncertainty.report(res))
-    print(f"Wrote {args.out}/: report.md, results.json")
+    def run(args):
+        import importlib
 
+        mod = importlib.import_module(f"..experiments.{name}", __package__)
+        res = mod.main({k: getattr(args, k) for k in keys}, args.out, progress=not args.quiet)
+        print(mod.report(res))
+        print(f"Wrote {args.out}/: report.md, results.json")
 
-def cmd_eval_pivot(args):
-    from ..experiments import pivot
-
-    res = pivot.main({"trials": args.trials, "frames": args.frames}, args.out, progress=not args.quiet)
-    print(pivot.report(res))
-    print(f"Wrote {args.out}/: report.md, results.json")
-
-
-def cmd_eval_handeye(args):
-    from ..experiments import handeye
-
-    res = handeye.main({"trials": args.trials}, args.out, progress=not args.quiet)
-    print(handeye.report(res))
-    print(f"Wrote {args.out}/: report.md, results.json")
+    return run
 
 
-def cmd_eval_rigcheck(args):
-    from ..experiments import rigcheck
-
-    res = rigcheck.main({"stable": args.stable, "before": args.before, "after": args.after}, args.out, progress=not args.quiet)
-    print(rigcheck.report(res))
-    print(f"Wrote {args.out}/: report.md, results.json")
+cmd_eval_uncertainty = _experiment("uncertainty", ("pairs", "model_pairs"))
+cmd_eval_pivot = _experiment("pivot", ("trials", "frames"))
+cmd_eval_handeye = _experiment("handeye", ("trials",))
+cmd_eval_rigcheck = _experiment("rigcheck", ("stable", "before", "after"))
 
 
 def _eval_args(p, what: str):

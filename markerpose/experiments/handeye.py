@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from ..camera import StereoRig
-from ..formats import write_json
+from ..formats import write_report
 from ..handeye import SETUPS, hand_eye, perturbed, simulated
 from ..marker import Marker
 from ..pipeline import MarkerPose
@@ -51,10 +51,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     if c["rendered"]:
         res["rendered"] = rendered(c, rng)
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "results.json", res)
-        (out / "report.md").write_text(report(res) + "\n")
+        write_report(out, res, report(res))
     return res
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..camera import StereoRig
-from ..formats import write_json
+from ..formats import write_report
 from ..geometry import pose_rigid
 from ..marker import Marker
 from ..pipeline import MarkerPose
@@ -115,10 +115,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     if c["frames"]:
         res["rendered"] = rendered(c, rig, marker, progress)
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "results.json", res)
-        (out / "report.md").write_text(report(res) + "\n")
+        write_report(out, res, report(res))
     return res
 
 

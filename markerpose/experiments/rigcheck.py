@@ -15,7 +15,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..camera import Camera, StereoRig
-from ..formats import write_json
+from ..formats import write_report
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..rigcheck import statistics
@@ -115,10 +115,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     for ch in tqdm(CHANGES, desc="changes", unit="run", disable=not progress):
         res["changes"].append(bump(rig, ch, int(c["before"]), int(c["after"]), rng))
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "results.json", res)
-        (out / "report.md").write_text(report(res) + "\n")
+        write_report(out, res, report(res))
     return res
 
 

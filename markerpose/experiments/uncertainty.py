@@ -16,7 +16,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..camera import StereoRig
-from ..formats import write_json
+from ..formats import write_report
 from ..marker import Marker
 from ..pipeline import MarkerPose
 from ..uncertainty import MODEL_PX
@@ -123,10 +123,7 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     if c["model_pairs"]:
         res["model_error"] = model_error(tracker, int(c["model_pairs"]), rig, marker)
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / "results.json", res)
-        (out / "report.md").write_text(report(res) + "\n")
+        write_report(out, res, report(res))
     return res
 
 
