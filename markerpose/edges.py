@@ -756,29 +756,51 @@ def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, 
     by the level error over the contrast times the edge locator's reach (the integral's
     half window; for the mid-level crossing, the 10-90 % width over 1.6). Zero where the
     levels are not planes (too few clean rays). All rings at once."""
-    K = len(cen)
-    out = np.zeros((K, 2, 2))
-    use = clean & planes[:, None]
-    m = use.sum(1).astype(np.float64)
-    good = m >= 6
-    if not good.any():
-        return out
+    out = np.zeros((len(cen), 2, 2))
     reach = (c["area_window"][0] * width + c["area_window"][1]) if c["edge_method"] == "area" else width / 1.6
-    w = use.astype(np.float64)
-    X = np.concatenate([np.ones(use.shape + (1,)), xy - cen[:, None, :]], axis=2)  # (K, N, 3)
-    XtX = np.einsum("kn,kni,knj->kij", w, X, X)
-    A = XtX + (m * pen)[:, None, None] * np.diag([0.0, 1.0, 1.0])
-    A[~good] = np.eye(3)
-    Ai = np.linalg.inv(A)
-    V = Ai @ XtX @ Ai
-    s2 = sum(np.sum(w * (lo - fi) ** 2, axis=1) for lo, fi in zip(local, fitted)) / np.maximum(m - 3, 1)
-    diff = np.where(ok, np.abs(fitted[0] - fitted[1]), np.nan)
-    has = ok.any(1)
-    contrast = np.full(K, np.nan)
-    if has.any():
-        contrast[has] = np.nanmedian(diff[has], axis=1)
-    scale = np.where(good & np.isfinite(contrast) & (contrast > 0), (reach / np.where(contrast > 0, contrast, 1.0)) ** 2, 0.0)
-    return (scale * s2)[:, None, None] * V[:, 1:, 1:]
+    use = np.ascontiguousarray(clean & planes[:, None])
+    _shared_covs(xy, cen, use, ok, local[0], local[1], fitted[0], fitted[1], np.asarray(reach, np.float64), np.asarray(pen, np.float64), out)
+    return out
+
+
+@compiled
+def _shared_covs(xy, cen, use, ok, lin, lout, fin, fout, reach, pen, out):  # pragma: no cover - compiled
+    """:func:`_shared_shift`'s kernel: per ring, the plane fit's covariance V = A^-1 X^T X A^-1
+    (A = X^T X + the ridge on the gradient), its residual variance s2 and the contrast
+    (the median level difference of its rays in the image), ``out[k]`` = s2 (reach / contrast)^2
+    V's gradient block; left zero where fewer than 6 clean rays or no contrast."""
+    K, N = use.shape
+    buf = np.empty(N)
+    for k in range(K):
+        XtX = np.zeros((3, 3))
+        m, ss, nb = 0, 0.0, 0
+        for i in range(N):
+            if ok[k, i]:
+                buf[nb] = abs(fin[k, i] - fout[k, i])
+                nb += 1
+            if not use[k, i]:
+                continue
+            m += 1
+            x = (1.0, xy[k, i, 0] - cen[k, 0], xy[k, i, 1] - cen[k, 1])
+            for p in range(3):
+                for q in range(3):
+                    XtX[p, q] += x[p] * x[q]
+            ss += (lin[k, i] - fin[k, i]) ** 2 + (lout[k, i] - fout[k, i]) ** 2
+        if m < 6 or nb == 0:
+            continue
+        contrast = _median(buf, nb)
+        if not contrast > 0:
+            continue
+        A = XtX.copy()
+        A[1, 1] += m * pen[k]
+        A[2, 2] += m * pen[k]
+        Ai = np.linalg.inv(A)
+        V = Ai @ XtX @ Ai
+        s2 = ss / max(m - 3, 1)
+        f = s2 * (reach[k] / contrast) ** 2
+        for p in range(2):
+            for q in range(2):
+                out[k, p, q] = f * V[p + 1, q + 1]
 
 
 def _per_ellipse(half, K: int) -> np.ndarray:
@@ -1356,47 +1378,76 @@ def center_covariances(fits: list) -> np.ndarray:
     ellipse (edge points (M, 2), weights (M,), centre (2,), Q (2, 2), optionally the
     covariance (2, 2) of a shift g . (x - c) that all its edges share, :func:`_shared_shift`)
     of a weighted least-squares fit of (x - c)^T Q (x - c) = 1. Each point's geometric distance from
-    the ellipse is linearised in the five parameters (c, Q); the covariance is
-    s^2 (J^T W J)^-1, s^2 the weighted residuals' variance (the weights are relative:
-    the residuals set the scale, so that the image's noise and the edges' quality at
-    this ring show), and its centre block is returned (NaN where fewer than 8 points)."""
+    the ellipse is linearised in the five parameters (c, Q); the covariance is the sandwich
+    H^-1 B H^-1 (H = J^T W J, B from the weighted residuals: the weights are relative, the
+    residuals set the scale, so that the image's noise and the edges' quality at this ring
+    show), and its centre block is returned (NaN where fewer than 8 points).
+
+    Neighbouring rays sample overlapping pixels (and share the optics' blur and any misfit
+    of the ellipse's shape): their errors are correlated, and the points carry less
+    information than their number says. The residuals' own lag-1 correlation rho along the
+    ring gives the variance inflation (1 + rho) / (1 - rho) of a first-order sequence. The
+    shared shift is carried through the fit on top."""
     K = len(fits)
     out = np.full((K, 2, 2), np.nan)
     if not K:
         return out
     M = max(len(f[0]) for f in fits)
-    d, w = np.zeros((K, M, 2)), np.zeros((K, M))
+    d, w, S = np.zeros((K, M, 2)), np.zeros((K, M)), np.zeros((K, 2, 2))
     Q = np.stack([np.asarray(f[3], np.float64) for f in fits])
-    for k, (P, W, c) in enumerate(f[:3] for f in fits):
-        d[k, : len(P)] = np.asarray(P, np.float64) - np.asarray(c, np.float64)
-        w[k, : len(P)] = W
-    g = np.einsum("kij,kmj->kmi", Q, d)  # Q (x - c): half the gradient of lambda^2
-    lam = np.sqrt(np.maximum(np.einsum("kmi,kmi->km", d, g), 1e-12))
-    px = lam / np.maximum(np.linalg.norm(g, axis=2), 1e-12)  # px per unit of lambda, along the normal
-    r = (lam - 1.0) * px  # geometric distance from the ellipse, px
-    J = np.stack([-g[..., 0], -g[..., 1], 0.5 * d[..., 0] ** 2, d[..., 0] * d[..., 1], 0.5 * d[..., 1] ** 2], -1) / lam[..., None]
-    J *= px[..., None]
-    H = np.einsum("kmi,km,kmj->kij", J, w, J)
-    n = (w > 0).sum(1)
-    s2 = (w * r * r).sum(1) / np.maximum(n - 5, 1)  # the residuals' variance per unit weight
-    # Neighbouring rays sample overlapping pixels (and share the optics' blur and any
-    # misfit of the ellipse's shape): their errors are correlated, and the points carry
-    # less information than their number says. The residuals' own lag-1 correlation
-    # along the ring gives the variance inflation of a correlated (first-order) sequence.
-    rw = np.sqrt(w) * r
-    rho = np.clip((rw[:, 1:] * rw[:, :-1]).sum(1) / np.maximum((rw * rw).sum(1), 1e-300), 0.0, 0.9)
-    s2 = s2 * (1 + rho) / (1 - rho)
-    B = np.einsum("kmi,km,kmj->kij", J, (w * r) ** 2, J) * (n / np.maximum(n - 5, 1))[:, None, None]
-    ks = np.nonzero((n >= 8) & (np.abs(np.linalg.det(H)) > 1e-300))[0]
-    if not len(ks):
-        return out
-    Hi = np.linalg.inv(H[ks])
-    out[ks] = (Hi @ B[ks] @ Hi)[:, :2, :2] * ((1 + rho[ks]) / (1 - rho[ks]))[:, None, None]
-    # The shared shift: every edge moved by g . (x - c), carried through the fit.
-    S = np.stack([fits[k][4] if len(fits[k]) > 4 else np.zeros((2, 2)) for k in ks])
-    G = (Hi @ np.einsum("kmi,km,kmj->kij", J[ks], w[ks], d[ks]))[:, :2]  # (k, 2, 2)
-    out[ks] += G @ S @ np.swapaxes(G, 1, 2)
+    for k, f in enumerate(fits):
+        d[k, : len(f[0])] = np.asarray(f[0], np.float64) - np.asarray(f[2], np.float64)
+        w[k, : len(f[0])] = f[1]
+        if len(f) > 4:
+            S[k] = f[4]
+    _center_covs(d, w, Q, S, out)
     return out
+
+
+@compiled
+def _center_covs(d, w, Q, S, out):  # pragma: no cover - compiled
+    """:func:`center_covariances`' kernel: ``out[k]`` for ellipse k (left NaN where its fit
+    is not determined)."""
+    K, M = w.shape
+    J = np.empty((M, 5))
+    for k in range(K):
+        H, B, Jd = np.zeros((5, 5)), np.zeros((5, 5)), np.zeros((5, 2))
+        n = 0
+        ss, lag, prev = 0.0, 0.0, 0.0
+        for m in range(M):
+            wm = w[k, m]
+            dx, dy = d[k, m, 0], d[k, m, 1]
+            gx = Q[k, 0, 0] * dx + Q[k, 0, 1] * dy  # Q (x - c): half the gradient of lambda^2
+            gy = Q[k, 1, 0] * dx + Q[k, 1, 1] * dy
+            lam = np.sqrt(max(dx * gx + dy * gy, 1e-12))
+            px = lam / max(np.sqrt(gx * gx + gy * gy), 1e-12)  # px per unit of lambda, along the normal
+            r = (lam - 1.0) * px  # geometric distance from the ellipse, px
+            f = px / lam
+            J[m, 0], J[m, 1], J[m, 2], J[m, 3], J[m, 4] = -gx * f, -gy * f, 0.5 * dx * dx * f, dx * dy * f, 0.5 * dy * dy * f
+            rw = np.sqrt(wm) * r
+            if m > 0:
+                lag += rw * prev
+            prev = rw
+            ss += rw * rw
+            if wm > 0:
+                n += 1
+            b = (wm * r) ** 2
+            for i in range(5):
+                Jd[i, 0] += J[m, i] * wm * dx
+                Jd[i, 1] += J[m, i] * wm * dy
+                for j in range(i, 5):
+                    H[i, j] += J[m, i] * wm * J[m, j]
+                    B[i, j] += J[m, i] * b * J[m, j]
+        for i in range(5):
+            for j in range(i):
+                H[i, j], B[i, j] = H[j, i], B[j, i]
+        if n < 8 or abs(np.linalg.det(H)) <= 1e-300:
+            continue
+        rho = min(max(lag / max(ss, 1e-300), 0.0), 0.9)
+        Hi = np.linalg.inv(H)
+        C = Hi @ B @ Hi * (n / max(n - 5, 1) * (1 + rho) / (1 - rho))
+        G = (Hi @ Jd)[:2]  # the shared shift g . (x - c) of every edge, carried through the fit
+        out[k] = C[:2, :2] + G @ S[k] @ G.T
 
 
 def _ideal_fits(found: list, use: list, view: np.ndarray, cameras: list) -> dict:
@@ -1483,6 +1534,7 @@ def _warm_fits(K: int, N: int, f2, b2) -> None:
     _spd2(np.tile(np.eye(2), (K, 1, 1)), 0.5)
     _radial_offsets(np.ones((K, N, 2)), np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1)))
     _reject(f2, b2, b2, 3.0, 0.15, b2.copy(), np.empty(K, bool))
+    _center_covs(ring.repeat(K, 0), np.ones((K, N)), np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2, 2)), np.empty((K, 2, 2)))
 
 
 def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
@@ -1524,6 +1576,7 @@ def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
     _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
+    _shared_covs(np.zeros((K, N, 2)), np.zeros((K, 2)), b2, b2, f2, f2, f2, f2, np.ones(K), np.ones(K), np.zeros((K, 2, 2)))
     _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, n, 0.25, b2.copy(), np.empty(K, bool))
     _ray_edges(
         v,

@@ -48,13 +48,14 @@ def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = N
     if not np.all(np.isfinite(covs)):
         return None
     F = _fundamental(rig) if F is None else F
-    ul = rig.left.undistort_points(np.asarray(est.centers[0], np.float64))
-    ur = rig.right.undistort_points(np.asarray(est.centers[1], np.float64))
-    lines = np.c_[ul, np.ones(len(ul))] @ F.T  # epipolar lines in the right view
-    norm = np.linalg.norm(lines[:, :2], axis=1)
-    d = np.einsum("ij,ij->i", lines, np.c_[ur, np.ones(len(ur))]) / norm
+    ul = rig.left.undistort_points(est.centers[0])
+    ur = rig.right.undistort_points(est.centers[1])
+    lines = ul @ F[:, :2].T + F[:, 2]  # epipolar lines in the right view
+    norm = np.sqrt(lines[:, 0] ** 2 + lines[:, 1] ** 2)
+    d = (lines[:, 0] * ur[:, 0] + lines[:, 1] * ur[:, 1] + lines[:, 2]) / norm
     n = lines[:, :2] / norm[:, None]
-    var = np.einsum("ki,kij,kj->k", n, covs[1], n) + np.einsum("ki,kij,kj->k", n, covs[0], n) + conf["epipolar_px"] ** 2
+    c2 = covs[0] + covs[1]
+    var = n[:, 0] ** 2 * c2[:, 0, 0] + 2 * n[:, 0] * n[:, 1] * c2[:, 0, 1] + n[:, 1] ** 2 * c2[:, 1, 1] + conf["epipolar_px"] ** 2
     z_e = float(np.sum(d / var) / np.sqrt(np.sum(1 / var)))
     X = np.asarray(est.points3d, np.float64)
     dx, dm = X - X.mean(0), model - model.mean(0)

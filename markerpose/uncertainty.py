@@ -46,14 +46,12 @@ def point_covariances(rig, centers: np.ndarray, center_covs: np.ndarray) -> np.n
     distorted px, the two views' centres having covariances ``center_covs`` (2, N, 2, 2)
     px^2 (independent between views and points)."""
     centers = np.asarray(centers, np.float64)
-    X0 = triangulate(rig, centers[0], centers[1])
-    N = len(X0)
-    J = np.empty((N, 3, 2, 2))  # point, xyz, view, pixel axis
-    for v in range(2):
-        for a in range(2):
-            c = centers.copy()
-            c[v, :, a] += H_PX
-            J[:, :, v, a] = (triangulate(rig, c[0], c[1]) - X0) / H_PX
+    N = centers.shape[1]
+    c = np.repeat(centers[:, None], 5, axis=1)  # view, case (none, then each view's x and y moved), point, pixel axis
+    for i, (v, a) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+        c[v, i + 1, :, a] += H_PX
+    X = triangulate(rig, c[0].reshape(-1, 2), c[1].reshape(-1, 2)).reshape(5, N, 3)  # one call: one undistortion per view
+    J = ((X[1:] - X[0]) / H_PX).reshape(2, 2, N, 3).transpose(2, 3, 0, 1)  # point, xyz, view, pixel axis
     return np.einsum("nivp,vnpq,njvq->nij", J, np.asarray(center_covs, np.float64), J)
 
 
