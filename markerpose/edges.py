@@ -759,7 +759,9 @@ def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, 
     out = np.zeros((len(cen), 2, 2))
     reach = (c["area_window"][0] * width + c["area_window"][1]) if c["edge_method"] == "area" else width / 1.6
     use = np.ascontiguousarray(clean & planes[:, None])
-    _shared_covs(xy, cen, use, ok, local[0], local[1], fitted[0], fitted[1], np.asarray(reach, np.float64), np.asarray(pen, np.float64), out)
+    _shared_covs(
+        xy, cen, use, ok, local[0], local[1], fitted[0], fitted[1], np.asarray(reach, np.float64), np.asarray(pen, np.float64), out
+    )
     return out
 
 
