@@ -29,13 +29,13 @@ from tqdm import tqdm
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
 CSV_HEADER = (
-    ["frame", "timestamp_s", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
+    ["frame", "timestamp_s", "timestamp_unix", "valid", "x_mm", "y_mm", "z_mm", "qx", "qy", "qz", "qw", "rx", "ry", "rz"]
     + [f"T{i}{j}" for i in range(4) for j in range(4)]
     + ["residual_px", "sd_mm", "sd_deg", "status"]
 )
 # Long form, one row a frame and tool: which tool, and the frame its pose is in ("camera":
 # T_left_tool, as CSV_HEADER's; else the reference tool's name: T_reference_tool).
-TOOLS_CSV_HEADER = CSV_HEADER[:2] + ["tool", "relative_to"] + CSV_HEADER[2:]
+TOOLS_CSV_HEADER = CSV_HEADER[:3] + ["tool", "relative_to"] + CSV_HEADER[3:]
 # Where a tool has a tip (a pointer's, ``Marker.tip``): its position in the pose's frame and
 # its RMS 3D standard deviation, after the columns above.
 TIP_COLUMNS = ["tip_x_mm", "tip_y_mm", "tip_z_mm", "tip_sd_mm"]
@@ -120,9 +120,16 @@ class StereoStream:
     """Two sources read in step: ``for k, timestamp_s, left, right in stream``.
 
     ``count`` is the number of pairs when known (folders, video files), else None.
+    ``start_unix`` is the wall-clock time (seconds since the epoch) of ``timestamp_s`` 0,
+    set when the iteration starts: :meth:`unix` gives each frame's. Two cameras are
+    grabbed as a pair (both ``grab()``, then both ``retrieve()``), each frame stamped at
+    its grab; ``grab_offsets`` keeps each pair's right-minus-left grab time (s). USB
+    cameras are not synchronised: the offset is a lower bound on how far apart the two
+    exposures are. With ``realtime``, folders and videos are replayed at their frame
+    rate (frame k handed over at its timestamp from the start), not as fast as read.
     """
 
-    def __init__(self, left: str, right: str, fps: float | None = None):
+    def __init__(self, left: str, right: str, fps: float | None = None, realtime: bool = False):
         self.left = _source(left)
         try:
             self.right = _source(right)
@@ -138,24 +145,56 @@ class StereoStream:
         # Timestamps: a video's own, a camera's clock, else frame / fps (image folders).
         self.fps = self.left.fps or self.right.fps or fps
         self.live = getattr(self.left, "live", False)
+        self.realtime = bool(realtime) and not self.live
+        self.start_unix: float | None = None
+        self.grab_offsets: list[float] = []
+
+    def unix(self, t: float) -> float | None:
+        """The wall-clock time (seconds since the epoch) of stream time ``t``."""
+        return None if self.start_unix is None else self.start_unix + t
 
     def __iter__(self):
-        for k, ((tl, a), (_, b)) in enumerate(zip(self.left.frames(), self.right.frames())):
+        t0, self.start_unix = time.perf_counter(), time.time()
+        pair = getattr(self.right, "live", False) and self.live
+        frames = self._grabbed(t0) if pair else zip(self.left.frames(), self.right.frames())
+        paced = None  # the replay's clock starts with its first frame, once read
+        for k, ((tl, a), (_, b)) in enumerate(frames):
             t = tl if tl is not None else (k / self.fps if self.fps else float(k))
+            if self.realtime:
+                paced = time.perf_counter() - t if paced is None else paced
+                wait = paced + t - time.perf_counter()
+                if wait > 0:
+                    time.sleep(wait)
             yield k, t, a, b
+
+    def _grabbed(self, t0: float):
+        """Frames of two cameras, grabbed together then decoded, stamped at their grabs."""
+        while True:
+            ok_l = self.left.cap.grab()
+            tl = time.perf_counter()
+            ok_r = self.right.cap.grab()
+            tr = time.perf_counter()
+            if not (ok_l and ok_r):
+                return
+            (ok_l, a), (ok_r, b) = self.left.cap.retrieve(), self.right.cap.retrieve()
+            if not (ok_l and ok_r):
+                return
+            self.grab_offsets.append(tr - tl)
+            yield (tl - t0, a), (tr - t0, b)
 
     def close(self):
         self.left.close()
         self.right.close()
 
 
-def open_stereo(left: str, right: str, fps: float | None = 60.0) -> StereoStream:
+def open_stereo(left: str, right: str, fps: float | None = 60.0, realtime: bool = False) -> StereoStream:
     """The frames of two sources (folders of images sorted by name, video files, or camera
     indices), paired in order; ``ValueError`` naming the source that cannot be read.
-    ``fps`` times image folders, which carry no timestamps of their own."""
+    ``fps`` times image folders, which carry no timestamps of their own; ``realtime``
+    replays folders and videos at their frame rate (:class:`StereoStream`)."""
     if fps is not None and not MIN_FPS <= fps <= MAX_FPS:
         raise ValueError(f"fps must be a frame rate between {MIN_FPS:g} and {MAX_FPS:g} frames/s, got {fps}")
-    return StereoStream(left, right, fps)
+    return StereoStream(left, right, fps, realtime)
 
 
 MIN_FPS, MAX_FPS = 1e-3, 1e6  # frame rates that give finite, distinct timestamps
@@ -227,7 +266,7 @@ def _pose_cells(T, residual_px, cov=None, status: str = "") -> list:
     ``status`` (:meth:`~markerpose.results.Estimate.status`), or valid 0 and empty fields
     when ``T`` is None."""
     if T is None:
-        return [0] + [""] * (len(CSV_HEADER) - 3)
+        return [0] + [""] * (len(CSV_HEADER) - 4)
     from scipy.spatial.transform import Rotation
 
     from .geometry import nearest_rotation
@@ -253,14 +292,19 @@ def _tip_cells(T, cov, tip) -> list:
     return [*(f"{v:.9g}" for v in p), "" if not np.isfinite(sd) else f"{sd:.6g}"]
 
 
-def pose_row(k: int, t: float, est, tip=None) -> list:
-    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds; with ``tip``
-    (the marker's, mm), :data:`TIP_COLUMNS` after it."""
+def pose_row(k: int, t: float, est, tip=None, unix: float | None = None) -> list:
+    """One CSV row (see :data:`CSV_HEADER`) for frame ``k`` at ``t`` seconds (``unix``: the
+    same instant in seconds since the epoch, or None); with ``tip`` (the marker's, mm),
+    :data:`TIP_COLUMNS` after it."""
     if tip is not None:
-        return pose_row(k, t, est) + _tip_cells(None if est is None else est.T, None if est is None else est.cov, tip)
+        return pose_row(k, t, est, unix=unix) + _tip_cells(None if est is None else est.T, None if est is None else est.cov, tip)
     if est is None:
-        return [k, f"{t:.6f}", *_pose_cells(None, None)]
-    return [k, f"{t:.6f}", *_pose_cells(est.T, est.residual_px, est.cov, _status(est))]
+        return [*_times(k, t, unix), *_pose_cells(None, None)]
+    return [*_times(k, t, unix), *_pose_cells(est.T, est.residual_px, est.cov, _status(est))]
+
+
+def _times(k: int, t: float, unix: float | None) -> list:
+    return [k, f"{t:.6f}", "" if unix is None else f"{unix:.6f}"]
 
 
 class ToolReport(NamedTuple):
@@ -313,15 +357,14 @@ def tool_reports(found: dict, names, reference: str | None = None, whys: dict | 
     return out
 
 
-def tools_row(k: int, t: float, report: ToolReport, tips: dict | None = None) -> list:
+def tools_row(k: int, t: float, report: ToolReport, tips: dict | None = None, unix: float | None = None) -> list:
     """One CSV row (see :data:`TOOLS_CSV_HEADER`) of one tool in frame ``k`` at ``t``
-    seconds; the residual is the tool's own, also for a pose relative to the reference.
+    seconds (``unix``: since the epoch, or None); the residual is the tool's own, also for a pose relative to the reference.
     With ``tips`` (``{name: tip or None}``, when any tool has one), :data:`TIP_COLUMNS`
     after it (in the pose's frame)."""
     residual = report.est.residual_px if report.valid else None
     row = [
-        k,
-        f"{t:.6f}",
+        *_times(k, t, unix),
         report.name,
         report.relative_to,
         *_pose_cells(report.T, residual, report.cov if report.valid else None, _status(report.est) if report.valid else ""),
@@ -329,86 +372,6 @@ def tools_row(k: int, t: float, report: ToolReport, tips: dict | None = None) ->
     if tips is not None:
         row += _tip_cells(report.T, report.cov, tips.get(report.name))
     return row
-
-
-def igtl_device_name(tool: str, relative_to: str = CAMERA) -> str:
-    """The OpenIGTLink device name of a tool's pose, PLUS's way: ``Tool1ToTracker`` for
-    ``tool1`` in the camera's frame, ``Tool1ToReference`` relative to the reference tool."""
-    return f"{tool[:1].upper()}{tool[1:]}To{'Tracker' if relative_to == CAMERA else 'Reference'}"
-
-
-class IGTLSender:
-    """An OpenIGTLink server (``pyigtl``, the igtl extra) that sends each found pose as a
-    TRANSFORM message named ``name`` (millimetres, T_left_marker, the frame's timestamp),
-    so 3D Slicer's OpenIGTLinkIF module shows it live. Frames without a pose send
-    nothing, and nothing is queued while no client is connected: a client that connects
-    later gets the next pose, never a stale one.
-
-    Args:
-        port: TCP port (OpenIGTLink's default is 18944).
-        name: the device name (e.g. "MarkerToTracker").
-        local_only: listen on 127.0.0.1 only (False: the machine's network interface).
-    """
-
-    def __init__(self, port: int = 18944, name: str = "MarkerToTracker", local_only: bool = True):
-        try:
-            import pyigtl
-        except ImportError as exc:
-            raise ValueError('--igtl needs pyigtl: pip install -e ".[igtl]"') from exc
-        self._pyigtl, self.name = pyigtl, name
-        try:
-            self.server = pyigtl.OpenIGTLinkServer(port=int(port), local_server=local_only)
-        except OSError as exc:
-            raise ValueError(f"cannot serve OpenIGTLink on port {port}: {exc.strerror or exc}") from exc
-        self.sent = 0
-
-    def __call__(self, k: int, t: float, est, wait: bool = False) -> bool:
-        if est is None or not self.server.is_connected():
-            return False
-        self._send(self.name, est.T, t, wait)
-        return True
-
-    def _send(self, name: str, T, t: float, wait: bool) -> None:
-        msg = self._pyigtl.TransformMessage(np.asarray(T, np.float64), timestamp=float(t), device_name=name)
-        self.server.send_message(msg, wait=wait)
-        self.sent += 1
-
-    def close(self):
-        self.server.stop()
-
-
-class IGTLToolsSender(IGTLSender):
-    """An :class:`IGTLSender` for several tools: each frame, one TRANSFORM per tool
-    reported (:class:`ToolReport`), named by :func:`igtl_device_name` (``Tool1ToTracker``,
-    or ``Tool1ToReference`` relative to the reference tool). A tool not reported (not
-    found, or its reference not seen) sends nothing.
-
-    Args:
-        port: TCP port (OpenIGTLink's default is 18944).
-        tools: the tools' names, to check that their device names differ.
-        reference: the reference tool's name, or None.
-        local_only: listen on 127.0.0.1 only (False: the machine's network interface).
-    """
-
-    def __init__(self, port: int = 18944, tools=(), reference: str | None = None, local_only: bool = True):
-        self.devices = {n: igtl_device_name(n, CAMERA if reference in (None, n) else reference) for n in tools}
-        seen: dict[str, str] = {}
-        for tool, device in self.devices.items():
-            if device in seen:
-                raise ValueError(f"the tools {seen[device]!r} and {tool!r} would both be sent as {device!r} over OpenIGTLink; rename one")
-            seen[device] = tool
-        super().__init__(port, name=None, local_only=local_only)
-
-    def __call__(self, k: int, t: float, reports, wait: bool = False) -> int:
-        """Send frame ``k``'s reported poses (at ``t`` seconds); the number sent."""
-        if not self.server.is_connected():
-            return 0
-        sent = 0
-        for r in reports:
-            if r.valid:
-                self._send(igtl_device_name(r.name, r.relative_to), r.T, t, wait)
-                sent += 1
-        return sent
 
 
 def _annotated(images, est, rig) -> np.ndarray:
@@ -461,13 +424,15 @@ class ShowSink:
         cv2.destroyWindow(self.name)
 
 
-def _json_row(k: int, t: float, est) -> str:
-    """Frame ``k``'s line of the JSON-lines output (time ``t``, estimate ``est`` or None)."""
+def _json_row(k: int, t: float, est, unix: float | None = None) -> str:
+    """Frame ``k``'s line of the JSON-lines output (time ``t``, since the epoch ``unix``,
+    estimate ``est`` or None)."""
     return (
         json.dumps(
             {
                 "frame": k,
                 "timestamp_s": t,
+                "timestamp_unix": unix,
                 "valid": est is not None,
                 "T_left_marker": None if est is None else est.T.tolist(),
                 "residual_px": None if est is None else est.residual_px,
@@ -498,8 +463,8 @@ def _finite(x) -> float | None:
     return None if x is None or not np.isfinite(x) else float(x)
 
 
-def _json_tools_row(k: int, t: float, reports: list[ToolReport]) -> str:
-    """Frame ``k``'s line of the JSON-lines output with several tools (time ``t``)."""
+def _json_tools_row(k: int, t: float, reports: list[ToolReport], unix: float | None = None) -> str:
+    """Frame ``k``'s line of the JSON-lines output with several tools (time ``t``, since the epoch ``unix``)."""
     tools = {
         r.name: {
             "valid": r.valid,
@@ -513,7 +478,7 @@ def _json_tools_row(k: int, t: float, reports: list[ToolReport]) -> str:
         }
         for r in reports
     }
-    return json.dumps({"frame": k, "timestamp_s": t, "tools": tools}, allow_nan=False) + "\n"
+    return json.dumps({"frame": k, "timestamp_s": t, "timestamp_unix": unix, "tools": tools}, allow_nan=False) + "\n"
 
 
 def _discard(f, partial: Path, fj, partial_jsonl: Path | None) -> None:
@@ -587,15 +552,22 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
             raise ValueError(f"{failed} (stopped there: the {n} pair{'s' if n != 1 else ''} before it are in {out_csv})") from failed
         raise failed
     seconds = time.perf_counter() - t0
-    return {"frames": n, "fps": n / seconds if seconds > 0 else 0.0, "stopped": stopped, "csv": str(out_csv)}
+    offsets = getattr(stream, "grab_offsets", None)
+    return {
+        "frames": n,
+        "fps": n / seconds if seconds > 0 else 0.0,
+        "stopped": stopped,
+        "csv": str(out_csv),
+        "grab_offset_ms": 1000 * float(np.median(offsets)) if offsets else None,  # two cameras: right minus left grab
+    }
 
 
 def track_stream(
     tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
 ) -> dict:
     """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
-    ``jsonl``, one JSON object a frame; with ``send``, ``send(k, t, est)`` after each,
-    e.g. an :class:`IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
+    ``jsonl``, one JSON object a frame; with ``send``, ``send(k, timestamp_unix, est)`` after each,
+    e.g. a :class:`markerpose.igtl.IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
     a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
     share, frames per second, longest run of frames without a pose."""
     c = {"n": 0, "found": 0, "tracked": 0, "gap": 0, "longest": 0}
@@ -603,12 +575,13 @@ def track_stream(
 
     def step(k, t, left, right, out):
         est = tracker.track(left, right)
-        out.rows([pose_row(k, t, est, tip)])
+        unix = stream.unix(t)
+        out.rows([pose_row(k, t, est, tip, unix)])
         if send is not None:
-            send(k, t, est)
+            send(k, unix, est)
         for sink in sinks:
             sink(k, t, left, right, est)
-        out.line(_json_row(k, t, est))
+        out.line(_json_row(k, t, est, unix))
         c["n"] += 1
         c["found"] += est is not None
         c["tracked"] += est is not None and est.source == "tracked"
@@ -626,6 +599,7 @@ def track_stream(
         "longest_gap": c["longest"],
         "stopped": run["stopped"],
         "csv": run["csv"],
+        "grab_offset_ms": run["grab_offset_ms"],
     }
 
 
@@ -644,8 +618,8 @@ def track_tools_stream(
     and tool, in the order of ``tracker.tools`` (:data:`TOOLS_CSV_HEADER`, see
     :func:`tool_reports` for ``reference``); with ``jsonl``, one JSON object a frame
     (``{"frame", "timestamp_s", "tools": {name: {"valid", "relative_to", "T",
-    "residual_px", "source", "why"}}}``); with ``send``, ``send(k, t, reports)`` after
-    each (e.g. an :class:`IGTLToolsSender`); each of ``sinks`` gets ``(k, t, left, right,
+    "residual_px", "source", "why"}}}``); with ``send``, ``send(k, timestamp_unix, reports)`` after
+    each (e.g. a :class:`markerpose.igtl.IGTLToolsSender`); each of ``sinks`` gets ``(k, t, left, right,
     found)``, ``found`` the ``{name: Estimate}`` in the camera's frame. Outputs are
     written as :func:`track_stream` writes them.
 
@@ -666,12 +640,13 @@ def track_tools_stream(
     def step(k, t, left, right, out):
         found = tracker.track_all(left, right)
         reports = tool_reports(found, names, reference, tracker.whys)
-        out.rows([tools_row(k, t, r, tips) for r in reports])
+        unix = stream.unix(t)
+        out.rows([tools_row(k, t, r, tips, unix) for r in reports])
         if send is not None:
-            send(k, t, reports)
+            send(k, unix, reports)
         for sink in sinks:
             sink(k, t, left, right, found)
-        out.line(_json_tools_row(k, t, reports))
+        out.line(_json_tools_row(k, t, reports, unix))
         for r in reports:
             s = c[r.name]
             s["found"] += r.est is not None
@@ -701,15 +676,12 @@ __all__ = [
     "TIP_COLUMNS",
     "check_output",
     "read_track_csv",
-    "IGTLSender",
-    "IGTLToolsSender",
     "REFERENCE_NOT_SEEN",
     "ShowSink",
     "StereoStream",
     "TOOLS_CSV_HEADER",
     "ToolReport",
     "VideoSink",
-    "igtl_device_name",
     "open_stereo",
     "pose_row",
     "tool_reports",

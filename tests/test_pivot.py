@@ -112,7 +112,7 @@ def test_cli_pivot_refuses_unclear_input(tmp_path, capsys):
     long = []
     for k, Ti in enumerate(T):
         for name in ("pointer", "reference"):
-            long.append(pose_row(k, k / 30, E(Ti))[:2] + [name, "camera"] + pose_row(k, k / 30, E(Ti))[2:])
+            long.append(pose_row(k, k / 30, E(Ti))[:3] + [name, "camera"] + pose_row(k, k / 30, E(Ti))[3:])
     _write(tmp_path / "tools.csv", long, TOOLS_CSV_HEADER)
     assert main(["pivot", str(tmp_path / "tools.csv"), "--out", str(tmp_path / "tip.yaml")]) == 2
     assert "pointer, reference" in capsys.readouterr().err

@@ -132,7 +132,7 @@ def test_camera_index_and_port_out_of_range_are_one_line_errors(folders, tmp_pat
     assert "a camera index is a small whole number" in capsys.readouterr().err
     for port in ("70000", "-1"):
         with pytest.raises(SystemExit) as e:
-            cli.main(["track", str(root / "L"), str(root / "R"), "--igtl", port, "--out", str(tmp_path / "p.csv")])
+            cli.main(["track", str(root / "L"), str(root / "R"), "--igtl", "--igtl-port", port, "--out", str(tmp_path / "p.csv")])
         assert e.value.code == 2 and "a port is 1 to 65535" in capsys.readouterr().err
 
 
@@ -193,65 +193,140 @@ def test_a_camera_that_does_not_open(tmp_path, capsys):
     assert err.strip() == "error: cannot open camera 97"
 
 
-def test_openigtlink_client_receives_the_tracked_poses(folders, tmp_path):
-    """A pyigtl client on 127.0.0.1 receives one TRANSFORM per found frame, the same
-    matrices as poses.csv, and nothing for frames without the marker."""
+def _free_port() -> int:
     import socket
-    import threading
-    import time
-
-    pyigtl = pytest.importorskip("pyigtl")
-    from markerpose.video import IGTLSender, open_stereo, track_stream
 
     with socket.socket() as s:  # a free port on the loopback interface
         s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    root, truth = folders
-    sender = IGTLSender(port, "MarkerToTracker")
+        return s.getsockname()[1]
+
+
+def _collector(pyigtl, port, name):
+    """A pyigtl client on 127.0.0.1 and the (timestamp, matrix, metadata) of every ``name``
+    message it receives, collected by a thread until ``done`` is set."""
+    import threading
+
     client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
     received, done = [], threading.Event()
 
     def listen():
         while not done.is_set():
-            msg = client.wait_for_message("MarkerToTracker", timeout=0.05)
+            msg = client.wait_for_message(name, timeout=0.05)
             if msg is not None:
-                received.append((msg.timestamp, np.array(msg.matrix)))
+                received.append((msg.timestamp, np.array(msg.matrix), dict(msg.metadata)))
 
-    listener = threading.Thread(target=listen, daemon=True)
-    listener.start()
+    thread = threading.Thread(target=listen, daemon=True)
+    thread.start()
+    return client, received, done, thread
+
+
+def _wait(cond, seconds=5.0):
+    import time
+
+    for _ in range(int(seconds / 0.01)):
+        if cond():
+            return True
+        time.sleep(0.01)
+    return cond()
+
+
+def test_openigtlink_every_frame_to_every_client_with_its_status(folders, tmp_path):
+    """Two pyigtl clients at once: both receive one TRANSFORM a frame, stamped in seconds
+    since the epoch (within 1 s of now, spaced as the frames), the CSV's matrices with
+    PLUS's status "OK"; a frame without the marker arrives as "MISSING" with the identity,
+    never the last pose. One client leaving mid-stream costs the other nothing and prints one
+    line, no traceback."""
+    import time
+
+    pyigtl = pytest.importorskip("pyigtl")
+    from markerpose.igtl import IGTLSender
+    from markerpose.video import open_stereo, track_stream
+
+    root, truth = folders
+    port = _free_port()
+    notices = []
+    sender = IGTLSender(port, "MarkerToTracker", notice=notices.append)
+    a = _collector(pyigtl, port, "MarkerToTracker")
+    b = _collector(pyigtl, port, "MarkerToTracker")
     try:
-        for _ in range(500):  # the client connects within a few seconds at most
-            if sender.server.is_connected():
-                break
-            time.sleep(0.01)
-        assert sender.server.is_connected()
+        assert _wait(lambda: sender.server.clients == 2)
 
-        def send(k, t, est):  # each message on the wire and read before the next frame
-            if sender(k, t, est, wait=True):
-                for _ in range(200):
-                    if len(received) == sender.sent:
-                        break
-                    time.sleep(0.005)
+        def send(k, stamp, est):  # each message read by the clients before the next frame
+            sender(k, stamp, est)
+            assert _wait(lambda: len(a[1]) == k + 1)
+            if k < 5:
+                assert _wait(lambda: len(b[1]) == k + 1)
+            if k == 4:  # the second client leaves after five frames
+                b[2].set()
+                b[3].join(timeout=2)
+                b[0].stop()
+                assert _wait(lambda: sender.server.clients == 1)
 
         out = tmp_path / "poses.csv"
+        start = time.time()
         summary = track_stream(
             mp.MarkerPose(mp.StereoRig.default(), detector="classical"),
-            open_stereo(str(root / "L"), str(root / "R")),
+            open_stereo(str(root / "L"), str(root / "R"), fps=30),
             out,
             progress=False,
             send=send,
         )
+        during = list(notices)
     finally:
-        done.set()
-        listener.join(timeout=2)
-        client.stop()
+        for c in (a, b):
+            c[2].set()
+            c[3].join(timeout=2)
+            c[0].stop()
         sender.close()
-    rows = [r for r in csv.DictReader(out.open()) if r["valid"] == "1"]
-    assert summary["frames"] == len(truth) and len(rows) == sum(T is not None for T in truth) == len(received)
-    for row, (stamp, M) in zip(rows, received):
-        expected = np.array([float(row[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
-        np.testing.assert_allclose(M, expected, atol=1e-4)  # float32 on the wire
-        assert stamp == pytest.approx(float(row["timestamp_s"]), abs=1e-6)
+    rows = list(csv.DictReader(out.open()))
+    received = a[1]
+    assert summary["frames"] == len(truth) == len(rows) == len(received) and len(b[1]) == 5
+    assert sum(" connected (" in n for n in during) == 2 and sum(" left " in n for n in during) == 1, during
+    for row, (stamp, M, meta) in zip(rows, received):
+        assert abs(stamp - start) < 1.0 + float(row["timestamp_s"])  # seconds since the epoch, not since the start
+        assert stamp == pytest.approx(float(row["timestamp_unix"]), abs=1e-6)
+        if row["valid"] == "1":
+            expected = np.array([float(row[f"T{i}{j}"]) for i in range(4) for j in range(4)]).reshape(4, 4)
+            np.testing.assert_allclose(M, expected, atol=1e-4)  # float32 on the wire
+            assert meta["TransformStatus"] == "OK" and meta["TransformValid"] == "1" and meta["MarkerposeStatus"] == row["status"]
+            assert float(meta["SdMm"]) == pytest.approx(float(row["sd_mm"]), rel=1e-3)
+        else:
+            np.testing.assert_array_equal(M, np.eye(4))  # not the last pose
+            assert meta["TransformStatus"] == "MISSING" and meta["TransformValid"] == "0"
+    stamps = np.array([r[0] for r in received])
+    np.testing.assert_allclose(np.diff(stamps), 1 / 30, atol=1e-5)  # the frames' own spacing
+
+
+def test_realtime_replays_a_folder_at_its_frame_rate(folders, tmp_path):
+    """--realtime: frame k handed over at k / fps from the start (30 +- 1 frames/s)."""
+    from markerpose.video import open_stereo
+
+    root, _ = folders
+    stream = open_stereo(str(root / "L"), str(root / "R"), fps=30, realtime=True)
+    import time
+
+    times = []
+    for _k, _t, _l, _r in stream:
+        times.append(time.perf_counter())
+    stream.close()
+    rate = (len(times) - 1) / (times[-1] - times[0])
+    assert 29.0 <= rate <= 31.0, rate
+    fast = open_stereo(str(root / "L"), str(root / "R"), fps=1)  # without it: as fast as read
+    t0 = time.perf_counter()
+    assert sum(1 for _ in fast) == len(times) and time.perf_counter() - t0 < 5
+
+
+def test_igtl_port_is_its_own_option(folders, tmp_path, capsys):
+    """--igtl is a switch: an input after it is an input, not a port; --igtl-port alone is refused."""
+    pytest.importorskip("pyigtl")
+    root, _ = folders
+    out = tmp_path / "p.csv"
+    assert (
+        cli.main(["track", "--igtl", str(root / "L"), str(root / "R"), "--igtl-port", str(_free_port()), "--out", str(out), "--quiet"]) == 0
+    )
+    assert "serving TRANSFORM 'MarkerToTracker'" in capsys.readouterr().err
+    assert cli.main(["track", str(root / "L"), str(root / "R"), "--igtl-port", "18944", "--out", str(out), "--quiet"]) == 2
+    assert "--igtl-port needs --igtl" in capsys.readouterr().err
 
 
 def test_sigterm_stops_track_like_ctrl_c(folders, tmp_path):

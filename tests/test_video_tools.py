@@ -102,7 +102,7 @@ def test_relative_to_the_reference_tool(seq, tmp_path, capsys):
     with socket.socket() as s:  # a free port on the loopback interface; no client connects
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    igtl = ["--igtl", str(port)] if _has_pyigtl() else []
+    igtl = ["--igtl", "--igtl-port", str(port)] if _has_pyigtl() else []
     assert _track(seq, "--out", str(out), "--jsonl", str(jsonl), "--reference", "tool1", *igtl) == 0
     captured = capsys.readouterr()
     assert "tool2 found in 100.0 %, 80.0 % relative to tool1" in captured.out
@@ -114,7 +114,7 @@ def test_relative_to_the_reference_tool(seq, tmp_path, capsys):
     for row, own in zip(rows, plain):
         poses = truth[int(row["frame"])]
         if row["tool"] == "tool1":  # the reference itself: in the camera's frame, as without --reference
-            assert row["relative_to"] == "camera" and row == own
+            assert row["relative_to"] == "camera" and _without_clock(row) == _without_clock(own)
             continue
         assert row["relative_to"] == "tool1"
         if "tool1" not in poses:  # tool2 found, the reference not: no pose, never one in the camera frame
@@ -130,6 +130,11 @@ def test_relative_to_the_reference_tool(seq, tmp_path, capsys):
     assert last["tool1"]["relative_to"] == "camera" and last["tool1"]["why"]
 
 
+def _without_clock(row: dict) -> dict:
+    """A CSV row without its wall-clock time (which differs from run to run)."""
+    return {k: v for k, v in row.items() if k != "timestamp_unix"}
+
+
 def _has_pyigtl() -> bool:
     try:
         import pyigtl  # noqa: F401
@@ -139,19 +144,21 @@ def _has_pyigtl() -> bool:
 
 
 def test_openigtlink_client_receives_each_tool(seq, tmp_path):
-    """A pyigtl client receives Tool1ToTracker and Tool2ToReference each frame both tools
-    are found, the CSV's matrices, and nothing for the frame without the reference."""
+    """A pyigtl client receives Tool1ToTracker and Tool2ToReference on every frame: the
+    CSV's matrices with status OK where a pose is reported, the identity with MISSING for
+    the frame without the reference (never the last pose)."""
     import threading
     import time
 
     pyigtl = pytest.importorskip("pyigtl")
-    from markerpose.video import IGTLToolsSender, open_stereo, track_tools_stream
+    from markerpose.igtl import IGTLToolsSender
+    from markerpose.video import open_stereo, track_tools_stream
 
     root, files, truth = seq
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    sender = IGTLToolsSender(port, ["tool1", "tool2"], reference="tool1")
+    sender = IGTLToolsSender(port, ["tool1", "tool2"], reference="tool1", notice=lambda line: None)
     assert sender.devices == {"tool1": "Tool1ToTracker", "tool2": "Tool2ToReference"}
     client = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=port)
     received, done = [], threading.Event()
@@ -159,7 +166,7 @@ def test_openigtlink_client_receives_each_tool(seq, tmp_path):
     def listen():
         while not done.is_set():
             for msg in client.get_latest_messages():
-                received.append((msg.device_name, msg.timestamp, np.array(msg.matrix)))
+                received.append((msg.device_name, msg.timestamp, np.array(msg.matrix), dict(msg.metadata)))
             time.sleep(0.005)
 
     listener = threading.Thread(target=listen, daemon=True)
@@ -171,12 +178,12 @@ def test_openigtlink_client_receives_each_tool(seq, tmp_path):
             time.sleep(0.01)
         assert sender.server.is_connected()
 
-        def send(k, t, reports):  # each frame's messages on the wire and read before the next frame
-            if sender(k, t, reports, wait=True):
-                for _ in range(200):
-                    if len(received) == sender.sent:
-                        break
-                    time.sleep(0.005)
+        def send(k, stamp, reports):  # each frame's messages read before the next frame
+            sender(k, stamp, reports)
+            for _ in range(400):
+                if len(received) == sender.sent:
+                    break
+                time.sleep(0.005)
 
         out = tmp_path / "poses.csv"
         tracker = mp.MarkerPose(mp.StereoRig.default(), markers=files, detector="classical")
@@ -188,13 +195,19 @@ def test_openigtlink_client_receives_each_tool(seq, tmp_path):
         listener.join(timeout=2)
         client.stop()
         sender.close()
-    rows = [r for r in csv.DictReader(out.open()) if r["valid"] == "1"]
+    rows = list(csv.DictReader(out.open()))
     assert summary["frames"] == FRAMES and summary["tools"]["tool2"]["reported"] == pytest.approx(0.8)
-    assert len(rows) == len(received) == 2 * (FRAMES - 1)
-    for row, (device, stamp, M) in zip(rows, received):
+    assert len(rows) == len(received) == 2 * FRAMES
+    for row, (device, stamp, M, meta) in zip(rows, received):
         assert device == {"tool1": "Tool1ToTracker", "tool2": "Tool2ToReference"}[row["tool"]]
-        np.testing.assert_allclose(M, _matrix(row), atol=1e-4)  # float32 on the wire
-        assert stamp == pytest.approx(float(row["timestamp_s"]), abs=1e-6)
+        assert stamp == pytest.approx(float(row["timestamp_unix"]), abs=1e-6)
+        if row["valid"] == "1":
+            np.testing.assert_allclose(M, _matrix(row), atol=1e-4)  # float32 on the wire
+            assert meta["TransformStatus"] == "OK"
+        else:
+            np.testing.assert_array_equal(M, np.eye(4))
+            assert meta["TransformStatus"] == "MISSING" and meta["TransformValid"] == "0"
+    assert sum(m[3]["TransformStatus"] == "MISSING" for m in received) == sum(r["valid"] == "0" for r in rows) > 0
 
 
 def test_annotate_tools_draws_each_tool_and_keeps_the_images():

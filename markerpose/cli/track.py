@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import sys
 
+from ..igtl import DEFAULT_PORT
 from .common import add_marker_args, add_preset_args, add_rig_arg, add_set_arg, port, tracker
 
 
@@ -29,20 +30,20 @@ def _sinks(args, pose_tracker, stream) -> list:
 def _sender(args, stream, names=None):
     """The OpenIGTLink sender of --igtl, or None (``names``: the tools of --tools); the
     stream is closed when it fails."""
-    if args.igtl is None:
+    if not args.igtl:
         return None
-    from ..video import IGTLSender, IGTLToolsSender
+    from ..igtl import IGTLSender, IGTLToolsSender
 
     try:
         if names is None:
-            send = IGTLSender(args.igtl, args.igtl_name, local_only=not args.igtl_public)
+            send = IGTLSender(args.igtl_port, args.igtl_name, local_only=not args.igtl_public)
         else:
-            send = IGTLToolsSender(args.igtl, names, args.reference, local_only=not args.igtl_public)
+            send = IGTLToolsSender(args.igtl_port, names, args.reference, local_only=not args.igtl_public)
     except ValueError:
         stream.close()
         raise
     devices = repr(args.igtl_name) if names is None else ", ".join(repr(d) for d in send.devices.values())
-    print(f"OpenIGTLink: serving TRANSFORM {devices} on port {args.igtl}", file=sys.stderr)
+    print(f"OpenIGTLink: serving TRANSFORM {devices} on port {args.igtl_port}, every frame with its status", file=sys.stderr)
     return send
 
 
@@ -87,7 +88,11 @@ def cmd_track(args):
     names = list(pose_tracker.tools) if args.tools else None
     if names is not None:
         _check_reference(args, names)
-    stream = open_stereo(args.left, args.right, args.fps)
+    if args.igtl_port is not None and not args.igtl:
+        raise ValueError("--igtl-port needs --igtl")
+    if args.igtl and args.igtl_port is None:
+        args.igtl_port = DEFAULT_PORT
+    stream = open_stereo(args.left, args.right, args.fps, realtime=args.realtime)
     sinks = _sinks(args, pose_tracker, stream)
     send = _sender(args, stream, names)
     _stop_on_sigterm()
@@ -114,6 +119,12 @@ def cmd_track(args):
             f"{'stopped: ' if s['stopped'] else ''}{s['frames']} frames, marker found in {100 * s['found']:.1f} % "
             f"({100 * s['tracked']:.0f} % of those tracked), {s['fps']:.1f} frames/s, longest gap {s['longest_gap']} frames; {wrote}"
         )
+    if s["grab_offset_ms"] is not None:
+        print(
+            f"the two cameras were grabbed {s['grab_offset_ms']:+.1f} ms apart (median, right minus left): they are not "
+            "synchronised, and their exposures may be up to a frame apart",
+            file=sys.stderr,
+        )
     return 130 if s["stopped"] else 0  # stopped (Ctrl-C, kill -TERM): every row kept, the run incomplete
 
 
@@ -135,11 +146,15 @@ def register(sub) -> None:
     add_preset_args(k)
     k.add_argument(
         "--igtl",
-        type=port,
-        nargs="?",
-        const=18944,
-        metavar="PORT",
-        help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages (port default 18944; the igtl extra)",
+        action="store_true",
+        help="serve the poses over OpenIGTLink (3D Slicer, PLUS) as TRANSFORM messages with PLUS's status metadata, "
+        "to any number of clients (the igtl extra)",
+    )
+    k.add_argument("--igtl-port", type=port, metavar="PORT", help=f"the OpenIGTLink port (default {DEFAULT_PORT})")
+    k.add_argument(
+        "--realtime",
+        action="store_true",
+        help="replay folders and videos at their frame rate (videos' own, --fps for folders), not as fast as they are read",
     )
     k.add_argument(
         "--igtl-name",
