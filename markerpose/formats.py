@@ -63,6 +63,7 @@ __all__ = [
     "write_json",
     "write_ply",
     "write_sequence",
+    "SEQUENCE_SUFFIX",
     "write_volume",
 ]
 
@@ -148,19 +149,24 @@ def storage_array(fs, key: str, path) -> np.ndarray | None:
 
 
 # --- point clouds ---------------------------------------------------------------------
-def write_ply(path: str | Path, points: np.ndarray, frame: np.ndarray | None = None) -> Path:
+def write_ply(path: str | Path, points: np.ndarray, frame: np.ndarray | None = None, inlier: np.ndarray | None = None) -> Path:
     """Binary little-endian PLY of (N, 3) points (float32 x y z, mm), with an int32
-    ``frame`` property per point when given. Opens in MeshLab, CloudCompare, 3D Slicer."""
+    ``frame`` property per point and a uchar ``inlier`` flag (1: kept by the fit, 0:
+    rejected) when given. Opens in MeshLab, CloudCompare, 3D Slicer."""
     path = Path(path)
     P = np.asarray(points, dtype="<f4").reshape(-1, 3)
     props = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
-    if frame is not None:
-        props.append(("frame", "<i4"))
+    extra = {"frame": (frame, "<i4"), "inlier": (inlier, "u1")}
+    props += [(name, t) for name, (v, t) in extra.items() if v is not None]
     rec = np.empty(len(P), dtype=props)
     rec["x"], rec["y"], rec["z"] = P[:, 0], P[:, 1], P[:, 2]
-    if frame is not None:
-        rec["frame"] = np.asarray(frame, dtype="<i4").reshape(-1)
-    names = {"<f4": "float", "<i4": "int"}
+    for name, (v, t) in extra.items():
+        if v is not None:
+            v = np.asarray(v).reshape(-1)
+            if len(v) != len(P):
+                raise ValueError(f"{name}: {len(v)} values for {len(P)} points")
+            rec[name] = v.astype(t)
+    names = {"<f4": "float", "<i4": "int", "u1": "uchar"}
     header = (
         ["ply", "format binary_little_endian 1.0", "comment markerpose point cloud, millimetres", f"element vertex {len(P)}"]
         + [f"property {names[t]} {n}" for n, t in props]
@@ -207,12 +213,15 @@ def read_ply(path: str | Path) -> dict:
 def write_volume(path: str | Path, data: np.ndarray, origin, directions) -> Path:
     """A 3D volume as NRRD: ``data`` (nx, ny, nz) indexed [i, j, k]; ``origin`` the centre
     of voxel (0, 0, 0) and ``directions`` (3, 3) whose columns are the steps along i, j, k,
-    both in millimetres in the tracker frame."""
+    both in millimetres in the tracker frame. The file's ``space`` is
+    right-anterior-superior: 3D Slicer then shows the volume in the tracker frame, as it
+    applies the OpenIGTLink transforms (which it takes as RAS), not mirrored (a NRRD
+    without ``space`` is read as LPS)."""
     import nrrd
 
     path = Path(path)
     header = {
-        "space dimension": 3,
+        "space": "right-anterior-superior",
         "space directions": np.asarray(directions, dtype=np.float64).T,
         "space origin": np.asarray(origin, dtype=np.float64),
         "space units": ["mm", "mm", "mm"],
@@ -224,20 +233,35 @@ def write_volume(path: str | Path, data: np.ndarray, origin, directions) -> Path
 
 
 def read_volume(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(data, origin, directions) of a volume written by :func:`write_volume`."""
+    """(data, origin, directions) of a volume written by :func:`write_volume`, in its
+    ``space`` (left-posterior-superior files are turned to right-anterior-superior)."""
     import nrrd
 
     data, header = nrrd.read(str(path), index_order="F")
-    return data, np.asarray(header["space origin"], float), np.asarray(header["space directions"], float).T
+    origin, directions = np.asarray(header["space origin"], float), np.asarray(header["space directions"], float).T
+    if header.get("space") in ("left-posterior-superior", "LPS"):
+        flip = np.diag([-1.0, -1.0, 1.0])
+        origin, directions = flip @ origin, flip @ directions
+    return data, origin, directions
 
 
 def _matrix_text(T) -> str:
     return " ".join(f"{v:.9g}" for v in np.asarray(T, dtype=np.float64).ravel())
 
 
+SEQUENCE_SUFFIX = ".igs.nrrd"  # what SlicerIGSIO's reader registers (PLUS's since 2018; .seq.nrrd is read as plain images)
+
+
 def write_sequence(path: str | Path, images, timestamps, probe_to_tracker: list, image_to_probe: np.ndarray) -> Path:
-    """A tracked ultrasound sweep as a PLUS / IGSIO sequence file (``.seq.nrrd``), which 3D
-    Slicer (SlicerIGSIO) loads as a sequence with its transforms.
+    """A tracked ultrasound sweep as a PLUS / IGSIO sequence file (``NAME.igs.nrrd``), which
+    3D Slicer (SlicerIGSIO) loads as a sequence browser with its transforms.
+
+    The header is IGSIO's for a 2D image time series (``vtkIGSIONrrdSequenceIO``): sizes
+    W H N, kinds ``domain domain list``, ``space dimension`` 2, ``space directions``
+    ``(1,0) (0,1) none`` (pixels: the spacing is folded into ImageToProbe), ``space origin``
+    ``(0,0)``, ``ultrasound image orientation`` MF; per frame ``Seq_FrameNNNN_`` +
+    ``FrameNumber``, ``Timestamp``, ``UnfilteredTimestamp``, ``Status`` (the image's),
+    ``ProbeToTrackerTransform`` (+ ``Status``) and ``ImageToProbeTransform`` (+ ``Status``).
 
     Args:
         images: N uint8 (H, W) frames.
@@ -248,6 +272,9 @@ def write_sequence(path: str | Path, images, timestamps, probe_to_tracker: list,
     """
     import nrrd
 
+    path = Path(path)
+    if not path.name.endswith(SEQUENCE_SUFFIX):
+        raise ValueError(f"{path}: a sequence file is named *{SEQUENCE_SUFFIX} (what 3D Slicer's IGSIO reader opens)")
     frames = [np.asarray(im) for im in images]
     if not frames:
         raise ValueError("no frames to write")
@@ -256,10 +283,13 @@ def write_sequence(path: str | Path, images, timestamps, probe_to_tracker: list,
         raise ValueError("every frame must be uint8 of the same (H, W)")
     if not (len(frames) == len(timestamps) == len(probe_to_tracker)):
         raise ValueError("images, timestamps and probe_to_tracker must have the same length")
-    data = np.stack(frames, axis=-1).transpose(1, 0, 2)[:, :, None, :]  # (W, H, 1, N)
+    data = np.stack(frames, axis=-1).transpose(1, 0, 2)  # (W, H, N)
     header = {
-        "kinds": ["domain", "domain", "domain", "list"],
+        "kinds": ["domain", "domain", "list"],
         "encoding": "raw",
+        "space dimension": 2,
+        "space directions": np.array([[1.0, 0.0], [0.0, 1.0], [np.nan, np.nan]]),
+        "space origin": np.zeros(2),
         "ultrasound image orientation": "MF",
         "ultrasound image type": "BRIGHTNESS",
     }
@@ -268,13 +298,13 @@ def write_sequence(path: str | Path, images, timestamps, probe_to_tracker: list,
         header[p + "FrameNumber"] = str(k)
         header[p + "Timestamp"] = f"{float(t):.6f}"
         header[p + "UnfilteredTimestamp"] = f"{float(t):.6f}"
-        header[p + "ImageStatus"] = "OK"
+        header[p + "Status"] = "OK"
         header[p + "ProbeToTrackerTransform"] = _matrix_text(np.eye(4) if T is None else T)
         header[p + "ProbeToTrackerTransformStatus"] = "INVALID" if T is None else "OK"
         header[p + "ImageToProbeTransform"] = _matrix_text(image_to_probe)
         header[p + "ImageToProbeTransformStatus"] = "OK"
     nrrd.write(str(path), data, header, index_order="F")
-    return Path(path)
+    return path
 
 
 def read_sequence(path: str | Path) -> dict:
@@ -284,9 +314,11 @@ def read_sequence(path: str | Path) -> dict:
     import nrrd
 
     data, header = nrrd.read(str(path), index_order="F")
-    if data.ndim != 4:
-        raise ValueError(f"{path}: expected a 4D (W, H, 1, N) sequence, got {data.ndim}D")
-    images = data[:, :, 0, :].transpose(2, 1, 0)
+    if data.ndim == 4 and data.shape[2] == 1:  # (W, H, 1, N), as earlier releases wrote
+        data = data[:, :, 0, :]
+    if data.ndim != 3:
+        raise ValueError(f"{path}: expected a (W, H, N) sequence of 2D images, got {data.ndim}D")
+    images = data.transpose(2, 1, 0)
     n = images.shape[0]
 
     def mat(s):

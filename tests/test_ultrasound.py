@@ -199,8 +199,10 @@ def test_sequence_volume_and_cloud_round_trips(tmp_path):
     frames = [rng.integers(0, 256, (16, 20), dtype=np.uint8) for _ in range(4)]
     poses = [_random_rigid(rng), None, _random_rigid(rng), _random_rigid(rng)]
     times = [0.0, 0.0667, 0.1333, 0.2]
-    formats.write_sequence(tmp_path / "s.seq.nrrd", frames, times, poses, calib.image_to_probe)
-    seq = formats.read_sequence(tmp_path / "s.seq.nrrd")
+    with pytest.raises(ValueError, match="igs.nrrd"):
+        formats.write_sequence(tmp_path / "s.seq.nrrd", frames, times, poses, calib.image_to_probe)
+    formats.write_sequence(tmp_path / "s.igs.nrrd", frames, times, poses, calib.image_to_probe)
+    seq = formats.read_sequence(tmp_path / "s.igs.nrrd")
     assert np.array_equal(seq["images"], np.array(frames))
     assert np.allclose(seq["timestamps"], times)
     assert seq["probe_to_tracker"][1] is None
@@ -219,10 +221,64 @@ def test_sequence_volume_and_cloud_round_trips(tmp_path):
     assert np.allclose(np.linalg.norm(directions, axis=0), 0.2)
 
     P = rng.normal(size=(50, 3)) * 100
-    formats.write_ply(tmp_path / "p.ply", P, np.arange(50))
+    formats.write_ply(tmp_path / "p.ply", P, np.arange(50), np.arange(50) % 3 > 0)
     cloud = formats.read_ply(tmp_path / "p.ply")
     assert np.allclose(np.column_stack([cloud["x"], cloud["y"], cloud["z"]]), P, atol=1e-4)
-    assert np.array_equal(cloud["frame"], np.arange(50))
+    assert np.array_equal(cloud["frame"], np.arange(50)) and np.array_equal(cloud["inlier"], np.arange(50) % 3 > 0)
+
+
+# The fields vtkIGSIONrrdSequenceIO (SlicerIGSIO's reader) reads: the per-frame prefix, the
+# image status it looks for, and what its writer always writes for a 2D image time series.
+IGSIO_FRAME_PREFIX, IGSIO_IMAGE_STATUS = "Seq_Frame", "Status"
+IGSIO_HEADER = ("dimension", "type", "sizes", "kinds", "encoding", "space dimension", "space directions", "space origin")
+
+
+def test_sequence_file_as_igsio_and_independent_readers_take_it(tmp_path):
+    """The sweep file read as SlicerIGSIO reads it (header fields by IGSIO's names, per-frame
+    fields parsed from the raw text) and by pynrrd and SimpleITK (spacing, origin, size)."""
+    import nrrd
+
+    rng = np.random.default_rng(16)
+    calib = ProbeCalibration(_random_rigid(rng, 30), (0.15, 0.12), (20, 16))
+    frames = [rng.integers(0, 256, (16, 20), dtype=np.uint8) for _ in range(3)]
+    poses = [_random_rigid(rng), None, _random_rigid(rng)]
+    path = formats.write_sequence(tmp_path / "sweep.igs.nrrd", frames, [0.0, 0.05, 0.1], poses, calib.image_to_probe)
+    text = path.read_bytes().split(b"\n\n", 1)[0].decode("ascii")
+    fields = dict(line.split(": ", 1) if ": " in line else line.split(":=", 1) for line in text.splitlines()[1:] if line and line[0] != "#")
+    assert all(f in fields for f in IGSIO_HEADER), sorted(fields)
+    assert fields["sizes"].split() == ["20", "16", "3"] and fields["kinds"].split() == ["domain", "domain", "list"]
+    assert fields["space dimension"] == "2" and fields["space directions"].split()[-1] == "none"
+    frame = {k[len(IGSIO_FRAME_PREFIX) + 5 :]: v for k, v in fields.items() if k.startswith(IGSIO_FRAME_PREFIX + "0001_")}
+    assert frame[IGSIO_IMAGE_STATUS] == "OK" and frame["ProbeToTrackerTransformStatus"] == "INVALID"
+    T = np.array([float(v) for v in fields[IGSIO_FRAME_PREFIX + "0000_ProbeToTrackerTransform"].split()]).reshape(4, 4)
+    np.testing.assert_allclose(T, poses[0], atol=1e-6)
+    data, header = nrrd.read(str(path), index_order="C")
+    assert data.shape == (3, 16, 20) and np.array_equal(data[2], frames[2])
+    sitk = pytest.importorskip("SimpleITK")
+    img = sitk.ReadImage(str(path))
+    assert img.GetSize()[:2] == (20, 16) and img.GetSpacing()[:2] == (1.0, 1.0) and img.GetOrigin()[:2] == (0.0, 0.0)
+
+
+def test_volume_file_is_ras_for_slicer_and_sitk(tmp_path):
+    """volume.nrrd says its space (RAS, as OpenIGTLink transforms): pynrrd reads it back, and
+    SimpleITK (which works in LPS) reports the origin and directions mirrored in x and y, as
+    it must for a RAS file, with the right spacing."""
+    import nrrd
+
+    rng = np.random.default_rng(17)
+    data = rng.integers(0, 255, (6, 5, 4), dtype=np.uint8)
+    R = _random_rigid(rng)[:3, :3]
+    directions, origin = R @ np.diag([0.2, 0.3, 0.4]), np.array([10.0, -20.0, 30.0])
+    path = formats.write_volume(tmp_path / "v.nrrd", data, origin, directions)
+    _, header = nrrd.read(str(path))
+    assert header["space"] == "right-anterior-superior"
+    sitk = pytest.importorskip("SimpleITK")
+    img = sitk.ReadImage(str(path))
+    flip = np.diag([-1.0, -1.0, 1.0])
+    np.testing.assert_allclose(img.GetSpacing(), [0.2, 0.3, 0.4], atol=1e-9)
+    np.testing.assert_allclose(img.GetOrigin(), flip @ origin, atol=1e-9)
+    np.testing.assert_allclose(np.array(img.GetDirection()).reshape(3, 3), flip @ R, atol=1e-9)
+    np.testing.assert_array_equal(sitk.GetArrayFromImage(img), data.transpose(2, 1, 0))
 
 
 def test_probe_calibration_file(tmp_path):
@@ -299,7 +355,7 @@ def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["frames"] == summary["frames_with_pose"] == 10
     assert abs(summary["cylinder"]["diameter_mm"] - D_TRUE) < 0.1
-    seq = formats.read_sequence(out / "sweep.seq.nrrd")
+    seq = formats.read_sequence(out / "sweep.igs.nrrd")
     setup = ProbeSetup()
     c = true_calib.pixels_to_marker([[128, 167]])[0]
     for T_est, T_pi in zip(seq["probe_to_tracker"], truth["T_phantom_image"]):
@@ -309,7 +365,8 @@ def test_calibrate_and_reconstruct_a_recording_from_the_cli(tmp_path, capsys):
         assert np.linalg.norm(T_est[:3, :3] @ c + T_est[:3, 3] - (T_true[:3, :3] @ c + T_true[:3, 3])) < 0.1
     data, _, _ = formats.read_volume(out / "volume.nrrd")
     assert data.ndim == 3 and data.max() > 100
-    assert formats.read_ply(out / "points.ply")["x"].size > 100
+    cloud = formats.read_ply(out / "points.ply")
+    assert cloud["x"].size > 100 and 0.5 * cloud["x"].size < cloud["inlier"].sum() <= cloud["x"].size
     # The estimated calibration reconstructs the same tube.
     assert (
         cli.main(
@@ -414,14 +471,14 @@ def test_demo_writes_the_report_results_and_files(tmp_path):
         "calibration.png",
         "frames.png",
         "diameters.png",
-        "sweep.seq.nrrd",
+        "sweep.igs.nrrd",
         "volume.nrrd",
         "points.ply",
         "probe.yaml",
     ):
         assert (tmp_path / name).is_file(), name
     assert "15.999" in path.read_text()
-    assert len(formats.read_sequence(tmp_path / "sweep.seq.nrrd")["images"]) == 16
+    assert len(formats.read_sequence(tmp_path / "sweep.igs.nrrd")["images"]) == 16
 
 
 def test_timestamps_files_with_a_missing_time_or_going_back_are_refused(tmp_path):

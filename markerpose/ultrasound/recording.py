@@ -109,7 +109,7 @@ def reconstruct_recording(
     search: RingSearch | None = None,
     progress: bool = True,
 ) -> dict:
-    """Reconstruct a recorded sweep; writes ``sweep.seq.nrrd``, ``volume.nrrd`` and
+    """Reconstruct a recorded sweep; writes ``sweep.igs.nrrd``, ``volume.nrrd`` and
     ``summary.json`` into ``out_dir`` (and, with ``seed_px``, ``points.ply`` and the
     cylinder fit in the summary).
 
@@ -139,7 +139,7 @@ def reconstruct_recording(
     if n_posed == 0:
         raise ValueError("no ultrasound frame falls inside the tracked span with a pose; check the clocks (--time-offset)")
     out.mkdir(parents=True, exist_ok=True)
-    formats.write_sequence(out / "sweep.seq.nrrd", frames, times, poses, calib.image_to_probe)
+    formats.write_sequence(out / "sweep.igs.nrrd", frames, times, poses, calib.image_to_probe)
     vol = compound(frames, poses, calib, voxel_mm=voxel_mm, progress=progress)
     formats.write_volume(out / "volume.nrrd", vol.data, vol.origin, vol.directions)
     summary = {
@@ -148,7 +148,7 @@ def reconstruct_recording(
         "volume_shape": list(vol.data.shape),
         "voxel_mm": voxel_mm,
         "volume_filled_fraction": vol.filled,
-        "files": ["sweep.seq.nrrd", "volume.nrrd", "summary.json"],
+        "files": ["sweep.igs.nrrd", "volume.nrrd", "summary.json"],
     }
     if seed_px is not None:
         summary["cylinder"] = _tube(frames, poses, calib, seed_px, search, progress, out)
@@ -167,7 +167,7 @@ def _tube(frames: list, poses: list, calib: ProbeCalibration, seed_px, search: R
     if len(X) < 10:
         raise ValueError(f"the tube was not found from the seed {tuple(seed_px)}: {len(X)} points")
     fit = fit_cylinder(X, sweep_normal(poses, calib))
-    formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx])
+    formats.write_ply(out / "points.ply", X, np.asarray(posed)[idx], fit.inliers)
     return {
         "diameter_mm": fit.diameter,
         "radius_mm": fit.radius,

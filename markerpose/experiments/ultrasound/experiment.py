@@ -337,9 +337,9 @@ def report_markdown(summary: dict, results: list[dict], plan: Plan, seconds: flo
         "",
         "## Files (first acquisition, MarkerPose poses)",
         "",
-        "- `sweep.seq.nrrd`: the tracked sweep as a PLUS/IGSIO sequence (ProbeToTracker per frame, ImageToProbe, timestamps), for 3D Slicer.",
+        "- `sweep.igs.nrrd`: the tracked sweep as a PLUS/IGSIO sequence (ProbeToTracker per frame, ImageToProbe, timestamps), for 3D Slicer.",
         "- `volume.nrrd`: the compounded volume (nearest-neighbour, holes filled), tracker frame, mm.",
-        "- `points.ply`: the segmented wall points in the tracker frame, mm.",
+        "- `points.ply`: the segmented wall points in the tracker frame, mm; `inlier` 1 for the points the cylinder fit kept, 0 for those it rejected.",
         "- `probe.yaml`: the probe calibration from MarkerPose poses.",
         "",
         "## Limits of the simulation",
@@ -454,9 +454,10 @@ def _plots(out: Path, results: list[dict], data: dict) -> list[Path]:
         xs = [r["seed"] + (j - 1.5) * 0.12 for r, v in zip(results, d) if v is not None]
         ax.plot(xs, [v for v in d if v is not None], "o", ms=4, color=colors[key], label=_LABEL[key])
     ax.axhline(TRUE_DIAMETER_MM, color="k", lw=1, label=f"true ({TRUE_DIAMETER_MM} mm)")
-    ax.set_xlabel("acquisition")
-    ax.set_ylabel("diameter (mm)")
-    ax.set_title(f"The paper, on real data: {PAPER['diameter_mm']} mm")
+    ax.axhline(PAPER["diameter_mm"], color="0.4", lw=1, ls="--", label=f"the paper, real data ({PAPER['diameter_mm']} mm)")
+    ax.set_xlabel("acquisition (seed)")
+    ax.set_ylabel("outer diameter (mm)")
+    ax.set_title("Tube diameter per acquisition and pose source")
     legend_below(fig, ax, ncol=3)
     paths.append(_save(fig, out / "diameters.png"))
     return paths
@@ -499,12 +500,12 @@ def main(
     poses = data["poses"]["markerpose"]
     if calib is not None:
         calib.save(out / "probe.yaml")
-        formats.write_sequence(out / "sweep.seq.nrrd", data["images"], data["times"], poses, calib.image_to_probe)
+        formats.write_sequence(out / "sweep.igs.nrrd", data["images"], data["times"], poses, calib.image_to_probe)
         vol = compound(data["images"], poses, calib, voxel_mm=0.25)
         formats.write_volume(out / "volume.nrrd", vol.data, vol.origin, vol.directions)
     if "markerpose" in data["fits"]:
-        X, idx, _ = data["fits"]["markerpose"]
-        formats.write_ply(out / "points.ply", X, idx)
+        X, idx, fit = data["fits"]["markerpose"]
+        formats.write_ply(out / "points.ply", X, idx, fit.inliers)
     _plots(out, results, data)
     seconds = time.perf_counter() - t0
     mp_s, tp, pc, fl = (summary.get(k) for k in ("markerpose", "true_poses", "paper-classical", "floor"))
