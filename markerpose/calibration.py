@@ -98,6 +98,7 @@ class Calibration:
     pairs_used: list
     pairs_rejected: list
     points: tuple = field(repr=False, default=())  # per view, (M, 2) every detected centre
+    why_rejected: dict = field(default_factory=dict)  # pair name -> why it was not used
 
     @property
     def baseline_mm(self) -> float:
@@ -111,6 +112,7 @@ class Calibration:
             "baseline_mm": self.baseline_mm,
             "pairs_used": len(self.pairs_used),
             "pairs_rejected": self.pairs_rejected,
+            "why_rejected": {str(k): v for k, v in self.why_rejected.items()},
             "f_left_px": [float(self.rig.left.K[0, 0]), float(self.rig.left.K[1, 1])],
             "f_right_px": [float(self.rig.right.K[0, 0]), float(self.rig.right.K[1, 1])],
             "volume_mm": None if self.rig.volume is None else self.rig.volume.tolist(),
@@ -150,16 +152,18 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
     """Calibrate a stereo rig from image pairs of ``grid``.
 
     Args:
-        pairs: iterable of (left, right) uint8 images of one size.
+        pairs: iterable of (left, right) uint8 images of one size, or of (name, left,
+            right); read one pair at a time (a generator over a long video is fine).
         grid: the printed grid.
-        names: a name per pair for the report (default: its index).
+        names: a name per pair for the report (default: the pair's own, else its index).
         min_pairs: fewest pairs with the grid found in both views.
     """
     obj = grid.points3d.astype(np.float32)
-    used, rejected, P1, P2 = [], [], [], []
+    used, rejected, P1, P2, why = [], [], [], [], {}
     size = None
-    for k, (left, right) in enumerate(pairs):
-        name = names[k] if names is not None else k
+    for k, item in enumerate(pairs):
+        name, (left, right) = (item[0], item[1:]) if len(item) == 3 else (k, item)
+        name = names[k] if names is not None else name
         a, b = find_grid(left, grid), find_grid(right, grid)
         shape = np.asarray(left).shape[1::-1]
         if size is None:
@@ -168,6 +172,8 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
             raise ValueError(f"pair {name}: images of {shape[0]}x{shape[1]}, the first were {size[0]}x{size[1]}")
         if a is None or b is None:
             rejected.append(name)
+            view = "either view" if a is None and b is None else ("the left view" if a is None else "the right view")
+            why[name] = f"the {grid.cols}x{grid.rows} grid was not found in {view}"
             continue
         used.append(name)
         P1.append(a.astype(np.float32))
@@ -189,7 +195,7 @@ def calibrate(pairs, grid: CircleGrid, names=None, min_pairs: int = 6) -> Calibr
         t.ravel(),
         volume=_grid_volume(obj, rv1, tv1),
     )
-    return Calibration(rig, float(rms1), float(rms2), float(rms), used, rejected, (np.concatenate(P1), np.concatenate(P2)))
+    return Calibration(rig, float(rms1), float(rms2), float(rms), used, rejected, (np.concatenate(P1), np.concatenate(P2)), why)
 
 
 def plot_coverage(cal: Calibration, path: str | Path) -> Path:

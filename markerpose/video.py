@@ -383,20 +383,65 @@ def _annotated(images, est, rig) -> np.ndarray:
     return annotate_tools(images, est, rig) if isinstance(est, dict) else annotate_pair(images, est, rig)
 
 
-class VideoSink:
-    """Both views side by side with the marker's axes drawn, into a video file (mp4v);
-    with several tools (``est`` a ``{name: Estimate}``), each tool's axes and name."""
+# Video codecs by file suffix, best first: what browsers play where this OpenCV has it.
+VIDEO_CODECS = {".webm": ("VP90", "VP80"), ".mp4": ("avc1", "mp4v"), ".avi": ("MJPG",), ".mkv": ("VP90", "MJPG")}
+BROWSER_CODECS = ("VP90", "VP80", "avc1")
 
-    def __init__(self, path: str | Path, rig, fps: float):
-        self.path, self.rig, self.fps, self.writer = Path(path), rig, fps, None
+
+def _lost_mark(frame: np.ndarray, text: str) -> np.ndarray:
+    """``frame`` with ``text`` in red at its top left: a frame without a pose, marked."""
+    cv2.putText(frame, text, (20, 50), cv2.FONT_HERSHEY_SIMPLEX, 1.4, (0, 0, 0), 6, cv2.LINE_AA)
+    cv2.putText(frame, text, (20, 50), cv2.FONT_HERSHEY_SIMPLEX, 1.4, (0, 0, 255), 3, cv2.LINE_AA)
+    return frame
+
+
+class VideoSink:
+    """Both views side by side with the marker's axes drawn, into a video file; with
+    several tools (``est`` a ``{name: Estimate}``), each tool's axes and name. A frame
+    without a pose (a tool missing) is marked in red. The codec follows the suffix:
+    ``.webm`` VP9 (browsers play it), ``.mp4`` H.264 where this OpenCV has an encoder for it,
+    else MPEG-4 Part 2 (players, not browsers: said once, ``notice``), ``.avi`` MJPEG.
+    ``tools``: the tools' names, to mark the ones missing from a frame."""
+
+    def __init__(self, path: str | Path, rig, fps: float, notice=None, tools=()):
+        self.path, self.rig, self.fps, self.writer, self.tools = Path(path), rig, fps, None, list(tools)
+        suffix = self.path.suffix.lower()
+        if suffix not in VIDEO_CODECS:
+            raise ValueError(f"--video {self.path}: a .webm (VP9, plays in browsers), .mp4 or .avi file")
+        self.codec: str | None = None
+        self.notice = notice
+
+    def _open(self, w: int, h: int) -> None:
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)  # each codec tried is not a warning
+        try:
+            for codec in VIDEO_CODECS[self.path.suffix.lower()]:
+                self.writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*codec), float(self.fps), (w, h))
+                if self.writer.isOpened():
+                    self.codec = codec
+                    break
+        finally:
+            cv2.utils.logging.setLogLevel(level)
+        if self.codec is None:
+            raise ValueError(
+                f"cannot write the video {self.path}: this OpenCV has none of {', '.join(VIDEO_CODECS[self.path.suffix.lower()])}"
+            )
+        if self.codec not in BROWSER_CODECS and self.path.suffix.lower() == ".mp4" and self.notice is not None:
+            self.notice(
+                f"{self.path}: MPEG-4 Part 2 (this OpenCV has no H.264 encoder); video players show it, browsers do not: use a .webm for VP9"
+            )
 
     def __call__(self, k, t, left, right, est):
         frame = _annotated((left, right), est, self.rig)
+        if est is None or (isinstance(est, dict) and not est):
+            frame = _lost_mark(frame, "not found")
+        elif isinstance(est, dict) and self.tools:
+            missing = [n for n in self.tools if n not in est]
+            if missing:
+                frame = _lost_mark(frame, "not found: " + ", ".join(missing))
         if self.writer is None:
             h, w = frame.shape[:2]
-            self.writer = cv2.VideoWriter(str(self.path), cv2.VideoWriter_fourcc(*"mp4v"), float(self.fps), (w, h))
-            if not self.writer.isOpened():
-                raise ValueError(f"cannot write the video {self.path}")
+            self._open(w, h)
         self.writer.write(frame)
 
     def close(self):

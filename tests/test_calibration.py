@@ -94,6 +94,8 @@ def test_cli_pattern_and_calibrate(tmp_path, capsys, rendered):
     for k, (a, b) in enumerate(pairs):
         cv2.imwrite(str(tmp_path / "L" / f"{k:02d}.png"), a)
         cv2.imwrite(str(tmp_path / "R" / f"{k:02d}.png"), b)
+    cv2.imwrite(str(tmp_path / "L" / "99.png"), np.full_like(pairs[0][0], 128))  # no grid on the left
+    cv2.imwrite(str(tmp_path / "R" / "99.png"), pairs[0][1])
     out = tmp_path / "rig.yaml"
     assert (
         cli.main(
@@ -113,9 +115,13 @@ def test_cli_pattern_and_calibrate(tmp_path, capsys, rendered):
         )
         == 0
     )
-    text = capsys.readouterr().out
-    assert re.search(r"8 pairs used .*RMS reprojection error left 0\.0\d\d px", text)
+    captured = capsys.readouterr()
+    assert re.search(r"8 pairs used, 1 rejected; RMS reprojection error left 0\.0\d\d px", captured.out)
+    assert "rejected 99.png: the 4x11 grid was not found in the left view" in captured.err
     loaded = mp.StereoRig.load(out)
     assert abs(loaded.baseline - rig.baseline) < 0.1 and (tmp_path / "cov.png").stat().st_size > 0
+    # Every other pair: 00, 02, 04, 06 and the rejected 99.
+    assert cli.main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "--spacing", "12", "--every", "2", "--quiet"]) == 2
+    assert "found in both views of only 4 pairs" in capsys.readouterr().err
     assert cli.main(["calibrate", str(tmp_path / "L"), str(tmp_path / "R"), "--grid", "4by11"]) == 2
     assert "--grid must be COLSxROWS" in capsys.readouterr().err

@@ -49,7 +49,7 @@ def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsy
                 "--jsonl",
                 str(tmp_path / "p.jsonl"),
                 "--video",
-                str(tmp_path / "axes.mp4"),
+                str(tmp_path / "axes.webm"),
                 "--detector",
                 "classical",
                 "--quiet",
@@ -57,8 +57,17 @@ def test_track_writes_one_row_a_frame_against_the_truth(folders, tmp_path, capsy
         )
         == 0
     )
-    cap = cv2.VideoCapture(str(tmp_path / "axes.mp4"))  # both views side by side, one frame a pair
-    assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == len(truth) and int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 2 * 1280
+    cap = cv2.VideoCapture(str(tmp_path / "axes.webm"))  # both views side by side, one frame a pair, VP9 (browsers play it)
+    assert int(cap.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little") == b"VP90" and int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)) == 2 * 1280
+    frames = []
+    while True:
+        ok, img = cap.read()
+        if not ok:
+            break
+        frames.append(img)
+    assert len(frames) == len(truth)
+    red = [float(((f[20:60, 20:300, 2] > 180) & (f[20:60, 20:300, 1] < 80)).mean()) for f in frames]
+    assert all(r > 0.02 for r in red[8:]) and all(r < 0.005 for r in red[:8]), red  # the frames without the marker, marked
     assert "10 frames" in capsys.readouterr().out
     rows = list(csv.DictReader(out.open()))
     assert list(rows[0]) == CSV_HEADER and len(rows) == len(truth)

@@ -28,36 +28,54 @@ def cmd_pattern(args):
     print(f"wrote {path} ({args.paper}); print at 100% and check the 50 mm scale bar with a ruler")
 
 
-def _recorded_pairs(args) -> list:
-    """The (left, right) images of LEFT and RIGHT."""
+def _recorded_pairs(args):
+    """(name, left, right) of LEFT and RIGHT, every ``--every``-th pair, read one at a time:
+    named by the left image's file (folders) or ``frame K`` (videos). Returns (the pairs,
+    how many there will be or None)."""
     if not (args.left and args.right):
         raise ValueError("calibrate needs LEFT and RIGHT (image folders or videos), or --rendered N")
+    if args.every < 1:
+        raise ValueError(f"--every must be 1 or more, got {args.every}")
     from ..video import open_stereo
 
     stream = open_stereo(args.left, args.right)
-    try:
-        return [(a, b) for _, _, a, b in stream]
-    finally:
-        stream.close()
+    files = getattr(stream.left, "files", None)
+
+    def pairs():
+        try:
+            for k, _, a, b in stream:
+                if k % args.every == 0:
+                    yield (files[k].name if files is not None else f"frame {k}"), a, b
+        finally:
+            stream.close()
+
+    return pairs(), None if stream.count is None else -(-stream.count // args.every)
 
 
 def cmd_calibrate(args):
     from ..calibration import calibrate, plot_coverage
 
     the_grid = grid(args)
+    from tqdm import tqdm
+
     if args.rendered:
         from ..experiments.calibration_check import check, rendered_pairs
 
         truth = rig(None)
         pairs, _ = rendered_pairs(truth, the_grid, args.rendered, args.seed)
+        pairs, count = [(f"rendered {k}", a, b) for k, (a, b) in enumerate(pairs)], len(pairs)
     else:
-        pairs = _recorded_pairs(args)
-    cal = calibrate(pairs, the_grid, list(range(len(pairs))))
+        pairs, count = _recorded_pairs(args)
+    cal = calibrate(tqdm(pairs, total=count, desc="find grid", unit="pair", disable=args.quiet), the_grid)
     out = Path(args.out)
     cal.rig.save(out)
     s = cal.summary()
+    for name, why in list(cal.why_rejected.items())[:10]:
+        print(f"rejected {name}: {why}", file=sys.stderr)
+    if len(cal.why_rejected) > 10:
+        print(f"... and {len(cal.why_rejected) - 10} more pairs rejected", file=sys.stderr)
     print(
-        f"wrote {out}: {s['pairs_used']} pairs used ({len(s['pairs_rejected'])} rejected: {s['pairs_rejected'][:10]}); "
+        f"wrote {out}: {s['pairs_used']} pairs used, {len(s['pairs_rejected'])} rejected; "
         f"RMS reprojection error left {s['rms_left_px']:.3f} px, right {s['rms_right_px']:.3f} px, stereo {s['rms_stereo_px']:.3f} px; "
         f"baseline {s['baseline_mm']:.2f} mm"
     )
@@ -104,4 +122,6 @@ def register(sub) -> None:
         "--rendered", type=int, metavar="N", help="instead of LEFT RIGHT: N rendered pairs of the built-in rig, checked against it"
     )
     cb.add_argument("--seed", type=int, default=0, help="--rendered: seed of the poses and the noise")
+    cb.add_argument("--every", type=int, default=1, metavar="K", help="use every K-th pair (videos: frames near one another add little)")
+    cb.add_argument("--quiet", action="store_true", help="no progress bar")
     cb.set_defaults(func=cmd_calibrate)

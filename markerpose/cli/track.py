@@ -20,7 +20,9 @@ def _sinks(args, pose_tracker, stream) -> list:
         if args.show:
             sinks.append(ShowSink(pose_tracker.rig))
         if args.video:
-            sinks.append(VideoSink(args.video, pose_tracker.rig, stream.fps or args.fps))
+            tools = list(pose_tracker.tools) if args.tools else ()
+            notice = None if args.quiet else (lambda line: print(f"note: {line}", file=sys.stderr))
+            sinks.append(VideoSink(args.video, pose_tracker.rig, stream.fps or args.fps, notice, tools))
     except ValueError:
         stream.close()
         raise
@@ -135,7 +137,11 @@ def register(sub) -> None:
     add_rig_arg(k)
     k.add_argument("--out", default="poses.csv", help="CSV, one row a frame (default poses.csv)")
     k.add_argument("--jsonl", help="also one JSON object a frame")
-    k.add_argument("--video", help="also a video (mp4) of both views side by side with the marker's axes drawn")
+    k.add_argument(
+        "--video",
+        help="also a video of both views side by side with the marker's axes drawn, frames without it marked: "
+        ".webm (VP9, plays in browsers), .mp4 or .avi",
+    )
     k.add_argument("--show", action="store_true", help="a live window with both views and the axes (q stops; needs a display)")
     k.add_argument(
         "--fps",
