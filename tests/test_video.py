@@ -338,6 +338,42 @@ def test_igtl_port_is_its_own_option(folders, tmp_path, capsys):
     assert "--igtl-port needs --igtl" in capsys.readouterr().err
 
 
+def test_rerun_recording_of_the_tracking(folders, tmp_path):
+    """--rerun-save: a recording that rerun reads back, with both cameras, the marker's pose
+    on every frame it was found (the CSV's translation), and its pose cleared on the frames
+    without it (no stale axes)."""
+    chunk = pytest.importorskip("rerun.chunk")
+    root, truth = folders
+    rrd, out = tmp_path / "view.rrd", tmp_path / "p.csv"
+    args = ["track", str(root / "L"), str(root / "R"), "--out", str(out), "--rerun-save", str(rrd), "--rerun-images", "4", "--quiet"]
+    assert cli.main([*args, "--detector", "classical"]) == 0
+    store = chunk.RrdReader(rrd).stream().collect()
+    paths = set(store.schema().entity_paths())
+    assert {
+        "/world/left",
+        "/world/right",
+        "/world/left/image",
+        "/world/tools/marker",
+        "/world/trails/marker",
+        "/plots/marker/sd_mm",
+    } <= paths
+    poses, cleared = {}, []
+    for c in store.stream():
+        if str(c.entity_path) != "/world/tools/marker":
+            continue
+        batch = c.to_record_batch()
+        frames = batch.column("frame").to_pylist()
+        if "Transform3D:translation" in batch.schema.names:
+            for k, t in zip(frames, batch.column("Transform3D:translation").to_pylist()):
+                poses[k] = np.array(t[0])
+        if "Clear:is_recursive" in batch.schema.names:
+            cleared += frames
+    rows = list(csv.DictReader(out.open()))
+    assert sorted(poses) == [int(r["frame"]) for r in rows if r["valid"] == "1"] and sorted(cleared) == [8, 9]
+    for r in rows[:8]:
+        np.testing.assert_allclose(poses[int(r["frame"])], [float(r[k]) for k in ("x_mm", "y_mm", "z_mm")], atol=1e-3)
+
+
 def test_sigterm_stops_track_like_ctrl_c(folders, tmp_path):
     """kill -TERM: every row so far under the requested name, the summary printed, rc 130."""
     import signal

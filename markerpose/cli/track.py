@@ -19,6 +19,11 @@ def _sinks(args, pose_tracker, stream) -> list:
     try:
         if args.show:
             sinks.append(ShowSink(pose_tracker.rig))
+        if args.rerun or args.rerun_save:
+            from ..live3d import RerunSink
+
+            name = "marker" if not args.tools else None
+            sinks.append(RerunSink(pose_tracker.rig, save=args.rerun_save, image_every=args.rerun_images, name=name or "marker"))
         if args.video:
             tools = list(pose_tracker.tools) if args.tools else ()
             notice = None if args.quiet else (lambda line: print(f"note: {line}", file=sys.stderr))
@@ -83,7 +88,7 @@ def cmd_track(args):
 
     if args.reference is not None and not args.tools:
         raise ValueError("--reference needs --tools: the reference is one of the tools")
-    for path, what in ((args.out, "--out"), (args.jsonl, "--jsonl"), (args.video, "--video")):
+    for path, what in ((args.out, "--out"), (args.jsonl, "--jsonl"), (args.video, "--video"), (args.rerun_save, "--rerun-save")):
         if path is not None:
             check_output(path, what)
     pose_tracker = tracker(args)
@@ -141,6 +146,13 @@ def register(sub) -> None:
         "--video",
         help="also a video of both views side by side with the marker's axes drawn, frames without it marked: "
         ".webm (VP9, plays in browsers), .mp4 or .avi",
+    )
+    k.add_argument(
+        "--rerun", action="store_true", help="a live 3D view in rerun: the cameras, each tool's pose and path, the images (the rerun extra)"
+    )
+    k.add_argument("--rerun-save", metavar="FILE.rrd", help="the same view saved as a rerun recording (open it with: rerun FILE.rrd)")
+    k.add_argument(
+        "--rerun-images", type=int, default=1, metavar="K", help="--rerun: log the images every K-th frame (0: never; default 1)"
     )
     k.add_argument("--show", action="store_true", help="a live window with both views and the axes (q stops; needs a display)")
     k.add_argument(
