@@ -24,6 +24,12 @@ def _plotted(names) -> list:
     return shown or list(names)
 
 
+def _dodge(k: int, n: int, width: float = 0.36) -> float:
+    """The x shift of series ``k`` of ``n`` drawn at the same x: side by side, so that a series
+    equal to another is not hidden under it."""
+    return 0.0 if n < 2 else (k / (n - 1) - 0.5) * width
+
+
 def legend_below(fig, ax, ncol: int = 5):
     """One legend for the figure, under the panels, covering no data: the handles and
     labels of ``ax``, in ``ncol`` columns; the panels are laid out above it."""
@@ -39,10 +45,11 @@ def plot_displacement(results: dict, step: float, path: Path) -> Path:
     for c, ax in enumerate(axes):
         for k, name in enumerate(names):
             m = np.asarray(results[name]["displacement"]["measured"], float)
-            ax.plot(np.arange(1, len(m) + 1), m[:, c], marker=_MARKERS[k % 5], ms=4, lw=1, label=name, zorder=3 + len(names) - k)
+            x = np.arange(1, len(m) + 1) + _dodge(k, len(names))
+            ax.plot(x, m[:, c], marker=_MARKERS[k % 5], ms=4, lw=1, label=name, zorder=3 + len(names) - k)
         ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g} mm")
         ax.set_title(f"centre c{c}")
-        ax.set_xlabel("pair of consecutive frames")
+        ax.set_xlabel("pair of consecutive frames (series side by side)")
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("estimated displacement (mm)")
@@ -59,9 +66,10 @@ def plot_rotation(results: dict, step: float, path: Path) -> Path:
     names = _plotted(results)
     for k, name in enumerate(names):  # the first (the default) drawn on top
         a = np.asarray(results[name]["rotation"]["measured"], float)
-        ax.plot(np.arange(1, len(a) + 1), a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name, zorder=3 + len(names) - k)
+        x = np.arange(1, len(a) + 1) + _dodge(k, len(names))
+        ax.plot(x, a, marker=_MARKERS[k % 5], ms=5, lw=1, label=name, zorder=3 + len(names) - k)
     ax.axhline(step, color="k", ls="--", lw=1, label=f"reference {step:g}°")
-    ax.set_xlabel("pair of consecutive frames")
+    ax.set_xlabel("pair of consecutive frames (series side by side)")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_ylabel("estimated rotation (°)")
     ax.set_title("Rotation experiment (5° steps)")
