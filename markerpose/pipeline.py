@@ -26,6 +26,8 @@ from collections.abc import Iterator, Sequence
 from contextlib import closing, contextmanager
 from pathlib import Path
 
+import numpy as np
+
 from . import detectors, presets
 from .camera import StereoRig
 from .frame import Frame
@@ -35,6 +37,7 @@ from .marker import Marker
 from .results import Detection, Estimate
 from .rigcheck import RigCheck
 from .stages import refine, solve, track, verify
+from .sync import Motion, check_times, right_at_left_time
 from .tools import check_tools
 
 
@@ -105,9 +108,11 @@ class ToolPipeline:
         """A detection that looks only near a tracker's predicted pose ``T_pred`` first."""
         return self._first(frame, self.detector.near(frame, T_pred))
 
-    def fitted(self, frame: Frame, predicted: list, first_tol: float, noises: list | None = None) -> Estimate | None:
+    def fitted(self, frame: Frame, predicted: list, first_tol: float, noises: list | None = None, motion: Motion | None = None):
         """Per view, the rings' edges fitted from ``predicted`` ellipses (a tracker's),
-        verified and solved (``source`` "tracked"), or None."""
+        verified and solved (``source`` "tracked"), or None. With ``motion`` (the pair's
+        capture times and the motion before, :func:`markerpose.sync.motion`), the right view
+        is moved to the left view's time before the verification and the solve."""
         found = frame.prefitted(self.name, predicted)
         if found is None:
             found = frame.timed(
@@ -115,9 +120,25 @@ class ToolPipeline:
             )
         if any(det is None for det in found):
             return None
-        if frame.timed("verify", verify.rejection, self.rig, found, self.marker, self.conf["verify"], True) is not None:
+        checked = found if motion is None else [found[0], right_at_left_time(found[1], motion)]
+        if frame.timed("verify", verify.rejection, self.rig, checked, self.marker, self.conf["verify"], True) is not None:
             return None
-        return self._solved(frame, found, "tracked")
+        est = self._solved(frame, checked, "tracked")
+        if est is not None and motion is not None:
+            est.right_measured = np.asarray(found[1].centers, np.float64)
+        return est
+
+    def moved(self, frame: Frame, est: Estimate, motion: Motion | None) -> Estimate | None:
+        """``est`` (a cold detection) solved again with its right view moved to the left
+        view's time (``motion``, :func:`markerpose.sync.right_at_left_time`); ``est`` where
+        there is no motion, or where the moved pair fails the shape check."""
+        if est is None or motion is None:
+            return est
+        moved = self._solved(frame, [est.detections[0], right_at_left_time(est.detections[1], motion)], est.source)
+        if moved is None:
+            return est
+        moved.right_measured = np.asarray(est.detections[1].centers, np.float64)
+        return moved
 
     def claim(self, frame: Frame, est: Estimate) -> None:
         """Claim, in ``frame``, the rings of this tool's pose ``est``: their fitted outer
@@ -291,8 +312,13 @@ class MarkerPose:
             frame.why = None if est is not None else (frame.why or "no marker found")
             return est
 
-    def track(self, left, right) -> Estimate | None:
+    def track(self, left, right, times=None) -> Estimate | None:
         """Pose of the marker in the next pair of a video stream, or None.
+
+        ``times``: the two views' capture times (t_left, t_right) in seconds, for cameras
+        that are not synchronised: the pose is then the marker's at ``t_left``, the right
+        view's later (or earlier) exposure compensated with the motion since the last pose
+        (:mod:`markerpose.sync`); None (the default): the views are taken as simultaneous.
 
         Uses the previous frames as the prior (:class:`~markerpose.stages.track.Tracker`):
         the rings predicted from the last poses are refitted on the image's edges in both
@@ -307,8 +333,9 @@ class MarkerPose:
         :meth:`reset` between sequences.
         """
         tool = self._one("track")
+        times = None if times is None else check_times(times)
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self._checked(tool.tracker.next(frame, tool), tool)
+            return self._checked(tool.tracker.next(frame, tool, times=times), tool)
 
     def estimate_all(self, left, right) -> dict[str, Estimate]:
         """Each tool's pose from a stereo pair, detected from scratch: ``{name: Estimate}``
@@ -318,16 +345,20 @@ class MarkerPose:
         with self._call(gray_pair(left, right, self.rig)) as frame:
             return self._each(frame, lambda tool, sub: tool.cold(sub), list(self.tools.values()))
 
-    def track_all(self, left, right) -> dict[str, Estimate]:
+    def track_all(self, left, right, times=None) -> dict[str, Estimate]:
         """Each tool's pose in the next pair of a video stream: ``{name: Estimate}`` of the
         tools found. Each tool has its own tracker (as :meth:`track` has): the tools
         with a prior are fitted first, then those without are detected cold, with stage 1
-        looking once for all of them. Call :meth:`reset` between sequences."""
+        looking once for all of them. ``times``: as :meth:`track`'s. Call :meth:`reset`
+        between sequences."""
+        times = None if times is None else check_times(times)
         tools = sorted(self.tools.values(), key=lambda t: not t.tracker.history)  # tracked tools claim their rings first
         with self._call(gray_pair(left, right, self.rig)) as frame:
             expected = {t.name: t.tracker.expected(frame) for t in tools if t.tracker.history}
             self._fit_together(frame, expected)
-            found = self._each(frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET)), tools)
+            found = self._each(
+                frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET), times=times), tools
+            )
         return {name: self._checked(est, self.tools[name]) for name, est in found.items()}
 
     def _checked(self, est: Estimate | None, tool: ToolPipeline) -> Estimate | None:

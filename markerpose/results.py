@@ -74,6 +74,9 @@ class Estimate:
     detections: tuple = field(default=(), repr=False)
     residual_px: float | None = None
     source: str = "detected"
+    # (3, 2) the right view's centres as measured where ``track(..., times=...)`` moved them
+    # to the left view's time (``detections[1]`` holds the moved ones); None otherwise.
+    right_measured: np.ndarray | None = field(default=None, repr=False, compare=False)
     _context: tuple | None = field(default=None, repr=False, compare=False)  # (rig, model, pose method) for cov
     rig_warning: str | None = field(default=None, repr=False, compare=False)
 

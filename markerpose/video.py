@@ -148,6 +148,8 @@ class StereoStream:
         self.realtime = bool(realtime) and not self.live
         self.start_unix: float | None = None
         self.grab_offsets: list[float] = []
+        self.right_t: float | None = None  # the last pair's right view's time on the stream's clock (its grab, for cameras)
+        self.cameras = self.live and getattr(self.right, "live", False)  # two cameras, grabbed as a pair
 
     def unix(self, t: float) -> float | None:
         """The wall-clock time (seconds since the epoch) of stream time ``t``."""
@@ -155,11 +157,12 @@ class StereoStream:
 
     def __iter__(self):
         t0, self.start_unix = time.perf_counter(), time.time()
-        pair = getattr(self.right, "live", False) and self.live
+        pair = self.cameras
         frames = self._grabbed(t0) if pair else zip(self.left.frames(), self.right.frames())
         paced = None  # the replay's clock starts with its first frame, once read
-        for k, ((tl, a), (_, b)) in enumerate(frames):
+        for k, ((tl, a), (tr, b)) in enumerate(frames):
             t = tl if tl is not None else (k / self.fps if self.fps else float(k))
+            self.right_t = tr if pair else t
             if self.realtime:
                 paced = time.perf_counter() - t if paced is None else paced
                 wait = paced + t - time.perf_counter()
@@ -607,19 +610,37 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
     }
 
 
+def _times(stream: StereoStream, t: float, right_delay: float | None) -> tuple | None:
+    """The pair's capture times for ``track(..., times=)``: the left view's ``t`` and the
+    right view's (its grab, for two cameras) plus ``right_delay`` s; None for recordings
+    without a delay."""
+    if right_delay is None and not stream.cameras:
+        return None
+    return (t, (stream.right_t if stream.right_t is not None else t) + (right_delay or 0.0))
+
+
 def track_stream(
-    tracker, stream: StereoStream, out_csv: str | Path, jsonl: str | Path | None = None, progress: bool = True, send=None, sinks: tuple = ()
+    tracker,
+    stream: StereoStream,
+    out_csv: str | Path,
+    jsonl: str | Path | None = None,
+    progress: bool = True,
+    send=None,
+    sinks: tuple = (),
+    right_delay: float | None = None,
 ) -> dict:
     """Track every pair of ``stream``; one CSV row a frame into ``out_csv`` (and, with
     ``jsonl``, one JSON object a frame; with ``send``, ``send(k, timestamp_unix, est)`` after each,
     e.g. a :class:`markerpose.igtl.IGTLSender`; each of ``sinks`` gets ``(k, t, left, right, est)``, e.g.
-    a :class:`VideoSink` or :class:`ShowSink`). Returns the summary: frames, found share, tracked
-    share, frames per second, longest run of frames without a pose."""
+    a :class:`VideoSink` or :class:`ShowSink`). ``right_delay``: the right view's exposure after
+    the left's, s (``markerpose sync`` measures it): each pose is then the marker's at the left
+    view's time (:meth:`~markerpose.MarkerPose.track`'s ``times``). Returns the summary: frames,
+    found share, tracked share, frames per second, longest run of frames without a pose."""
     c = {"n": 0, "found": 0, "tracked": 0, "gap": 0, "longest": 0}
     tip = tracker.marker.tip
 
     def step(k, t, left, right, out):
-        est = tracker.track(left, right)
+        est = tracker.track(left, right, times=_times(stream, t, right_delay))
         unix = stream.unix(t)
         out.rows([pose_row(k, t, est, tip, unix)])
         if send is not None:
@@ -657,6 +678,7 @@ def track_tools_stream(
     reference: str | None = None,
     send=None,
     sinks: tuple = (),
+    right_delay: float | None = None,
 ) -> dict:
     """Track every tool of ``tracker`` (a MarkerPose of several tools, ``markers=``)
     through ``stream`` with :meth:`~markerpose.MarkerPose.track_all`: one CSV row a frame
@@ -665,8 +687,8 @@ def track_tools_stream(
     (``{"frame", "timestamp_s", "tools": {name: {"valid", "relative_to", "T",
     "residual_px", "source", "why"}}}``); with ``send``, ``send(k, timestamp_unix, reports)`` after
     each (e.g. a :class:`markerpose.igtl.IGTLToolsSender`); each of ``sinks`` gets ``(k, t, left, right,
-    found)``, ``found`` the ``{name: Estimate}`` in the camera's frame. Outputs are
-    written as :func:`track_stream` writes them.
+    found)``, ``found`` the ``{name: Estimate}`` in the camera's frame; ``right_delay`` as
+    :func:`track_stream`'s. Outputs are written as :func:`track_stream` writes them.
 
     Returns:
         frames, frames per second, stopped, csv, reference, and ``tools``: per tool its
@@ -683,7 +705,7 @@ def track_tools_stream(
     tips = tips if any(v is not None for v in tips.values()) else None
 
     def step(k, t, left, right, out):
-        found = tracker.track_all(left, right)
+        found = tracker.track_all(left, right, times=_times(stream, t, right_delay))
         reports = tool_reports(found, names, reference, tracker.whys)
         unix = stream.unix(t)
         out.rows([tools_row(k, t, r, tips, unix) for r in reports])

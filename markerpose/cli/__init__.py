@@ -26,6 +26,7 @@ from . import (
     peers,
     pivot,
     render,
+    sync,
     tools,
     track,
     train,
@@ -34,7 +35,24 @@ from . import (
 from .common import EXIT_BAD_INPUT, EXIT_NOT_FOUND
 
 # The commands in the order ``markerpose --help`` lists them (calibrate adds pattern too).
-COMMANDS = (demo, marker, tools, render, estimate, calibrate, track, pivot, handeye, peers, ultrasound, bench, experiments, train, evaluate)
+COMMANDS = (
+    demo,
+    marker,
+    tools,
+    render,
+    estimate,
+    calibrate,
+    track,
+    sync,
+    pivot,
+    handeye,
+    peers,
+    ultrasound,
+    bench,
+    experiments,
+    train,
+    evaluate,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

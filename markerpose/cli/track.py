@@ -99,16 +99,29 @@ def cmd_track(args):
         raise ValueError("--igtl-port needs --igtl")
     if args.igtl and args.igtl_port is None:
         args.igtl_port = DEFAULT_PORT
+    delay = None if args.right_delay is None else args.right_delay / 1000.0
+    if delay is not None and not abs(delay) <= 1.0:
+        raise ValueError(f"--right-delay is in milliseconds, within ±1000, got {args.right_delay}")
     stream = open_stereo(args.left, args.right, args.fps, realtime=args.realtime)
     sinks = _sinks(args, pose_tracker, stream)
     send = _sender(args, stream, names)
     _stop_on_sigterm()
     try:
         if names is None:
-            s = track_stream(pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks))
+            s = track_stream(
+                pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, send=send, sinks=tuple(sinks), right_delay=delay
+            )
         else:
             s = track_tools_stream(
-                pose_tracker, stream, args.out, args.jsonl, progress=not args.quiet, reference=args.reference, send=send, sinks=tuple(sinks)
+                pose_tracker,
+                stream,
+                args.out,
+                args.jsonl,
+                progress=not args.quiet,
+                reference=args.reference,
+                send=send,
+                sinks=tuple(sinks),
+                right_delay=delay,
             )
     finally:
         if send is not None:
@@ -169,6 +182,12 @@ def register(sub) -> None:
         "to any number of clients (the igtl extra)",
     )
     k.add_argument("--igtl-port", type=port, metavar="PORT", help=f"the OpenIGTLink port (default {DEFAULT_PORT})")
+    k.add_argument(
+        "--right-delay",
+        type=float,
+        metavar="MS",
+        help="the right camera's exposure after the left's, ms (markerpose sync measures it): poses at the left view's time",
+    )
     k.add_argument(
         "--realtime",
         action="store_true",

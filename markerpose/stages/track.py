@@ -25,6 +25,7 @@ import numpy as np
 from .. import settings
 from ..geometry import ring_ellipses
 from ..settings import number
+from ..sync import motion
 
 default_conf = {
     "max_residual_px": 0.5,  # quality gate: RMS reprojection error of the six centres, px
@@ -261,8 +262,11 @@ class Tracker:
     lost, the pair the next ones must differ from to be detected again. :meth:`next`
     runs the steps the module's docstring describes; the refinement, the verification
     and the detections are the pipeline's (``pipeline``: an object with
-    ``fitted(frame, predicted, first_tol, noises)``, ``near(frame, T_pred)`` and
-    ``cold(frame)``, each an Estimate or None, as :class:`markerpose.MarkerPose` has).
+    ``fitted(frame, predicted, first_tol, noises)``, ``near(frame, T_pred)``,
+    ``cold(frame)``, each an Estimate or None, as :class:`markerpose.pipeline.ToolPipeline`
+    has; ``fitted`` also takes a :class:`markerpose.sync.Motion`). Given each pair's
+    capture times, the fits from the prior move the right view to the left view's time
+    (:mod:`markerpose.sync`); a cold detection does not.
 
     Args:
         conf: :data:`default_conf` with overrides.
@@ -277,14 +281,18 @@ class Tracker:
     def reset(self) -> None:
         """Forget the prior: the next pair is detected cold (a new sequence)."""
         self.history: list = []  # the last poses found, oldest first (at most three)
+        self.right_prev, self.t_right_prev = [], []  # the last pairs' right-view centres as measured, and their times
+        self.motion = None  # the current pair's (markerpose.sync.Motion), or None
         self.noise: tuple = (None, 0)  # both views' noise sigmas, pairs with a prior since
         self.after_miss = False  # the last pose was found after the prior failed
         self.lost: tuple | None = None  # lost: (block means of the last pair detected cold, pairs skipped since)
 
-    def next(self, frame, pipeline, expected=UNSET):
+    def next(self, frame, pipeline, expected=UNSET, times: tuple | None = None):
         """The marker's pose in the frame's pair (an Estimate), or None; the state moves on.
-        ``expected``: what :meth:`expected` gave for this pair, where it was called first."""
+        ``expected``: what :meth:`expected` gave for this pair, where it was called first;
+        ``times``: the views' capture times (t_left, t_right), s, or None (synchronised)."""
         c, grays = self.conf, frame.grays
+        self.motion = motion(self.right_prev, self.t_right_prev, times)  # the fits of this pair move the right view with it
         now = None
         if not self.history and self.lost is not None and c["lost_change"]:
             now = [blocks(g, c["lost_block"]) for g in grays]
@@ -308,12 +316,19 @@ class Tracker:
                 if est is None and self.after_miss:  # where the search could not look: standing still
                     est = self._fit(frame, pipeline, self.predicted(grays, T_near), c["one_pass_move"])
                 if est is None:
-                    est = pipeline.near(frame, T_near)
+                    est = pipeline.moved(frame, pipeline.near(frame, T_near), self.motion)
             history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
             if est is None:
                 frame.why = None  # neither the prior's nor the near look's failure is why the frame has no pose
-                est = pipeline.cold(frame)
+                est = pipeline.moved(frame, pipeline.cold(frame), self.motion)
             frame.why = None if est is not None else (frame.why or "no marker found")
+        if est is not None and times is not None:
+            seen = est.right_measured if est.right_measured is not None else est.detections[1].centers
+            # The last pair's with this one's: not across a jump the prior missed.
+            before, t_before = ([], []) if after_miss else (self.right_prev[-1:], self.t_right_prev[-1:])
+            self.right_prev, self.t_right_prev = [*before, seen], [*t_before, times[1]]
+        else:
+            self.right_prev, self.t_right_prev = [], []
         self.history = [*history, est.T][-3:] if est is not None else []
         if est is None:
             self.noise = (None, 0)  # lost: estimated afresh once the marker is found again
@@ -346,7 +361,7 @@ class Tracker:
         """The pipeline's fit of ``predicted`` ellipses, gated on the reprojection error."""
         if predicted is None:
             return None
-        est = pipeline.fitted(frame, predicted, first_tol, self.noise[0])
+        est = pipeline.fitted(frame, predicted, first_tol, self.noise[0], self.motion)
         return est if est is not None and est.residual_px <= self.conf["max_residual_px"] else None
 
     def predicted(self, grays: list, T_pred: np.ndarray) -> list | None:
