@@ -335,7 +335,7 @@ class MarkerPose:
         tool = self._one("track")
         times = None if times is None else check_times(times)
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self._checked(tool.tracker.next(frame, tool, times=times), tool)
+            return self._checked(tool.tracker.next(frame, tool, times=times), tool, times)
 
     def estimate_all(self, left, right) -> dict[str, Estimate]:
         """Each tool's pose from a stereo pair, detected from scratch: ``{name: Estimate}``
@@ -359,13 +359,19 @@ class MarkerPose:
             found = self._each(
                 frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET), times=times), tools
             )
-        return {name: self._checked(est, self.tools[name]) for name, est in found.items()}
+        return {name: self._checked(est, self.tools[name], times) for name, est in found.items()}
 
-    def _checked(self, est: Estimate | None, tool: ToolPipeline) -> Estimate | None:
+    def _checked(self, est: Estimate | None, tool: ToolPipeline, times: tuple | None = None) -> Estimate | None:
         """``est`` fed to the rig check (:mod:`markerpose.rigcheck`); once that has fired, the
-        pose carries its reason (``rig_warning``, status "rig changed")."""
-        if est is not None:
-            est.rig_warning = self.rig_check.update(est, tool.marker.points3d)
+        pose carries its reason (``rig_warning``, status "rig changed"). A pair exposed apart
+        and not compensated (the first found, without the pairs before it) is not fed: its
+        views disagree by the motion within the delay, as a moved camera's would."""
+        if est is None:
+            return est
+        if times is not None and times[0] != times[1] and est.right_measured is None:
+            est.rig_warning = self.rig_check.fired
+            return est
+        est.rig_warning = self.rig_check.update(est, tool.marker.points3d)
         return est
 
     def _fit_together(self, frame: Frame, expected: dict) -> None:

@@ -15,11 +15,14 @@ first pair after the marker was found is not compensated. Exact for a steady ima
 acceleration.
 
 **Estimating the delay** (:func:`estimate_delay`, ``markerpose sync``): over a recording of
-the marker moving, each right-view centre is moved back by its own image velocity times a
-trial delay (the velocities from the neighbouring frames' centres); the delay that makes the
-pairs most consistent (the least RMS reprojection error of the rigid fits, which sees both
-the epipolar error and the change of the marker's shape) is found by a one-dimensional search,
-and its standard error from the curvature of the residuals at the minimum.
+the marker moving, each pair's right view is taken a trial delay after its left; the delay
+that makes the pairs most consistent (the least RMS reprojection error of the rigid fits,
+which sees both the epipolar error and the change of the marker's shape) is found by a
+one-dimensional search, and its standard error from the curvature of the residuals at the
+minimum. Each right-view centre is read at its left view's time off the parabola through
+its positions in that pair and its two nearest neighbours (at a run's end, both on one
+side), each at its own trial time. A delay error moves the pose mostly in depth (about z / baseline times the
+marker's motion within the error): a longer recording measures it better.
 """
 
 from __future__ import annotations
@@ -93,31 +96,53 @@ def right_at_left_time(det_r, m: Motion):
     return replace(det_r, centers=at, ellipses=ellipses)
 
 
-def _velocities(times: np.ndarray, centers: np.ndarray, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame, the image velocity (px/s) of each centre (N, 3, 2) from its neighbours'
-    (central differences; one-sided at a run's ends), and where there is one."""
-    n = len(times)
-    vel, has = np.zeros_like(centers), np.zeros(n, bool)
+def _neighbours(ok: np.ndarray) -> list:
+    """Per pair, the three pairs of its run (itself and its nearest found neighbours: one on
+    each side, or two on one side at a run's end; two where the run has two) whose right
+    views give its centres' path, or None alone."""
+    n, out = len(ok), []
     for k in range(n):
         if not ok[k]:
+            out.append(None)
             continue
-        a = k - 1 if k > 0 and ok[k - 1] else k
-        b = k + 1 if k + 1 < n and ok[k + 1] else k
-        if b > a and times[b] > times[a]:
-            vel[k] = (centers[b] - centers[a]) / (times[b] - times[a])
-            has[k] = True
-    return vel, has
+        lo = hi = k
+        while lo > 0 and ok[lo - 1] and k - lo < 2:
+            lo -= 1
+        while hi < n - 1 and ok[hi + 1] and hi - k < 2:
+            hi += 1
+        run = list(range(lo, hi + 1))
+        if len(run) < 2:
+            out.append(None)
+            continue
+        i = run.index(k)
+        start = min(max(i - 1, 0), max(len(run) - 3, 0))
+        out.append(run[start : start + 3])
+    return out
 
 
-def delay_residuals(rig, marker, lefts: np.ndarray, rights: np.ndarray, vel: np.ndarray, delay: float, solve_conf: dict) -> np.ndarray:
-    """(N,) the RMS reprojection error (px) of each pair's rigid fit when its right-view
-    centres are moved back by ``delay`` seconds along their image velocities ``vel``."""
+def _lagrange(ts, cs, t: float) -> np.ndarray:
+    """The polynomial through the points (ts[i], cs[i]) read at ``t``."""
+    out = np.zeros_like(cs[0])
+    for i, (ti, ci) in enumerate(zip(ts, cs)):
+        w = 1.0
+        for j, tj in enumerate(ts):
+            if j != i:
+                w *= (t - tj) / (ti - tj)
+        out = out + w * ci
+    return out
+
+
+def delay_residuals(rig, marker, times, lefts, rights, paths: list, delay: float, solve_conf: dict) -> np.ndarray:
+    """(N,) the RMS reprojection error (px) of each pair's rigid fit when its right view is
+    taken ``delay`` seconds after its left: each right-view centre read at the left view's
+    time off its path through the pairs ``paths[k]`` (:func:`_neighbours`) of the run."""
     from .results import Detection
     from .stages.solve import solve
 
-    out = np.empty(len(lefts))
-    for k, (cl, cr, v) in enumerate(zip(lefts, rights, vel)):
-        out[k] = solve(rig, marker, Detection(cl), Detection(cr - v * delay), solve_conf).residual_px
+    out = np.empty(len(paths))
+    for i, (k, idx) in enumerate(paths):
+        moved = _lagrange([times[j] + delay for j in idx], [rights[j] for j in idx], times[k])
+        out[i] = solve(rig, marker, Detection(lefts[k]), Detection(moved), solve_conf).residual_px
     return out
 
 
@@ -141,14 +166,13 @@ def estimate_delay(rig, marker, times, lefts, rights, max_delay: float = 0.1, so
     times = np.asarray(times, np.float64)
     lefts, rights = np.asarray(lefts, np.float64), np.asarray(rights, np.float64)
     ok = np.isfinite(lefts).all(axis=(1, 2)) & np.isfinite(rights).all(axis=(1, 2))
-    vel, has = _velocities(times, rights, ok)
-    use = ok & has
-    if use.sum() < 5:
-        raise ValueError(f"the marker was found moving in only {int(use.sum())} pairs; at least 5 are needed")
-    L, R, V = lefts[use], rights[use], vel[use]
+    paths = [(k, idx) for k, idx in enumerate(_neighbours(ok)) if idx is not None]
+    if len(paths) < 5:
+        raise ValueError(f"the marker was found moving in only {len(paths)} pairs; at least 5 are needed")
+    V = np.array([(rights[idx[-1]] - rights[idx[0]]) / (times[idx[-1]] - times[idx[0]]) for _, idx in paths])
 
     def cost(d: float) -> float:
-        return float(np.sum(delay_residuals(rig, marker, L, R, V, d, conf) ** 2))
+        return float(np.sum(delay_residuals(rig, marker, times, lefts, rights, paths, d, conf) ** 2))
 
     # A coarse grid (the cost may have shallow side minima far out), then golden section.
     grid = np.linspace(-max_delay, max_delay, 41)
@@ -173,7 +197,7 @@ def estimate_delay(rig, marker, times, lefts, rights, max_delay: float = 0.1, so
     h = max(1e-4, 0.02 * max_delay)
     s0, sp, sm = cost(d0), cost(d0 + h), cost(d0 - h)
     curv = (sp + sm - 2 * s0) / (h * h) / 2
-    n = int(use.sum())
+    n = len(paths)
     # The cost sums each pair's mean square over its 6 centres: the sum of squares is 6 x cost,
     # over 12 n coordinates with 6 n + 1 parameters (each pair's pose, the delay).
     sd = float(np.sqrt(s0 / (max(6 * n - 1, 1) * curv))) if curv > 0 else float("inf")

@@ -610,7 +610,7 @@ def _run(tracker, stream: StereoStream, out_csv: str | Path, jsonl, header: list
     }
 
 
-def _times(stream: StereoStream, t: float, right_delay: float | None) -> tuple | None:
+def _capture_times(stream: StereoStream, t: float, right_delay: float | None) -> tuple | None:
     """The pair's capture times for ``track(..., times=)``: the left view's ``t`` and the
     right view's (its grab, for two cameras) plus ``right_delay`` s; None for recordings
     without a delay."""
@@ -640,7 +640,7 @@ def track_stream(
     tip = tracker.marker.tip
 
     def step(k, t, left, right, out):
-        est = tracker.track(left, right, times=_times(stream, t, right_delay))
+        est = tracker.track(left, right, times=_capture_times(stream, t, right_delay))
         unix = stream.unix(t)
         out.rows([pose_row(k, t, est, tip, unix)])
         if send is not None:
@@ -705,7 +705,7 @@ def track_tools_stream(
     tips = tips if any(v is not None for v in tips.values()) else None
 
     def step(k, t, left, right, out):
-        found = tracker.track_all(left, right, times=_times(stream, t, right_delay))
+        found = tracker.track_all(left, right, times=_capture_times(stream, t, right_delay))
         reports = tool_reports(found, names, reference, tracker.whys)
         unix = stream.unix(t)
         out.rows([tools_row(k, t, r, tips, unix) for r in reports])

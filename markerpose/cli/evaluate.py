@@ -178,6 +178,7 @@ cmd_eval_uncertainty = _experiment("uncertainty", ("pairs", "model_pairs"))
 cmd_eval_pivot = _experiment("pivot", ("trials", "frames"))
 cmd_eval_handeye = _experiment("handeye", ("trials",))
 cmd_eval_rigcheck = _experiment("rigcheck", ("stable", "before", "after"))
+cmd_eval_sync = _experiment("sync", ("frames",))
 
 
 def _eval_args(p, what: str):
@@ -272,6 +273,13 @@ def _register_pipeline(esub) -> None:
     er.add_argument("--out", default="markerpose-rigcheck", help="output folder: report.md, results.json")
     er.add_argument("--quiet", action="store_true")
     er.set_defaults(func=cmd_eval_rigcheck)
+    es = esub.add_parser(
+        "sync", help="cameras not synchronised: a rendered hand-held video with the right view 0-33 ms late, compensated and not"
+    )
+    es.add_argument("--frames", type=positive_int, default=90, help="frames per delay, at 30 frames/s (default 90)")
+    es.add_argument("--out", default="markerpose-sync", help="output folder: report.md, results.json")
+    es.add_argument("--quiet", action="store_true")
+    es.set_defaults(func=cmd_eval_sync)
 
 
 def register(sub) -> None:

@@ -324,9 +324,11 @@ class Tracker:
             frame.why = None if est is not None else (frame.why or "no marker found")
         if est is not None and times is not None:
             seen = est.right_measured if est.right_measured is not None else est.detections[1].centers
-            # The last pair's with this one's: not across a jump the prior missed.
-            before, t_before = ([], []) if after_miss else (self.right_prev[-1:], self.t_right_prev[-1:])
-            self.right_prev, self.t_right_prev = [*before, seen], [*t_before, times[1]]
+            # The last pair's with this one's (consecutive pairs: a pair without the marker
+            # resets them). Also after a failed prior: the first pose found under a delay is
+            # not compensated, and its bias makes the next pairs' priors fail where the image
+            # paths are sound.
+            self.right_prev, self.t_right_prev = [*self.right_prev[-1:], seen], [*self.t_right_prev[-1:], times[1]]
         else:
             self.right_prev, self.t_right_prev = [], []
         self.history = [*history, est.T][-3:] if est is not None else []
