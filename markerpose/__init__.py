@@ -6,7 +6,7 @@ from .pipeline import MarkerPose
 from .presets import PRESETS
 from .results import Detection, Estimate, relative_covariances, relative_poses
 
-__version__ = "0.34.0"
+__version__ = "0.35.0"
 __all__ = [
     "Camera",
     "StereoRig",
