@@ -264,7 +264,8 @@ class Tracker:
     and the detections are the pipeline's (``pipeline``: an object with
     ``fitted(frame, predicted, first_tol, noises)``, ``near(frame, T_pred)``,
     ``cold(frame)``, each an Estimate or None, as :class:`markerpose.pipeline.ToolPipeline`
-    has; ``fitted`` also takes a :class:`markerpose.sync.Motion`). Given each pair's
+    has; with capture times, ``fitted`` also takes a :class:`markerpose.sync.Motion` and
+    ``moved(frame, est, motion)`` moves a detection's right view). Given each pair's
     capture times, the fits from the prior move the right view to the left view's time
     (:mod:`markerpose.sync`); a cold detection does not.
 
@@ -316,11 +317,11 @@ class Tracker:
                 if est is None and self.after_miss:  # where the search could not look: standing still
                     est = self._fit(frame, pipeline, self.predicted(grays, T_near), c["one_pass_move"])
                 if est is None:
-                    est = pipeline.moved(frame, pipeline.near(frame, T_near), self.motion)
+                    est = self._moved(frame, pipeline, pipeline.near(frame, T_near))
             history = history[-1:]  # the prior's acceleration did not hold: velocity only, from here
             if est is None:
                 frame.why = None  # neither the prior's nor the near look's failure is why the frame has no pose
-                est = pipeline.moved(frame, pipeline.cold(frame), self.motion)
+                est = self._moved(frame, pipeline, pipeline.cold(frame))
             frame.why = None if est is not None else (frame.why or "no marker found")
         if est is not None and times is not None:
             seen = est.right_measured if est.right_measured is not None else est.detections[1].centers
@@ -359,11 +360,18 @@ class Tracker:
         self.noise = (noises, age + 1)
         return self.predicted(frame.grays, predict(self.history))
 
+    def _moved(self, frame, pipeline, est):
+        """A detection's right view moved to the left view's time, where the pair has times."""
+        return est if self.motion is None or est is None else pipeline.moved(frame, est, self.motion)
+
     def _fit(self, frame, pipeline, predicted: list | None, first_tol: float):
         """The pipeline's fit of ``predicted`` ellipses, gated on the reprojection error."""
         if predicted is None:
             return None
-        est = pipeline.fitted(frame, predicted, first_tol, self.noise[0], self.motion)
+        if self.motion is None:  # (a pipeline for synchronised views need not take motion)
+            est = pipeline.fitted(frame, predicted, first_tol, self.noise[0])
+        else:
+            est = pipeline.fitted(frame, predicted, first_tol, self.noise[0], self.motion)
         return est if est is not None and est.residual_px <= self.conf["max_residual_px"] else None
 
     def predicted(self, grays: list, T_pred: np.ndarray) -> list | None:
