@@ -402,3 +402,44 @@ def test_sigterm_stops_track_like_ctrl_c(folders, tmp_path):
     assert stdout.startswith("stopped: ") and "Traceback" not in stderr, (stdout, stderr)
     rows = list(csv.DictReader(out.open()))
     assert 0 < len(rows) < 2000 and not list(tmp_path.glob("*.partial"))
+
+
+def test_two_cameras_are_grabbed_as_a_pair(monkeypatch):
+    """Two live cameras: both grabbed, then both decoded; each frame stamped at its grab, the
+    right view's time kept for track(times=...), the grab offsets for the summary."""
+    from markerpose import video
+
+    calls = []
+
+    class Cap:
+        def __init__(self, name):
+            self.name, self.n = name, 0
+
+        def grab(self):
+            calls.append(("grab", self.name))
+            self.n += 1
+            return self.n <= 3
+
+        def retrieve(self):
+            calls.append(("retrieve", self.name))
+            return True, np.full((8, 8), self.n, np.uint8)
+
+    class Camera:
+        def __init__(self, name):
+            self.cap, self.name, self.live, self.count, self.fps = Cap(name), name, True, None, None
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(video, "_source", lambda spec: Camera(spec))
+    stream = video.open_stereo("0", "1")
+    assert stream.cameras
+    seen = []
+    for _k, t, a, b in stream:
+        seen.append((t, stream.right_t, int(a[0, 0]), int(b[0, 0])))
+        times = video._capture_times(stream, t, None)
+        assert times == (t, stream.right_t) and stream.right_t >= t
+        assert video._capture_times(stream, t, 0.01) == (t, stream.right_t + 0.01)
+    assert [s[2:] for s in seen] == [(1, 1), (2, 2), (3, 3)]
+    assert calls[:4] == [("grab", "0"), ("grab", "1"), ("retrieve", "0"), ("retrieve", "1")]
+    assert len(stream.grab_offsets) == 3 and all(0 <= d < 0.1 for d in stream.grab_offsets)
