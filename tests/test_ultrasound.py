@@ -496,3 +496,51 @@ def test_timestamps_files_with_a_missing_time_or_going_back_are_refused(tmp_path
         read_frames(tmp_path)
     (tmp_path / "timestamps.csv").write_text("file,timestamp_s\nf0.png,0.0\nf1.png,0.1\nf2.png,0.2\n")
     np.testing.assert_allclose(read_frames(tmp_path)[1], [0.0, 0.1, 0.2])
+
+
+def test_temporal_calibration_finds_the_ultrasound_delay(tmp_path, capsys):
+    """The probe moved up and down over a plate (simulated B-mode, the true marker poses as
+    the tracker's, 3 s): the ultrasound clock 80 ms late is found within 5 ms with the probe
+    calibration, through the CLI as a user runs it."""
+    import csv as csvmod
+
+    import cv2
+
+    from markerpose.experiments.ultrasound import temporal as exp
+    from markerpose.experiments.ultrasound.simulate import ProbeSetup
+    from markerpose.ultrasound.temporal import estimate_offset
+    from markerpose.video import CSV_HEADER, pose_row
+
+    conf = {**exp.default_conf, "seconds": 3.0}
+    setup, rng = ProbeSetup(), np.random.default_rng(4)
+    wobble = np.column_stack([rng.uniform(0.1, 0.3, 3), [0.9, 1.7, 3.1], rng.uniform(0, 2 * np.pi, 3)])
+    us = tmp_path / "us"
+    us.mkdir()
+    t_us = np.arange(0, conf["seconds"], 1 / 30)
+    with open(us / "timestamps.csv", "w", newline="") as f:
+        w = csvmod.writer(f)
+        w.writerow(["file", "timestamp_s"])
+        for k, t in enumerate(t_us):
+            img = exp.simulate_bmode(exp.plate_phantom(), exp.image_pose(setup, t, conf, wobble), setup.transducer, rng)
+            cv2.imwrite(str(us / f"{k:04d}.png"), img)
+            w.writerow([f"{k:04d}.png", f"{t + 0.080:.6f}"])  # the ultrasound clock 80 ms late
+
+    class E:
+        def __init__(self, T):
+            self.T, self.residual_px, self.cov = T, 0.1, None
+
+    t_cam = np.arange(0.011, conf["seconds"], 1 / 30)
+    with open(tmp_path / "poses.csv", "w", newline="") as f:
+        w = csvmod.writer(f)
+        w.writerow(CSV_HEADER)
+        for k, t in enumerate(t_cam):
+            w.writerow(pose_row(k, t, E(setup.marker_pose(exp.image_pose(setup, t, conf, wobble)))))
+    ProbeCalibration(setup.T_marker_image(), setup.transducer.spacing, setup.transducer.size).save(tmp_path / "probe.yaml")
+    args = ["ultrasound", "temporal", "--poses", str(tmp_path / "poses.csv"), "--images", str(us)]
+    assert cli.main([*args, "--calibration", str(tmp_path / "probe.yaml")]) == 0
+    out = capsys.readouterr().out
+    offset = float(out.split("need ")[1].split(" ")[0])
+    assert abs(offset + 80.0) < 5.0, out
+    assert "use --time-offset -0.0" in out
+    with pytest.raises(ValueError, match="at least 10 frames"):
+        estimate_offset([0.0, 0.1], [1.0, 2.0], [0.0, 0.1], [1.0, 2.0])

@@ -179,6 +179,7 @@ cmd_eval_pivot = _experiment("pivot", ("trials", "frames"))
 cmd_eval_handeye = _experiment("handeye", ("trials",))
 cmd_eval_rigcheck = _experiment("rigcheck", ("stable", "before", "after"))
 cmd_eval_sync = _experiment("sync", ("frames",))
+cmd_eval_temporal = _experiment("ultrasound.temporal", ("seconds",))
 
 
 def _eval_args(p, what: str):
@@ -280,6 +281,13 @@ def _register_pipeline(esub) -> None:
     es.add_argument("--out", default="markerpose-sync", help="output folder: report.md, results.json")
     es.add_argument("--quiet", action="store_true")
     es.set_defaults(func=cmd_eval_sync)
+    et = esub.add_parser(
+        "temporal", help="the ultrasound-to-tracker delay on a simulated session (probe up and down over a plate), 0-150 ms"
+    )
+    et.add_argument("--seconds", type=float, default=6.0, help="length of the session, s (default 6)")
+    et.add_argument("--out", default="markerpose-temporal", help="output folder: report.md, results.json")
+    et.add_argument("--quiet", action="store_true")
+    et.set_defaults(func=cmd_eval_temporal)
 
 
 def register(sub) -> None:

@@ -1,8 +1,9 @@
-"""``markerpose ultrasound demo | reconstruct | calibrate | simulate``: freehand 3D
+"""``markerpose ultrasound demo | reconstruct | calibrate | simulate | temporal``: freehand 3D
 ultrasound with a tracked probe."""
 
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -78,6 +79,24 @@ def cmd_ultrasound_simulate(args):
     )
 
 
+def cmd_ultrasound_temporal(args):
+    from ..ultrasound.recording import temporal_recording
+
+    r = temporal_recording(args.poses, args.images, args.calibration, fps=args.fps)
+    print(
+        f"the ultrasound frames' times need {1000 * r['offset_s']:+.1f} ± {1000 * r['sd_s']:.1f} ms to reach the cameras' clock "
+        f"({r['frames']} frames; the two signals' RMS difference {r['rms']:.3f} of their sd"
+        + ("" if r["calibrated"] else "; without --calibration the marker's own height is used, which the probe's rocking moves")
+        + f"): use --time-offset {r['offset_s']:.4f} with calibrate and reconstruct"
+    )
+    if r["rms"] > 0.3:
+        print(
+            "warning: the line and the probe's height do not match well: move the probe straight up and down over a flat "
+            "plate, its image across the plate, for a few cycles",
+            file=sys.stderr,
+        )
+
+
 def _add_clock_args(p) -> None:
     """How the ultrasound frames' times meet the cameras' (reconstruct, calibrate)."""
     p.add_argument("--fps", type=float, help="frame rate of the ultrasound frames when there is no timestamps.csv")
@@ -141,6 +160,18 @@ def _register_simulate(usub) -> None:
     usim.set_defaults(func=cmd_ultrasound_simulate)
 
 
+def _register_temporal(usub) -> None:
+    ut = usub.add_parser(
+        "temporal",
+        help="the delay between the ultrasound frames and the cameras, from the probe moved up and down over a flat plate",
+    )
+    ut.add_argument("--poses", required=True, help="poses.csv written by markerpose track for the session")
+    ut.add_argument("--images", required=True, help="folder of ultrasound frames of the plate, with timestamps.csv (file,timestamp_s)")
+    ut.add_argument("--calibration", help="probe calibration YAML: the height of the image's centre, not the marker's (recommended)")
+    ut.add_argument("--fps", type=float, help="frame rate of the ultrasound frames when there is no timestamps.csv")
+    ut.set_defaults(func=cmd_ultrasound_temporal)
+
+
 def register(sub) -> None:
     us = sub.add_parser("ultrasound", help="freehand 3D ultrasound with a tracked probe (the paper's section 5.3)")
     usub = us.add_subparsers(dest="ultrasound_command", required=True)
@@ -148,3 +179,4 @@ def register(sub) -> None:
     _register_reconstruct(usub)
     _register_calibrate(usub)
     _register_simulate(usub)
+    _register_temporal(usub)

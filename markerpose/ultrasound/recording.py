@@ -231,4 +231,25 @@ def calibrate_recording(
     return calib, report
 
 
-__all__ = ["calibrate_recording", "read_frames", "read_track_csv", "reconstruct_recording"]
+def temporal_recording(poses_csv: str | Path, images: str | Path, calibration: str | Path | None = None, fps: float | None = None) -> dict:
+    """The offset (s) to add to a recording's ultrasound times to reach the cameras' clock, from
+    a session of the probe moved up and down over a flat plate
+    (:func:`markerpose.ultrasound.temporal.estimate_offset`): the line's depth in each frame
+    against the probe's height (the image's centre at the line's depth with ``calibration``,
+    else the marker's origin)."""
+    from .temporal import estimate_offset, plate_depths, probe_heights
+
+    times, poses = read_track_csv(poses_csv)
+    files, us_times = read_frames(images, fps)
+    calib = ProbeCalibration.load(calibration) if calibration is not None else None
+    frames = [_load_gray(p, None if calib is None else calib.size) for p in files]
+    depths = plate_depths(frames, 1.0)
+    point = None
+    if calib is not None:
+        w = frames[0].shape[1]
+        point = calib.pixels_to_marker([[(w - 1) / 2, float(np.nanmean(depths))]])[0]
+    found = estimate_offset(us_times, depths, times, probe_heights(poses, point))
+    return {**found, "calibrated": calib is not None}
+
+
+__all__ = ["temporal_recording", "calibrate_recording", "read_frames", "read_track_csv", "reconstruct_recording"]
