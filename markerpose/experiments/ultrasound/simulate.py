@@ -177,6 +177,7 @@ def write_simulated_recording(
     us_fps: float = 15.0,
     calibration_frames: int = 12,
     progress: bool = True,
+    us_delay_s: float = 0.0,
 ) -> dict:
     """A recording as a user's rig would produce it, from the simulation:
     - the sweep: ``left/`` and ``right/`` camera frames at ``camera_fps``, ``us/``
@@ -185,6 +186,8 @@ def write_simulated_recording(
     - ``calibration/``: the same three folders for a cross-wire session, one frame of each
       per probe position, one position a second;
     - ``probe_true.yaml``: the true calibration, to compare with.
+    ``us_delay_s``: the scanner's clock runs this much late (its frames are stamped late):
+    what a temporal calibration finds and ``--time-offset`` takes back.
     Returns the truth: the seed pixel inside the tube on the first frame, the true
     diameter, the paths."""
     from .experiment import TRUE_DIAMETER_MM  # the experiment imports this module
@@ -202,7 +205,7 @@ def write_simulated_recording(
     cam_poses, us_poses = all_poses[:n_cam], all_poses[n_cam:]
     phantom = tube_phantom()
     us_images = [simulate_bmode(phantom, T, setup.transducer, rng) for T in us_poses]
-    _write_session(out, rig, [setup.marker_pose(T) for T in cam_poses], us_images, t_cam, t_us, rng, progress)
+    _write_session(out, rig, [setup.marker_pose(T) for T in cam_poses], us_images, t_cam, t_us + us_delay_s, rng, progress)
     # The calibration session: the probe held still on the wire crossing, one second per
     # position, the cameras and the scanner each taking one frame per position.
     cal = calibration_poses(setup, rng, calibration_frames)
@@ -233,6 +236,7 @@ def write_simulated_recording(
         "true_calibration": out / "probe_true.yaml",
         "spacing": setup.transducer.spacing,
         "T_phantom_image": us_poses,
+        "T_left_phantom": setup.T_left_phantom(),
     }
 
 
