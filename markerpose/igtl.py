@@ -28,8 +28,6 @@ import threading
 
 import numpy as np
 
-from .uncertainty import sd_mm
-
 DEFAULT_PORT = 18944
 CAMERA = "camera"  # the frame of a pose in the left camera's (video.CAMERA)
 # Our pose status (Estimate.status) -> PLUS's tool status (igsio ToolStatus strings).
@@ -232,7 +230,7 @@ class IGTLSender:
             return False
         if est is None:
             return self._send(self.name, None, timestamp)
-        return self._send(self.name, est.T, timestamp, est.status(), sd_mm(est.cov, est.T))
+        return self._send(self.name, est.T, timestamp, est.status(), est.sd_mm)
 
     def _send(self, name: str, T, timestamp: float, status: str | None = None, sd: float | None = None) -> bool:
         if self.server.broadcast(transform_message(name, T, timestamp, status, sd)):
@@ -272,6 +270,8 @@ class IGTLToolsSender(IGTLSender):
         number of valid poses sent."""
         if not self.server.is_connected():
             return 0
+        from .uncertainty import sd_mm
+
         valid = 0
         for r in reports:
             name = igtl_device_name(r.name, r.relative_to)

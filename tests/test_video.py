@@ -443,3 +443,23 @@ def test_two_cameras_are_grabbed_as_a_pair(monkeypatch):
     assert [s[2:] for s in seen] == [(1, 1), (2, 2), (3, 3)]
     assert calls[:4] == [("grab", "0"), ("grab", "1"), ("retrieve", "0"), ("retrieve", "1")]
     assert len(stream.grab_offsets) == 3 and all(0 <= d < 0.1 for d in stream.grab_offsets)
+
+
+def test_ctrl_c_while_starting_is_an_interruption(folders, tmp_path):
+    """SIGINT while the command line starts (its imports, the compiled loops, the networks):
+    'interrupted' and exit 130, never a traceback."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, _ = folders
+    cmd = [sys.executable, "-m", "markerpose.cli", "track", str(root / "L"), str(root / "R"), "--out", str(tmp_path / "p.csv"), "--quiet"]
+    for delay in (0.2, 0.5, 1.0):
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        time.sleep(delay)
+        p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=60)
+        assert "Traceback" not in err, (delay, err)
+        assert p.returncode in (0, 130), (delay, p.returncode, err)  # 0: it had finished
+        assert p.returncode == 0 or "interrupted" in err

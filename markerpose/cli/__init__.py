@@ -13,7 +13,6 @@ import os
 import sys
 
 from .. import __version__
-from ..jit import CompileError
 from . import (
     bench,
     calibrate,
@@ -66,7 +65,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     """Run a command. Exit codes: 0 done, 1 the marker was not found (``estimate``), 2 bad
-    input (a one-line message, no traceback), 130 interrupted."""
+    input (a one-line message, no traceback), 130 interrupted (also while it starts)."""
+    try:
+        return _run(argv)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _run(argv) -> int:
+    from ..jit import CompileError  # numba: imported here, where a Ctrl-C is an interruption
+
     args = build_parser().parse_args(argv)
     try:
         rc = args.func(args)

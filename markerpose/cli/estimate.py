@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from ..formats import dumps
 from .common import EXIT_NOT_FOUND, add_marker_args, add_preset_args, add_rig_arg, add_set_arg, tracker
 
 
 def cmd_estimate(args):
+    from ..formats import dumps
     from ..images import read_image
 
     pose_tracker = tracker(args)

@@ -3,7 +3,6 @@ whole pipeline on the held-out test sets; markdown tables on stdout."""
 
 from __future__ import annotations
 
-from ..formats import write_json
 from .common import positive_int
 
 # What each stage-1 decoding variant is called in the tables.
@@ -94,6 +93,8 @@ def cmd_eval_keypoints(args):
     if args.speed:
         res["speed"] = _print_speed(tk, args.weights)
     if args.json:
+        from ..formats import write_json
+
         write_json(args.json, res)
 
 
@@ -122,6 +123,8 @@ def cmd_eval_ellipses(args):
                 f"{b['ellipse_median_3d']:.3f} | {b['subpixel_median']:.3f} | {b['subpixel_median_3d']:.3f} |"
             )
     if args.json:
+        from ..formats import write_json
+
         write_json(args.json, res)
 
 

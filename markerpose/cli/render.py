@@ -5,15 +5,14 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
-from ..formats import write_json
 from .common import add_marker_args, marker, rig
 
 
 def cmd_render(args):
     import cv2
+    import numpy as np
 
+    from ..formats import write_json
     from ..synth import Imaging, look_at_pose, render_stereo
 
     if args.repeat < 1:

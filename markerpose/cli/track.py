@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import sys
 
-from ..igtl import DEFAULT_PORT
 from .common import add_marker_args, add_preset_args, add_rig_arg, add_set_arg, port, tracker
 
 
@@ -98,6 +97,8 @@ def cmd_track(args):
     if args.igtl_port is not None and not args.igtl:
         raise ValueError("--igtl-port needs --igtl")
     if args.igtl and args.igtl_port is None:
+        from ..igtl import DEFAULT_PORT
+
         args.igtl_port = DEFAULT_PORT
     delay = None if args.right_delay is None else args.right_delay / 1000.0
     if delay is not None and not abs(delay) <= 1.0:
@@ -149,6 +150,8 @@ def cmd_track(args):
 
 
 def register(sub) -> None:
+    from ..igtl import DEFAULT_PORT
+
     k = sub.add_parser("track", help="track the marker through two image folders, two videos or two cameras; one CSV row a frame")
     k.add_argument("left", help="left frames: a folder of images (sorted by name), a video file or a camera index")
     k.add_argument("right", help="right frames, the same kind")
