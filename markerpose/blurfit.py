@@ -500,10 +500,19 @@ def _fit_pixels(prob, motion, c):
     return True
 
 
+# The blurred-ring model's misfit that its residuals do not show (its blur and optics only
+# approximate the image's, the more so the longer the blur): the centres scatter more than
+# s^2 H^-1 says, by this many px per axis and px of blur length (added in variance).
+# Measured by ``markerpose eval uncertainty`` on blurred pairs of a seed of their own (its
+# report gives the excess).
+MODEL_PX_PER_BLUR_PX = 0.001
+
+
 def _center_covs(prob, p) -> np.ndarray:
     """(k, 2, 2) covariances of the rings' centres, px^2: s^2 H^-1 of the robustly weighted
     normal equations at ``p`` (the residuals in noise sigmas; s^2 their weighted variance,
-    so the image's own residuals set the scale), NaN where H is singular."""
+    so the image's own residuals set the scale) plus (:data:`MODEL_PX_PER_BLUR_PX` x the
+    fitted blur length) squared per axis, NaN where H is singular."""
     try:
         r, _, (H, _) = prob.evaluate(p, jac=True)
         s2 = float(prob.w @ (r * r)) / max(float(prob.w.sum()) - len(p) - 6, 1.0)  # the levels' six coefficients are fitted too
@@ -511,7 +520,8 @@ def _center_covs(prob, p) -> np.ndarray:
     except (np.linalg.LinAlgError, ValueError):
         return np.full((prob.k, 2, 2), np.nan)
     idx = [np.array([7 * j, 7 * j + 1]) for j in range(prob.k)]
-    return np.stack([cov[np.ix_(i, i)] for i in idx])
+    L = float(prob.unpack(p)[2])
+    return np.stack([cov[np.ix_(i, i)] for i in idx]) + (MODEL_PX_PER_BLUR_PX * L) ** 2 * np.eye(2)
 
 
 def _correlation_inflation(prob, r) -> float:
