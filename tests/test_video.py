@@ -463,3 +463,38 @@ def test_ctrl_c_while_starting_is_an_interruption(folders, tmp_path):
         assert "Traceback" not in err, (delay, err)
         assert p.returncode in (0, 130), (delay, p.returncode, err)  # 0: it had finished
         assert p.returncode == 0 or "interrupted" in err
+
+
+def test_openigtlink_misbehaving_clients_cost_one_line_each():
+    """A client that sends garbage, one that announces a huge body and leaves, one that
+    connects and closes at once: each a notice, no traceback, and a good client still
+    receives the next frame."""
+    import socket
+    import struct
+    import time
+
+    pyigtl = pytest.importorskip("pyigtl")
+    from markerpose.igtl import IGTLSender
+
+    port = _free_port()
+    notices = []
+    sender = IGTLSender(port, "MarkerToTracker", notice=notices.append)
+    try:
+        for payload in (b"\x00garbage" * 100, struct.pack(">H12s20sIIQQ", 1, b"IMAGE", b"x", 0, 0, 2**62, 0), b""):
+            with socket.create_connection(("127.0.0.1", port)) as s:
+                if payload:
+                    s.sendall(payload)
+                time.sleep(0.05)
+        assert _wait(lambda: sender.server.served == 3 and sender.server.clients == 0)
+        good = _collector(pyigtl, port, "MarkerToTracker")
+        try:
+            assert _wait(lambda: sender.server.clients == 1)
+            assert sender(0, time.time(), None)
+            assert _wait(lambda: len(good[1]) == 1)
+        finally:
+            good[2].set()
+            good[3].join(timeout=2)
+            good[0].stop()
+    finally:
+        sender.close()
+    assert sum(" left " in n for n in notices) >= 3 and all(n.startswith("OpenIGTLink: client") for n in notices)
