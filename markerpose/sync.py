@@ -80,15 +80,7 @@ def right_at_left_time(det_r, m: Motion):
     if t_right == t_left:
         return det_r
     c = np.asarray(det_r.centers, np.float64)
-    ts, cs = (*m.t_right_prev, t_right), (*m.right_prev, c)
-    # Lagrange interpolation (or extrapolation) at t_left of the points (ts[i], cs[i]).
-    at = np.zeros_like(c)
-    for i, (ti, ci) in enumerate(zip(ts, cs)):
-        w = 1.0
-        for j, tj in enumerate(ts):
-            if j != i:
-                w *= (t_left - tj) / (ti - tj)
-        at += w * ci
+    at = _lagrange((*m.t_right_prev, t_right), (*m.right_prev, c), t_left)
     shift = at - c
     ellipses = det_r.ellipses
     if ellipses is not None:  # the rings' outlines move with their centres (the plate check compares them)

@@ -177,12 +177,15 @@ def _experiment(name: str, keys: tuple):
     return run
 
 
-cmd_eval_uncertainty = _experiment("uncertainty", ("pairs", "model_pairs"))
-cmd_eval_pivot = _experiment("pivot", ("trials", "frames"))
-cmd_eval_handeye = _experiment("handeye", ("trials",))
-cmd_eval_rigcheck = _experiment("rigcheck", ("stable", "before", "after"))
-cmd_eval_sync = _experiment("sync", ("frames",))
-cmd_eval_temporal = _experiment("ultrasound.temporal", ("seconds",))
+def _add_experiment(esub, name: str, module: str, help: str, options: list) -> None:
+    """``markerpose eval NAME``: the experiment ``module``'s settings ``options`` (dest,
+    type, default, help) as options, ``--out`` (default markerpose-NAME) and ``--quiet``."""
+    p = esub.add_parser(name, help=help)
+    for dest, kind, default, text in options:
+        p.add_argument(f"--{dest.replace('_', '-')}", dest=dest, type=kind, default=default, help=f"{text} (default {default:g})")
+    p.add_argument("--out", default=f"markerpose-{name}", help="output folder: report.md, results.json")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_experiment(module, tuple(o[0] for o in options)))
 
 
 def _eval_args(p, what: str):
@@ -244,53 +247,27 @@ def _register_pipeline(esub) -> None:
     et.add_argument("--out", default="markerpose-tools", help="output folder: report.md, results.json, tools.mp4, tools-video.png")
     et.add_argument("--quiet", action="store_true")
     et.set_defaults(func=cmd_eval_tools)
-    eu = esub.add_parser("uncertainty", help="is Estimate.cov calibrated: chi-square coverage of the true errors per condition")
-    eu.add_argument("--pairs", type=positive_int, default=60, help="pairs per condition (default 60)")
-    eu.add_argument(
-        "--model-pairs",
-        type=int,
-        default=60,
-        help="pairs (of their own) for the centres' error their fits do not show (0: none; default 60)",
-    )
-    eu.add_argument("--out", default="markerpose-uncertainty", help="output folder: report.md, results.json")
-    eu.add_argument("--quiet", action="store_true")
-    eu.set_defaults(func=cmd_eval_uncertainty)
-    ep = esub.add_parser(
-        "pivot", help="pivot calibration against the truth: simulated pivoting with noise and outliers, a rendered sequence"
-    )
-    ep.add_argument("--trials", type=positive_int, default=20, help="simulated calibrations per tracker noise (default 20)")
-    ep.add_argument("--frames", type=int, default=120, help="pairs of the rendered pivoting sequence (0: none; default 120)")
-    ep.add_argument("--out", default="markerpose-pivot", help="output folder: report.md, results.json")
-    ep.add_argument("--quiet", action="store_true")
-    ep.set_defaults(func=cmd_eval_pivot)
-    eh = esub.add_parser("handeye", help="hand-eye calibration against the truth: simulated eye-to-hand and eye-in-hand sessions")
-    eh.add_argument("--trials", type=positive_int, default=50, help="simulated sessions per setup and number of poses (default 50)")
-    eh.add_argument("--out", default="markerpose-handeye", help="output folder: report.md, results.json")
-    eh.add_argument("--quiet", action="store_true")
-    eh.set_defaults(func=cmd_eval_handeye)
-    er = esub.add_parser(
-        "rigcheck", help="the rig check on rendered sequences: a stable rig (false alarms), a right camera turned or shifted"
-    )
-    er.add_argument("--stable", type=positive_int, default=200, help="pairs of the stable rig per condition (default 200)")
-    er.add_argument("--before", type=positive_int, default=10, help="pairs before the change (default 10)")
-    er.add_argument("--after", type=positive_int, default=30, help="pairs after the change (default 30)")
-    er.add_argument("--out", default="markerpose-rigcheck", help="output folder: report.md, results.json")
-    er.add_argument("--quiet", action="store_true")
-    er.set_defaults(func=cmd_eval_rigcheck)
-    es = esub.add_parser(
-        "sync", help="cameras not synchronised: a rendered hand-held video with the right view 0-33 ms late, compensated and not"
-    )
-    es.add_argument("--frames", type=positive_int, default=90, help="frames per delay, at 30 frames/s (default 90)")
-    es.add_argument("--out", default="markerpose-sync", help="output folder: report.md, results.json")
-    es.add_argument("--quiet", action="store_true")
-    es.set_defaults(func=cmd_eval_sync)
-    et = esub.add_parser(
-        "temporal", help="the ultrasound-to-tracker delay on a simulated session (probe up and down over a plate), 0-150 ms"
-    )
-    et.add_argument("--seconds", type=float, default=6.0, help="length of the session, s (default 6)")
-    et.add_argument("--out", default="markerpose-temporal", help="output folder: report.md, results.json")
-    et.add_argument("--quiet", action="store_true")
-    et.set_defaults(func=cmd_eval_temporal)
+    experiments = (
+        ("uncertainty", "uncertainty", "is Estimate.cov calibrated: chi-square coverage of the true errors per condition",
+         [("pairs", positive_int, 60, "pairs per condition"),
+          ("model_pairs", int, 60, "pairs (of their own) for the centres' error their fits do not show (0: none)")]),
+        ("pivot", "pivot", "pivot calibration against the truth: simulated pivoting with noise and outliers, a rendered sequence",
+         [("trials", positive_int, 20, "simulated calibrations per tracker noise"),
+          ("frames", int, 120, "pairs of the rendered pivoting sequence (0: none)")]),
+        ("handeye", "handeye", "hand-eye calibration against the truth: simulated eye-to-hand and eye-in-hand sessions",
+         [("trials", positive_int, 50, "simulated sessions per setup and number of poses")]),
+        ("rigcheck", "rigcheck", "the rig check on rendered sequences: a stable rig (false alarms), a right camera turned or shifted",
+         [("stable", positive_int, 200, "pairs of the stable rig per condition"),
+          ("before", positive_int, 10, "pairs before the change"),
+          ("after", positive_int, 30, "pairs after the change")]),
+        ("sync", "sync", "cameras not synchronised: a rendered hand-held video with the right view 0-33 ms late, compensated and not",
+         [("frames", positive_int, 90, "frames per delay, at 30 frames/s")]),
+        ("temporal", "ultrasound.temporal",
+         "the ultrasound-to-tracker delay on a simulated session (probe up and down over a plate), 0-150 ms",
+         [("seconds", float, 6.0, "length of the session, s")]),
+    )  # fmt: skip
+    for name, module, text, options in experiments:
+        _add_experiment(esub, name, module, text, options)
 
 
 def register(sub) -> None:

@@ -21,8 +21,7 @@ def _sinks(args, pose_tracker, stream) -> list:
         if args.rerun or args.rerun_save:
             from ..live3d import RerunSink
 
-            name = "marker" if not args.tools else None
-            sinks.append(RerunSink(pose_tracker.rig, save=args.rerun_save, image_every=args.rerun_images, name=name or "marker"))
+            sinks.append(RerunSink(pose_tracker.rig, save=args.rerun_save, image_every=args.rerun_images))
         if args.video:
             tools = list(pose_tracker.tools) if args.tools else ()
             notice = None if args.quiet else (lambda line: print(f"note: {line}", file=sys.stderr))
