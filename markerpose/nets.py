@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .signals import held_interrupt
+
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 META_KEY = "markerpose"  # the ONNX metadata entry holding the file's non-weight contents
 
@@ -138,7 +140,8 @@ def _checked_meta(path: Path, kind: str, raw: str | None) -> dict:
 
 def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, dict]:
     try:
-        import onnxruntime as ort
+        with held_interrupt():
+            import onnxruntime as ort
     except ImportError as exc:
         raise ValueError(f"{path}: ONNX weights need onnxruntime (pip install onnxruntime)") from exc
     opts = ort.SessionOptions()

@@ -465,6 +465,25 @@ def test_ctrl_c_while_starting_is_an_interruption(folders, tmp_path):
         assert p.returncode == 0 or "interrupted" in err
 
 
+def test_a_ctrl_c_while_a_library_loads_is_held_then_raised():
+    """numpy's C import turns a KeyboardInterrupt into an ImportError ('import numpy failed'):
+    inside held_interrupt the Ctrl-C waits for the block's end, then interrupts."""
+    import os
+    import signal
+
+    from markerpose.signals import held_interrupt
+
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with held_interrupt():
+            os.kill(os.getpid(), signal.SIGINT)
+            done.append("the block ran to its end")
+    assert done and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with held_interrupt():  # no Ctrl-C: nothing raised
+        done.append("again")
+    assert len(done) == 2
+
+
 def test_openigtlink_misbehaving_clients_cost_one_line_each():
     """A client that sends garbage, one that announces a huge body and leaves, one that
     connects and closes at once: each a notice, no traceback, and a good client still

@@ -9,48 +9,34 @@ loads no network, renderer or experiment.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
+import signal
 import sys
 
 from .. import __version__
-from . import (
-    bench,
-    calibrate,
-    demo,
-    estimate,
-    evaluate,
-    experiments,
-    handeye,
-    marker,
-    peers,
-    pivot,
-    render,
-    sync,
-    tools,
-    track,
-    train,
-    ultrasound,
-)
-from .common import EXIT_BAD_INPUT, EXIT_NOT_FOUND
+from .common import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_FOUND
 
-# The commands in the order ``markerpose --help`` lists them (calibrate adds pattern too).
+# The command modules in the order ``markerpose --help`` lists them (calibrate adds pattern
+# too). Imported when the parser is built, inside main(), so that a Ctrl-C while they load is
+# an interruption like any other.
 COMMANDS = (
-    demo,
-    marker,
-    tools,
-    render,
-    estimate,
-    calibrate,
-    track,
-    sync,
-    pivot,
-    handeye,
-    peers,
-    ultrasound,
-    bench,
-    experiments,
-    train,
-    evaluate,
+    "demo",
+    "marker",
+    "tools",
+    "render",
+    "estimate",
+    "calibrate",
+    "track",
+    "sync",
+    "pivot",
+    "handeye",
+    "peers",
+    "ultrasound",
+    "bench",
+    "experiments",
+    "train",
+    "evaluate",
 )
 
 
@@ -58,8 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="markerpose", description="Stereo 6-DoF tracking of a three-ring marker (MarkerPose).")
     p.add_argument("--version", action="version", version=f"markerpose {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    for command in COMMANDS:
-        command.register(sub)
+    for name in COMMANDS:
+        importlib.import_module(f"{__name__}.{name}").register(sub)
     return p
 
 
@@ -70,11 +56,34 @@ def main(argv=None) -> int:
         return _run(argv)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
+
+
+def console() -> None:
+    """The ``markerpose`` command (and ``python -m markerpose.cli``): :func:`main`, then an exit
+    whose status a Ctrl-C cannot change any more. Once the work is done or stopped, a second
+    Ctrl-C (or one that lands while the interpreter shuts down, when Python has given SIGINT
+    back to the system) would otherwise end the process by the signal, not with 0 or 130."""
+    try:
+        rc = main()
+    except KeyboardInterrupt:  # in the instant between main() and the line below
+        print("interrupted", file=sys.stderr)
+        rc = EXIT_INTERRUPTED
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if rc == EXIT_INTERRUPTED:  # stopped: every file is closed; skip the slow, interruptible teardown
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(rc)
+    sys.exit(rc)
 
 
 def _run(argv) -> int:
-    from ..jit import CompileError  # numba: imported here, where a Ctrl-C is an interruption
+    from ..signals import held_interrupt
+
+    with held_interrupt():  # the compiled libraries load here, where a Ctrl-C is an interruption
+        import cv2  # noqa: F401
+
+        from ..jit import CompileError
 
     args = build_parser().parse_args(argv)
     try:
@@ -88,8 +97,8 @@ def _run(argv) -> int:
         return 0
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     return int(rc or 0)
 
 
-__all__ = ["EXIT_BAD_INPUT", "EXIT_NOT_FOUND", "build_parser", "main"]
+__all__ = ["EXIT_BAD_INPUT", "EXIT_INTERRUPTED", "EXIT_NOT_FOUND", "build_parser", "console", "main"]

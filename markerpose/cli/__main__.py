@@ -1,7 +1,5 @@
 """``python -m markerpose.cli``: the ``markerpose`` command."""
 
-import sys
+from . import console
 
-from . import main
-
-sys.exit(main())
+console()

@@ -8,6 +8,7 @@ import math
 
 EXIT_NOT_FOUND = 1
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130  # as a shell reports a command ended by Ctrl-C (128 + SIGINT)
 
 TOP_LEVEL = ("detector", "threads", "backend")  # settings of the whole pipeline, not of a stage
 

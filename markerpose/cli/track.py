@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from .common import add_marker_args, add_preset_args, add_rig_arg, add_set_arg, port, tracker
+from .common import EXIT_INTERRUPTED, add_marker_args, add_preset_args, add_rig_arg, add_set_arg, port, tracker
 
 
 def _sinks(args, pose_tracker, stream) -> list:
@@ -145,7 +145,7 @@ def cmd_track(args):
             "synchronised, and their exposures may be up to a frame apart",
             file=sys.stderr,
         )
-    return 130 if s["stopped"] else 0  # stopped (Ctrl-C, kill -TERM): every row kept, the run incomplete
+    return EXIT_INTERRUPTED if s["stopped"] else 0  # stopped (Ctrl-C, kill -TERM): every row kept, the run incomplete
 
 
 def register(sub) -> None:
