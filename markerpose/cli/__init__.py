@@ -28,6 +28,7 @@ COMMANDS = (
     "estimate",
     "calibrate",
     "track",
+    "batch",
     "sync",
     "pivot",
     "handeye",
