@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from . import __version__
-from .engine import Failed, run_tasks
+from .engine import Failed, ray_installed, run_tasks
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg")
 SIDES = (("left", "L"), ("right", "R"))
@@ -213,6 +213,8 @@ def run_batch(
     """Every job's recording tracked (:func:`track_recording`), on Ray where it is installed;
     those already done skipped unless ``force``. Returns one summary row per job, in order:
     ``status`` done, skipped (done by an earlier run) or failed (with its reason)."""
+    if use_ray is None:  # on Ray whenever it is there, even for one recording: a dead worker is retried
+        use_ray = address is not None or ray_installed()
     rows: list[dict | None] = [None] * len(jobs)
     todo = []
     for i, job in enumerate(jobs):
@@ -283,7 +285,8 @@ def write_summary(rows: list[dict], out_dir) -> tuple[Path, Path]:
         "| " + " | ".join(SUMMARY_COLUMNS) + " |",
         "|" + "---|" * len(SUMMARY_COLUMNS),
     ]
-    lines += ["| " + " | ".join(_cell(r.get(k)).replace("|", "/") for k in SUMMARY_COLUMNS) + " |" for r in rows]
+    shown = [{**r, "found": _pct(r.get("found")), "tracked": _pct(r.get("tracked"))} for r in rows]
+    lines += ["| " + " | ".join(_cell(r.get(k)).replace("|", "/") for k in SUMMARY_COLUMNS) + " |" for r in shown]
     md_path.write_text("\n".join(lines) + "\n")
     return csv_path, md_path
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -49,26 +50,68 @@ def run_tasks(
     fn: Callable,
     tasks: Sequence,
     *,
+    workers: int | None = None,
     use_ray: bool | None = None,
     address: str | None = None,
-    workers: int | None = None,
     cpus_per_task: float = 1.0,
     max_retries: int = 3,
     on_result: Callable | None = None,
     on_progress: Callable[[int], None] | None = None,
+    desc: str | None = None,
+    unit: str = "task",
+    progress: bool = False,
+    strict: bool = False,
 ) -> list:
     """``fn(task, report)`` for every task; the results in the tasks' order, a :class:`Failed`
-    for each task that raised (or whose worker died ``max_retries`` + 1 times).
+    for each task that raised (or whose worker died ``max_retries`` + 1 times); ``strict``
+    raises instead, naming the task's error (for experiments, where a failure is a bug).
 
     ``fn`` must be importable by name (a module-level function) and its tasks picklable.
     ``report(n)`` inside a task adds ``n`` to the run's progress (e.g. frames done);
     ``on_progress(total)`` sees the total as it grows, ``on_result(i, result)`` each result
-    as it arrives. ``use_ray``: None uses Ray where it is installed; ``address`` a running
-    cluster; ``workers`` the local Ray's CPUs (default: every core)."""
-    use_ray = (ray_installed() or address is not None) if use_ray is None else use_ray
-    if not use_ray:
-        return _serial(fn, tasks, on_result, on_progress)
-    return _on_ray(fn, tasks, address, workers, cpus_per_task, max_retries, on_result, on_progress)
+    as it arrives; with ``progress`` and ``desc``, a bar over the tasks.
+
+    Where: ``use_ray`` None runs on Ray when it is installed (or ``address`` names a
+    cluster) and there is more than one task and ``workers`` is not 1; else in this process,
+    in order (with a one-line hint, where more workers were wanted and Ray is missing).
+    ``workers``: the local Ray's CPUs (default: every core)."""
+    parallel = len(tasks) > 1 and workers != 1
+    if use_ray is None:
+        use_ray = address is not None or (parallel and ray_installed())
+        if not use_ray and parallel and progress:
+            _hint()
+    bar = None
+    if progress and desc:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(tasks), desc=desc, unit=unit)
+
+    def arrived(i, result):
+        if strict and isinstance(result, Failed):
+            raise RuntimeError(f"{desc or 'task'} {i} failed: {result.reason}")
+        if bar is not None:
+            bar.update()
+        if on_result:
+            on_result(i, result)
+
+    try:
+        if not use_ray:
+            return _serial(fn, tasks, arrived, on_progress)
+        return _on_ray(fn, tasks, address, workers, cpus_per_task, max_retries, arrived, on_progress)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+_HINTED: list = []
+
+
+def _hint() -> None:
+    if not _HINTED:
+        _HINTED.append(True)
+        print(
+            "Ray is not installed: the tasks run here, one after the other (pip install 'markerpose[ray]' for every core)", file=sys.stderr
+        )
 
 
 def _serial(fn, tasks, on_result, on_progress) -> list:

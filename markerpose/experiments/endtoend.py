@@ -17,13 +17,13 @@ centre (they differ by the perspective bias); pose errors against the true pose.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from ..camera import StereoRig
+from ..engine import run_tasks
 from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
 from ..marker import Marker
@@ -232,7 +232,7 @@ def run_set(set_name: str, conf: dict, progress: bool = True, position: int = 0)
     return out_set
 
 
-def _run_set_alone(args) -> tuple[str, dict]:
+def _run_set_alone(args, report=None) -> tuple[str, dict]:
     """:func:`run_set` in a worker process: one torch thread, so workers do not contend."""
     try:
         import torch
@@ -270,11 +270,18 @@ def main(conf: dict | None = None, out: str | Path | None = None, progress: bool
     if c["workers"] == 1 or len(c["sets"]) == 1:
         for set_name in c["sets"]:
             done(set_name, run_set(set_name, c, progress))
-    else:
-        jobs = [(name, c, progress, k) for k, name in enumerate(c["sets"])]
-        with mp.get_context("spawn").Pool(min(c["workers"], len(jobs))) as pool:
-            for name, out_set in pool.imap_unordered(_run_set_alone, jobs, chunksize=1):
-                done(name, out_set)
+    else:  # on Ray where it is installed, else one set after the other
+        jobs = [(name, c, False, k) for k, name in enumerate(c["sets"])]
+        run_tasks(
+            _run_set_alone,
+            jobs,
+            workers=c["workers"],
+            on_result=lambda i, r: done(*r),
+            desc="sets",
+            unit="set",
+            progress=progress,
+            strict=True,
+        )
     return res
 
 

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import StereoRig
-from ..experiments.parallel import run_tasks
+from ..engine import run_tasks
 from ..formats import write_json
 from ..geometry import nearest_rotation, rotation_angle
 from ..synth import Imaging, look_at_pose, render_target_view
@@ -203,7 +203,7 @@ def _judge(poses: list, T_true, seconds: float) -> dict:
     return out
 
 
-def _worker(args):
+def _worker(args, report=None):
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker: the workers already fill the machine
@@ -222,9 +222,10 @@ def _rig() -> StereoRig:
 
 
 def run(conf: dict, jobs: int | None = None, progress: bool = True) -> list[tuple[dict, dict]]:
-    """Every scene of ``conf`` over ``jobs`` processes: [(scene, {system: result})]."""
+    """Every scene of ``conf`` on Ray's ``jobs`` workers where it is installed (one after the
+    other where not, or with ``jobs`` 1): [(scene, {system: result})]."""
     tasks = [(sc, tuple(conf["systems"])) for sc in scenes(conf, _rig())]
-    out = run_tasks(_worker, tasks, jobs, desc="scenes", unit="scene", progress=progress)
+    out = run_tasks(_worker, tasks, workers=jobs, desc="scenes", unit="scene", progress=progress, strict=True)
     return sorted(out, key=lambda r: (r[0]["kind"], r[0]["level"], r[0]["seed"]))
 
 

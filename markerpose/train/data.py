@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing as mp
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
+
+from ..engine import run_tasks
 
 CHUNK = 50  # samples per job; job k draws from np.random.default_rng([seed, k])
 
@@ -17,22 +18,21 @@ CHUNK = 50  # samples per job; job k draws from np.random.default_rng([seed, k])
 def render_many(render_chunk: Callable, n: int, seed: int, conf: dict | None, workers: int, desc: str, unit: str = "img") -> list:
     """``n`` samples from ``render_chunk((seed, k, count, conf)) -> list``, in order.
 
-    Chunks are seeded by (seed, chunk index), so the result does not depend on ``workers``.
+    Chunks are seeded by (seed, chunk index), so the result does not depend on ``workers``
+    nor on where they run: on Ray's ``workers`` CPUs where it is installed, else one after
+    the other (:func:`markerpose.engine.run_tasks`).
     """
     jobs = [(seed, k, min(CHUNK, n - k * CHUNK), conf) for k in range(math.ceil(n / CHUNK))]
-    out: list = []
     with tqdm(total=n, desc=desc, unit=unit) as bar:
-        if workers > 1:
-            with mp.get_context("fork").Pool(workers) as pool:
-                for res in pool.imap(render_chunk, jobs):
-                    out += res
-                    bar.update(len(res))
-        else:
-            for job in jobs:
-                res = render_chunk(job)
-                out += res
-                bar.update(len(res))
-    return out
+        chunks = run_tasks(
+            _chunk, [(render_chunk, job) for job in jobs], workers=workers, on_result=lambda i, r: bar.update(len(r)), strict=True
+        )
+    return [sample for chunk in chunks for sample in chunk]
+
+
+def _chunk(task, report=None) -> list:
+    render_chunk, job = task
+    return render_chunk(job)
 
 
 def cached(path: Path, key: dict, make: Callable[[], dict]) -> dict:

@@ -18,12 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from ...camera import StereoRig
+from ...engine import run_tasks
 from ...synth import render_stereo
 from ...ultrasound.calibrate import calibrate_probe
 from ...ultrasound.probe import ProbeCalibration, invert
 from ...ultrasound.reconstruct import fit_cylinder, sweep_normal, tracker_points
 from ...ultrasound.segment import point_target, sweep_points
-from ..parallel import run_tasks
 from .bmode import crosswire_phantom, simulate_bmode, tube_phantom
 from .simulate import ProbeSetup, calibration_poses, sweep_poses
 
@@ -178,7 +178,7 @@ def acquisition(seed: int, plan: Plan, setup: ProbeSetup | None = None, rig: Ste
     return out
 
 
-def _worker(args):
+def _worker(args, report=None):
     import cv2
 
     cv2.setNumThreads(1)  # one core per worker: the workers already fill the machine
@@ -187,10 +187,11 @@ def _worker(args):
 
 
 def run(plan: Plan, jobs: int | None = None, progress: bool = True) -> list[dict]:
-    """All acquisitions of ``plan`` (the first keeps its data for plots and files), over
-    ``jobs`` processes (default: up to 2; each runs the networks on one thread)."""
+    """All acquisitions of ``plan`` (the first keeps its data for plots and files), on Ray's
+    ``jobs`` workers where it is installed (default: every core; each runs the networks on one
+    thread), one after the other where not."""
     tasks = [(i, plan, i == 0) for i in range(plan.n_acquisitions)]
-    results = run_tasks(_worker, tasks, jobs, desc="acquisitions", unit="acq", progress=progress)
+    results = run_tasks(_worker, tasks, workers=jobs, desc="acquisitions", unit="acq", progress=progress, strict=True)
     return sorted(results, key=lambda r: r["seed"])
 
 
