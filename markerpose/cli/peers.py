@@ -18,7 +18,11 @@ def cmd_peers(args):
         cmd += " --systems " + " ".join(args.systems)
     if args.seed:
         cmd += f" --seed {args.seed}"
-    conf = experiment.plan(args.quick, pairs=args.pairs, seed=args.seed, systems=tuple(args.systems) if args.systems else None)
+    if args.no_tuned:
+        cmd += " --no-tuned"
+    conf = experiment.plan(
+        args.quick, pairs=args.pairs, seed=args.seed, systems=tuple(args.systems) if args.systems else None, tuned=not args.no_tuned
+    )
     if args.spread:
         from pathlib import Path
 
@@ -48,6 +52,12 @@ def register(sub) -> None:
         choices=("markerpose", "apriltag", "apriltag-defaults", "aruco", "aruco-defaults", "charuco", "charuco-defaults", "stag"),
         help="systems to run (default: all installed)",
     )
+    pe.add_argument(
+        "--no-tuned",
+        action="store_true",
+        help="leave out the peers' further settings (AprilTag's decimation, sigma and sharpening, ArUco's refinements and "
+        "thresholds, ChArUco's marker refinement, STag's error correction) and the best-per-condition section",
+    )
     pe.add_argument("--seed", type=int, default=0)
     pe.add_argument(
         "--spread",
@@ -56,6 +66,6 @@ def register(sub) -> None:
         help="instead: the standard level under SEEDS seeds, each system's median position error per seed and "
         "markerpose's lead over the best peer with its spread (spread.md, spread.json)",
     )
-    pe.add_argument("--jobs", type=positive_int, help="processes (default: up to 2)")
+    pe.add_argument("--jobs", type=positive_int, help="Ray workers (default: every core; 1: in this process)")
     pe.add_argument("--quiet", action="store_true", help="no progress bar")
     pe.set_defaults(func=cmd_peers)

@@ -47,6 +47,7 @@ default_conf = {
     "tolerance_mm": 5.0,
     "tolerance_deg": 5.0,
     "systems": systems.SYSTEMS,
+    "tuned": True,  # also every peer's further settings (systems.TUNED), for the best per condition
     "seed": 0,
 }
 QUICK = {"pairs": 6, "jitter_poses": 2, "jitter_repeats": 5, "marker_free": 8}
@@ -127,6 +128,13 @@ def scenes(conf: dict, rig: StereoRig) -> list[dict]:
 _SYSTEMS: dict = {}
 
 
+def measured(conf: dict) -> tuple:
+    """The systems a run measures: ``conf["systems"]`` and, with ``conf["tuned"]``, the
+    further settings (:data:`systems.TUNED`) of the peers among them."""
+    extra = tuple(n for n in systems.TUNED if conf.get("tuned") and systems.SETTINGS[n][0] in conf["systems"])
+    return tuple(conf["systems"]) + extra
+
+
 def _systems(names, rig) -> dict:
     """The systems of this process, made once."""
     for n in names:
@@ -157,16 +165,15 @@ def _render(rig: StereoRig, scene: dict, target) -> tuple:
 
 
 def run_scene(scene: dict, names, rig: StereoRig) -> dict:
-    """Render ``scene`` for every system and measure it: {system: {"mono": ..., "stereo": ...}}."""
-    out = {}
-    free_images = None
+    """Render ``scene`` for every system and measure it: {system: {"mono": ..., "stereo": ...}}.
+    The settings of one peer see the same images (its target rendered once)."""
+    out: dict = {}
+    rendered: dict = {}
     for name, s in _systems(names, rig).items():
-        if scene["kind"] == "free":  # no target in view: one pair of images serves everyone
-            free_images = free_images or _render(rig, scene, s.target)
-            images = free_images
-        else:
-            images = _render(rig, scene, s.target)
-        out[name] = measure(s, rig, images, scene)
+        key = "all" if scene["kind"] == "free" else systems.SETTINGS.get(name, (name,))[0]  # marker-free: one pair for everyone
+        if key not in rendered:
+            rendered[key] = _render(rig, scene, s.target)
+        out[name] = measure(s, rig, rendered[key], scene)
     return out
 
 
@@ -224,7 +231,7 @@ def _rig() -> StereoRig:
 def run(conf: dict, jobs: int | None = None, progress: bool = True) -> list[tuple[dict, dict]]:
     """Every scene of ``conf`` on Ray's ``jobs`` workers where it is installed (one after the
     other where not, or with ``jobs`` 1): [(scene, {system: result})]."""
-    tasks = [(sc, tuple(conf["systems"])) for sc in scenes(conf, _rig())]
+    tasks = [(sc, measured(conf)) for sc in scenes(conf, _rig())]
     out = run_tasks(_worker, tasks, workers=jobs, desc="scenes", unit="scene", progress=progress, strict=True)
     return sorted(out, key=lambda r: (r[0]["kind"], r[0]["level"], r[0]["seed"]))
 
@@ -311,7 +318,7 @@ def summarize(results: list[tuple[dict, dict]], conf: dict) -> dict:
     """Per system and mode: every level's statistics, jitter, false detections, errors by
     distance and tilt (α = 1 level), and the headline figures."""
     out = {}
-    names = [n for n in conf["systems"] if results and n in results[0][1]]
+    names = [n for n in measured(conf) if results and n in results[0][1]]
     for name in names:
         entry: dict = {"label": systems.LABELS[name]}
         for mode in ("mono", "stereo"):
@@ -373,6 +380,37 @@ def comparison(summary: dict) -> list[dict]:
     return out
 
 
+def best_settings(summary: dict) -> dict:
+    """Per peer and mode, each darkness and blur level's best of the peer's settings (the
+    most detections, then the smaller median error): {peer: {mode: {kind: {level:
+    {"system", "detection", "t_err_median_mm"}}}}}. Tuned per condition: an upper bound
+    for a user who knows the condition in advance."""
+    out: dict = {}
+    for peer in dict.fromkeys(systems.SETTINGS[n][0] for n in summary if n in systems.SETTINGS):
+        names = [n for n in summary if systems.SETTINGS.get(n, ("",))[0] == peer]
+        for mode in ("mono", "stereo"):
+            levels: dict = {}
+            for kind in ("alpha", "blur"):
+                for lv in summary[names[0]][mode][kind]:
+                    ranked = [
+                        (-summary[n][mode][kind][lv]["detection"]["p"], _inf(summary[n][mode][kind][lv]["t_err_median_mm"]), n)
+                        for n in names
+                    ]
+                    _, _, best = min(ranked)
+                    st = summary[best][mode][kind][lv]
+                    levels.setdefault(kind, {})[lv] = {
+                        "system": best,
+                        "detection": st["detection"]["p"],
+                        "t_err_median_mm": st["t_err_median_mm"],
+                    }
+            out.setdefault(peer, {})[mode] = levels
+    return out
+
+
+def _inf(x) -> float:
+    return math.inf if x is None else x
+
+
 def _f(x, nd=3) -> str:
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
 
@@ -406,14 +444,15 @@ def setup_lines(conf: dict) -> list[str]:
         f"shot and read noise, 8 bits). Darkness α scales the exposure; motion blur is a line kernel in a random direction. "
         "Every system sees the same pose, lighting, blur, backgrounds and noise seed.",
         "- **Settings**: each peer twice where its library has settings: at the library's defaults (rows 'library "
-        "defaults') and at its documented settings for accuracy; none is tuned per condition. AprilTag "
+        "defaults') and at its documented settings for accuracy; in these tables none is tuned per condition (the last "
+        "section adds each peer's further settings and its best per condition). AprilTag "
         "`pupil_apriltags.Detector(families='tag36h11', quad_decimate=1.0, quad_sigma=0.0, refine_edges=1, "
         "decode_sharpening=0.25, nthreads=1)` (full-resolution quads), defaults `quad_decimate=2.0` (the rest the same), its "
         "corners moved by −0.5 px into OpenCV's pixel-centre convention; ArUco `cv2.aruco.ArucoDetector` with "
         "`CORNER_REFINE_SUBPIX` (the most accurate of OpenCV's three refinements on these images), defaults: no "
         "refinement; ChArUco `cv2.aruco.CharucoDetector` (same marker refinement, or none; the detector refines the "
         "chessboard corners), at least 4 corners for a pose; STag `stag.detectMarkers(image, 21)` (its own "
-        "ellipse-based corner refinement; no other setting); markerpose `MarkerPose(rig, preset='default', "
+        "ellipse-based corner refinement; error correction at its maximum, the default); markerpose `MarkerPose(rig, preset='default', "
         "threads=1).estimate`. OpenCV one thread per process.",
         "- **Mono** (as the peers' users run them): OpenCV's IPPE from the left view with the full lens model "
         "(`SOLVEPNP_IPPE_SQUARE` for a square tag, `SOLVEPNP_IPPE` for the ChArUco corners), the better solution. "
@@ -428,7 +467,43 @@ def setup_lines(conf: dict) -> list[str]:
     ]
 
 
+def best_markdown(best: dict, conf: dict) -> list[str]:
+    """The report's section on each peer at its best setting per condition."""
+    if not best:
+        return []
+    alphas, blurs = [str(float(a)) for a in conf["alphas"]], ["0.0"] + [str(float(b)) for b in conf["blurs"]]
+    L = [
+        "",
+        "## Each peer at its best setting for each condition (tuned per condition)",
+        "",
+        "Every peer was also run at the further settings its documentation suggests for hard images (below); here, for "
+        "each level, the best of each peer's settings (most detections, then the smaller median error), named. This "
+        "is tuned per condition: a user gets it only by knowing the condition in advance and switching settings.",
+        "",
+        "| setting | what it is |",
+        "|---|---|",
+    ]
+    for name, (peer, _, what) in systems.SETTINGS.items():
+        if peer in best:
+            L.append(f"| `{name}` | {what} |")
+    for kind, vals, title in (("alpha", alphas, "darkness α"), ("blur", blurs, "motion blur (px)")):
+        L += ["", f"Detection versus {title}, the best setting per level:", ""]
+        L += ["| peer | mode | " + " | ".join(f"{float(v):g}" for v in vals) + " |", "|---|---|" + "---|" * len(vals)]
+        for peer, modes in best.items():
+            for mode in ("stereo", "mono"):
+                cells = []
+                for v in vals:
+                    b = modes[mode][kind].get(v)
+                    cells.append(
+                        "—" if b is None else f"{100 * b['detection']:.1f} % ({b['system'].removeprefix(peer).lstrip('-') or 'accuracy'})"
+                    )
+                L.append(f"| {systems.LABELS[peer].split(',')[0]} | {mode} | " + " | ".join(cells) + " |")
+    return L
+
+
 def report_markdown(summary: dict, conf: dict, command: str, seconds: float, skipped: dict) -> str:
+    best = best_settings(summary)
+    summary = {n: e for n, e in summary.items() if n not in systems.TUNED}
     n_lv = conf["pairs"]
     alphas, blurs = [str(float(a)) for a in conf["alphas"]], [str(float(b)) for b in conf["blurs"]]
     darkest, longest = alphas[-1], blurs[-1] if blurs else None
@@ -523,8 +598,9 @@ def report_markdown(summary: dict, conf: dict, command: str, seconds: float, ski
     L += [
         "Plots: `detection.png` (detection versus darkness and blur), `accuracy.png` (errors versus distance and "
         "tilt), `jitter-speed.png` (static jitter and time per frame).",
-        "",
     ]
+    L += best_markdown(best, conf)
+    L.append("")
     return "\n".join(L)
 
 
@@ -651,7 +727,7 @@ def spread(conf: dict, seeds: int, jobs: int | None = None, progress: bool = Tru
     the per-seed medians and the lead's mean, sd and range."""
     per_seed = []
     for seed in range(int(seeds)):
-        c = {**conf, "seed": seed, "alphas": (1.0,), "blurs": (), "jitter_poses": 0, "marker_free": 0}
+        c = {**conf, "seed": seed, "alphas": (1.0,), "blurs": (), "jitter_poses": 0, "marker_free": 0, "tuned": False}
         rows = run(c, jobs=jobs, progress=progress)
         medians = {}
         for name in c["systems"]:
@@ -734,11 +810,12 @@ def main(
         "conf": {k: list(v) if isinstance(v, tuple) else v for k, v in conf.items()},
         "skipped": skipped,
         "setup": setup_lines(conf),
-        "comparison": comparison(summary),
+        "comparison": comparison({n: e for n, e in summary.items() if n not in systems.TUNED}),
+        "best_settings": best_settings(summary),
         **summary,
     }
     write_json(out / "results.json", doc)
-    paths = plots(summary, out)
+    paths = plots({n: e for n, e in summary.items() if n not in systems.TUNED}, out)
     (out / "report.md").write_text(report_markdown(summary, conf, command, seconds, skipped))
     doc["files"] = [str(out / "report.md"), str(out / "results.json")] + [str(p) for p in paths]
     return doc

@@ -32,6 +32,10 @@ instance, trades corner accuracy for robustness to blur):
 - ``stag``: ``stag.detectMarkers(image, 21)`` (STag's own ellipse-based corner
   refinement is part of its detector; it has no other setting).
 
+Beside these, each peer at further settings that its documentation suggests for hard
+images (:data:`TUNED`, :data:`SETTINGS`): the comparison reports, per condition, the best
+of a peer's settings (tuned per condition, which a user would have to know in advance).
+
 A detector that finds several candidates reports the one with the expected ID; any other
 ID counts as a wrong detection.
 """
@@ -50,6 +54,46 @@ from . import targets
 
 PEERS = ("apriltag", "apriltag-defaults", "aruco", "aruco-defaults", "charuco", "charuco-defaults", "stag")
 SYSTEMS = ("markerpose",) + PEERS
+_SUBPIX, _CONTOUR, _APRILTAG = (getattr(cv2.aruco, f"CORNER_REFINE_{k}") for k in ("SUBPIX", "CONTOUR", "APRILTAG"))
+# Each peer's settings: (peer, its detector's settings, where they come from). The first
+# seven are the systems above; the rest (TUNED) are settings the libraries' documentation
+# suggests for noisy, dark or blurred images.
+SETTINGS = {
+    "apriltag": ("apriltag", {"quad_decimate": 1.0}, "full-resolution quads (the accuracy setting)"),
+    "apriltag-defaults": ("apriltag", {"quad_decimate": 2.0}, "the library's defaults"),
+    "apriltag-d3": ("apriltag", {"quad_decimate": 3.0}, "quads on a third of the resolution: faster, more robust to blur"),
+    "apriltag-sigma": ("apriltag", {"quad_decimate": 2.0, "quad_sigma": 0.8}, "quad_sigma 0.8: what the docs suggest for noisy images"),
+    "apriltag-sharp": ("apriltag", {"quad_decimate": 2.0, "decode_sharpening": 1.0}, "decode_sharpening 1.0: more sharpening of the bits"),
+    "aruco": ("aruco", {"cornerRefinementMethod": _SUBPIX}, "CORNER_REFINE_SUBPIX"),
+    "aruco-defaults": ("aruco", {}, "DetectorParameters() as they come"),
+    "aruco-contour": ("aruco", {"cornerRefinementMethod": _CONTOUR}, "CORNER_REFINE_CONTOUR (lines fitted to the contour)"),
+    "aruco-apriltag": ("aruco", {"cornerRefinementMethod": _APRILTAG}, "CORNER_REFINE_APRILTAG (AprilTag's edge refinement)"),
+    "aruco-blur": (
+        "aruco",
+        {
+            "cornerRefinementMethod": _SUBPIX,
+            "adaptiveThreshWinSizeMax": 53,
+            "polygonalApproxAccuracyRate": 0.06,
+            "cornerRefinementWinSize": 9,
+        },
+        "SUBPIX with wider threshold windows (up to 53 px), a looser polygon fit (0.06) and a 9 px refinement window",
+    ),
+    "charuco": ("charuco", {"cornerRefinementMethod": _SUBPIX}, "its markers CORNER_REFINE_SUBPIX"),
+    "charuco-defaults": ("charuco", {}, "DetectorParameters() and CharucoParameters() as they come"),
+    "charuco-refine": (
+        "charuco",
+        {"cornerRefinementMethod": _SUBPIX, "tryRefineMarkers": True},
+        "SUBPIX, tryRefineMarkers (missed markers found from the board)",
+    ),
+    "charuco-blur": (
+        "charuco",
+        {"cornerRefinementMethod": _SUBPIX, "tryRefineMarkers": True, "adaptiveThreshWinSizeMax": 53, "polygonalApproxAccuracyRate": 0.06},
+        "SUBPIX, tryRefineMarkers, wider threshold windows and a looser polygon fit",
+    ),
+    "stag": ("stag", {}, "errorCorrection at its maximum (the library's default)"),
+    "stag-ec5": ("stag", {"errorCorrection": 5}, "errorCorrection 5 of 10"),
+}
+TUNED = tuple(n for n in SETTINGS if n not in PEERS)
 PIP = {"apriltag": "pupil-apriltags", "stag": "stag-python"}  # the others come with OpenCV
 LABELS = {
     "markerpose": "markerpose (three rings)",
@@ -61,12 +105,13 @@ LABELS = {
     "charuco-defaults": "ChArUco 5×6, library defaults",
     "stag": "STag HD21",
 }
+LABELS.update({n: f"{LABELS[SETTINGS[n][0]]}, {n.split('-', 1)[1]}" for n in TUNED})
 _MODULE = {"apriltag": "pupil_apriltags", "stag": "stag"}
 
 
 def _base(name: str) -> str:
     """The peer a system name is a setting of (``apriltag-defaults`` → ``apriltag``)."""
-    return name.removesuffix("-defaults")
+    return SETTINGS[name][0] if name in SETTINGS else name
 
 
 @dataclass
@@ -170,18 +215,11 @@ class AprilTag(System):
     # this reorders them to the target's TL, TR, BR, BL.
     _order = np.array([1, 0, 3, 2])
 
-    def __init__(self, defaults: bool = False):
+    def __init__(self, name: str = "apriltag"):
         super().__init__()
-        if defaults:
-            self.name = "apriltag-defaults"
-        self.detector = _apriltag_detector(
-            families="tag36h11",
-            nthreads=1,
-            quad_decimate=2.0 if defaults else 1.0,
-            quad_sigma=0.0,
-            refine_edges=1,
-            decode_sharpening=0.25,
-        )
+        self.name = name
+        settings = {"quad_sigma": 0.0, "refine_edges": 1, "decode_sharpening": 0.25, **SETTINGS[name][1]}
+        self.detector = _apriltag_detector(families="tag36h11", nthreads=1, **settings)
 
     def make_target(self):
         return targets.apriltag_target(self.tag_id)
@@ -201,14 +239,10 @@ class Aruco(System):
     name = "aruco"
     marker_id = 0
 
-    def __init__(self, defaults: bool = False):
+    def __init__(self, name: str = "aruco"):
         super().__init__()
-        p = cv2.aruco.DetectorParameters()
-        if defaults:
-            self.name = "aruco-defaults"
-        else:
-            p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        self.detector = cv2.aruco.ArucoDetector(targets.aruco_dictionary("DICT_4X4_50"), p)
+        self.name = name
+        self.detector = cv2.aruco.ArucoDetector(targets.aruco_dictionary("DICT_4X4_50"), _parameters(SETTINGS[name][1])[0])
 
     def make_target(self):
         return targets.aruco_target(self.marker_id)
@@ -227,14 +261,11 @@ class Charuco(System):
     name = "charuco"
     square = False
 
-    def __init__(self, defaults: bool = False):
+    def __init__(self, name: str = "charuco"):
         super().__init__()
-        p = cv2.aruco.DetectorParameters()
-        if defaults:
-            self.name = "charuco-defaults"
-        else:
-            p.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-        self.detector = cv2.aruco.CharucoDetector(targets.charuco_board(), cv2.aruco.CharucoParameters(), p)
+        self.name = name
+        p, c = _parameters(SETTINGS[name][1])
+        self.detector = cv2.aruco.CharucoDetector(targets.charuco_board(), c, p)
 
     def make_target(self):
         return targets.charuco_target()
@@ -250,13 +281,18 @@ class STag(System):
     name = "stag"
     marker_id = 0
 
+    def __init__(self, name: str = "stag"):
+        super().__init__()
+        self.name = name
+        self.error_correction = SETTINGS[name][1].get("errorCorrection", -1)
+
     def make_target(self):
         return targets.stag_target(self.marker_id)
 
     def observe(self, image):
         import stag
 
-        corners, ids, _ = stag.detectMarkers(image, 21)
+        corners, ids, _ = stag.detectMarkers(image, 21, self.error_correction)
         if ids is None or len(ids) == 0:
             return None
         ids = np.asarray(ids).ravel()
@@ -287,16 +323,25 @@ class Ours(System):
 PEER_CLASSES = {"apriltag": AprilTag, "aruco": Aruco, "charuco": Charuco, "stag": STag}
 
 
+def _parameters(settings: dict):
+    """OpenCV's ArUco DetectorParameters and CharucoParameters with ``settings`` (each key
+    belongs to the one that has it)."""
+    p, c = cv2.aruco.DetectorParameters(), cv2.aruco.CharucoParameters()
+    for key, value in settings.items():
+        setattr(c if hasattr(c, key) else p, key, value)
+    return p, c
+
+
 def make(name: str, rig=None) -> System:
     """The system called ``name`` (``ImportError`` naming the pip package if it is missing)."""
     if name == "markerpose":
         return Ours(rig)
-    if name not in PEERS:
-        raise ValueError(f"unknown system {name!r}; known: {list(SYSTEMS)}")
+    if name not in SETTINGS:
+        raise ValueError(f"unknown system {name!r}; known: {list(SYSTEMS + TUNED)}")
     gone = missing([name])
     if gone:
         raise ImportError(f'{name} needs the package {gone[name]}: pip install {gone[name]} (or pip install -e ".[peers]")')
-    return PEER_CLASSES[_base(name)](defaults=True) if name.endswith("-defaults") else PEER_CLASSES[name]()
+    return PEER_CLASSES[_base(name)](name)
 
 
 def timed(fn, *args):
