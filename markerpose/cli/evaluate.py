@@ -266,6 +266,8 @@ def _register_pipeline(esub) -> None:
          [("recordings", positive_int, 8, "rendered recordings"),
           ("frames", positive_int, 120, "pairs per recording"),
           ("workers", positive_int, 2, "the local Ray's workers")]),
+        ("faults", "faults", "a seeded fault campaign: bad rig files, settings, images, folders, CSVs and numbers, each class in its own process",
+         [("cases", positive_int, 45, "cases per class (seven classes)")]),
         ("temporal", "ultrasound.temporal",
          "the ultrasound-to-tracker delay on a simulated session (probe up and down over a plate), 0-150 ms",
          [("seconds", float, 6.0, "length of the session, s")]),
