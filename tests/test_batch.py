@@ -174,3 +174,20 @@ def test_batch_without_ray_gives_the_same_rows(frames, tmp_path, capsys, monkeyp
         float(next(r for r in _rows(track_csv))["timestamp_s"]), float(next(r for r in _rows(root / "one" / "poses.csv"))["timestamp_s"])
     )
     assert "1 recordings: 1 tracked (6 frames" in capsys.readouterr().out and (tmp_path / "summary.md").is_file()
+
+
+def test_batch_reconstructs_the_sweep_of_a_recording_that_has_one(tmp_path, capsys):
+    """--probe: a recording with an ultrasound sweep (us/) is tracked, then reconstructed into
+    reconstruction/, as markerpose ultrasound reconstruct would."""
+    from markerpose.experiments.ultrasound.simulate import write_simulated_recording
+
+    rec = tmp_path / "study" / "sweep1"
+    write_simulated_recording(rec, n_frames=6, calibration_frames=3, progress=False)
+    out = tmp_path / "out"
+    assert (
+        cli.main(["batch", str(tmp_path / "study"), "--out", str(out), "--probe", str(rec / "probe_true.yaml"), "--serial", "--quiet"]) == 0
+    )
+    done = out / "sweep1"
+    assert (done / "reconstruction" / "sweep.igs.nrrd").is_file() and (done / "reconstruction" / "volume.nrrd").is_file()
+    assert "reconstruction/" in (done / "batch.json").read_text()
+    assert "1 recordings: 1 tracked" in capsys.readouterr().out

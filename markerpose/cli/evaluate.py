@@ -224,7 +224,9 @@ def _register_pipeline(esub) -> None:
         action="store_true",
         help="also each view alone (tracker.detect): all three centres within the tolerance, right IDs",
     )
-    ep.add_argument("--workers", type=int, default=1, help="processes running sets at once (one torch thread each; figures unchanged)")
+    ep.add_argument(
+        "--workers", type=int, default=1, help="sets at once on Ray where it is installed (one thread each; figures unchanged; default 1)"
+    )
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pipeline)

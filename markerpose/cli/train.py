@@ -79,7 +79,7 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
     p.add_argument("--train-size", type=int, default=size, help=f"rendered training {unit}, cached")
     p.add_argument("--val-size", type=int, default=400)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2, help="processes rendering the data")
+    p.add_argument("--workers", type=int, default=2, help="Ray workers rendering the data where Ray is installed (1: in this process)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
     p.add_argument("--out", default=f"runs/{name}", help="checkpoints and history")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")

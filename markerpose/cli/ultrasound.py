@@ -112,7 +112,7 @@ def _register_demo(usub) -> None:
     ud.add_argument("--quick", action="store_true", help="3 short acquisitions (about a minute) instead of 10 full ones")
     ud.add_argument("--acquisitions", type=int, help="number of seeded acquisitions (default 10; --quick 3)")
     ud.add_argument("--seed", type=int, default=0)
-    ud.add_argument("--jobs", type=int, help="processes (default: up to 2)")
+    ud.add_argument("--jobs", type=int, help="Ray workers where Ray is installed (default: every core; 1: in this process)")
     ud.add_argument("--quiet", action="store_true", help="no progress bar")
     ud.set_defaults(func=cmd_ultrasound_demo)
 

@@ -494,11 +494,16 @@ def best_markdown(best: dict, conf: dict) -> list[str]:
                 cells = []
                 for v in vals:
                     b = modes[mode][kind].get(v)
-                    cells.append(
-                        "—" if b is None else f"{100 * b['detection']:.1f} % ({b['system'].removeprefix(peer).lstrip('-') or 'accuracy'})"
-                    )
+                    cells.append("—" if b is None else f"{100 * b['detection']:.1f} % ({_short(b['system'])})")
                 L.append(f"| {systems.LABELS[peer].split(',')[0]} | {mode} | " + " | ".join(cells) + " |")
     return L
+
+
+def _short(name: str) -> str:
+    """A setting's name in the best-per-condition tables: the part after the peer's name;
+    the peer's own name is its setting for accuracy (STag's: its defaults)."""
+    peer = systems.SETTINGS[name][0]
+    return name.removeprefix(peer).lstrip("-") or ("defaults" if peer == "stag" else "accuracy")
 
 
 def report_markdown(summary: dict, conf: dict, command: str, seconds: float, skipped: dict) -> str:
