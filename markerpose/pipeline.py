@@ -308,7 +308,7 @@ class MarkerPose:
         """
         tool = self._one("estimate")
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            est = tool.cold(frame)
+            est = self._fits_rig(frame, tool.cold(frame))
             frame.why = None if est is not None else (frame.why or "no marker found")
             return est
 
@@ -343,7 +343,7 @@ class MarkerPose:
         tools; each tool's triples are matched by its own 3D shape, and the rings of a
         tool found are not another's. ``whys`` says why each missing tool was not found."""
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self._each(frame, lambda tool, sub: tool.cold(sub), list(self.tools.values()))
+            return self._each(frame, lambda tool, sub: self._fits_rig(sub, tool.cold(sub)), list(self.tools.values()))
 
     def track_all(self, left, right, times=None) -> dict[str, Estimate]:
         """Each tool's pose in the next pair of a video stream: ``{name: Estimate}`` of the
@@ -360,6 +360,21 @@ class MarkerPose:
                 frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET), times=times), tools
             )
         return {name: self._checked(est, self.tools[name], times) for name, est in found.items()}
+
+    def _fits_rig(self, frame: Frame, est: Estimate | None) -> Estimate | None:
+        """``est`` of a single pair (estimate, estimate_all), or None where its views do not fit
+        the rig: the six centres reproject more than ``verify.max_residual_px`` from the pose,
+        which a camera moved since calibration or the wrong rig file gives (a pose millimetres
+        off whose every other check passes). In a stream (track) the rig check does this job
+        with the statistics of many pairs (status "rig changed")."""
+        limit = self.conf["verify"]["max_residual_px"]
+        if est is None or est.residual_px <= limit:
+            return est
+        frame.why = (
+            f"the views do not fit the rig: the six centres reproject {est.residual_px:.2f} px RMS from the pose "
+            f"(verify.max_residual_px {limit:g}); a camera moved since calibration, or the wrong rig file"
+        )
+        return None
 
     def _checked(self, est: Estimate | None, tool: ToolPipeline, times: tuple | None = None) -> Estimate | None:
         """``est`` fed to the rig check (:mod:`markerpose.rigcheck`); once that has fired, the

@@ -14,6 +14,7 @@ line's ``--set`` both go through it.
 from __future__ import annotations
 
 import copy
+import math
 
 from . import detectors, settings
 from .nets import BACKENDS
@@ -29,8 +30,14 @@ PRESETS: dict[str, dict] = {
         "propose": {"second_look": 1.0},
         "refine": {"patch": "fixed", "fit": "ellipse", "edge_refit": False},
         "solve": PAPER_POSE,
+        "verify": {"max_residual_px": math.inf},  # the paper gives every pose it solves
     },
-    "paper-classical": {"detector": "classical", "refine": {"subpixel": False}, "solve": PAPER_POSE},
+    "paper-classical": {
+        "detector": "classical",
+        "refine": {"subpixel": False},
+        "solve": PAPER_POSE,
+        "verify": {"max_residual_px": math.inf},
+    },
     "classical": {"detector": "classical"},
     "default-bf16": {"backend": "openvino-bf16"},
     "default-int8": {"propose": {"int8": True}},

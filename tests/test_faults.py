@@ -19,7 +19,15 @@ FAST = settings(max_examples=60, deadline=None, suppress_health_check=[HealthChe
 
 
 @pytest.mark.parametrize(
-    "name, n", [("rig files", 12), ("settings", 8), ("image arrays", 12), ("poses CSVs", 7), ("command-line numbers", 10)]
+    "name, n",
+    [
+        ("rig files", 12),
+        ("settings", 8),
+        ("image arrays", 12),
+        ("poses CSVs", 7),
+        ("command-line numbers", 10),
+        ("other commands' files", 8),
+    ],
 )
 def test_campaign_classes_have_no_fault(name, n, tmp_path, monkeypatch):
     """A seeded slice of the campaign (the full one: markerpose eval faults): every bad input

@@ -21,6 +21,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -390,6 +391,157 @@ def numbers(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple[str, 
         yield f"{cmd} {opt} {v}", True, run
 
 
+def command_files(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple[str, bool, Callable]]:
+    """The other commands' file inputs, malformed: ``handeye``'s robot CSV, ``ultrasound
+    calibrate``'s timestamps, ``ultrasound reconstruct``'s probe calibration, ``track
+    --tools``' tool files, ``batch``'s list file, ``sync``'s and ``calibrate``'s folders."""
+    import cv2
+    import yaml
+
+    from ..marker import Marker
+
+    rows = [f"{k / 10:.3f}," + ",".join(f"{v:g}" for v in np.eye(4).ravel()) for k in range(6)]
+    robot_good = "timestamp_s," + ",".join(f"T{i}{j}" for i in range(4) for j in range(4)) + "\n" + "\n".join(rows) + "\n"
+    poses = next(iter(poses_csvs(1, rng, tmp)))  # writes tmp/poses0.csv, 60 good poses
+    del poses
+    us = tmp / "us"
+    us.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(us / f"{k:03d}.png"), np.zeros((64, 64), np.uint8))
+    frames = tmp / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "000.png"), np.zeros((1024, 1280), np.uint8))
+    empty = tmp / "empty"
+    empty.mkdir()
+    Marker().save(tmp / "marker.yaml")
+    tool_text = (tmp / "marker.yaml").read_text()
+    probe_good = "%YAML:1.0\n---\nT_marker_image: !!opencv-matrix\n   rows: 4\n   cols: 4\n   dt: d\n   data: [ 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1. ]\nspacing: [ 0.1, 0.1 ]\n"
+
+    def case(k: int) -> tuple[str, list]:
+        kind = k % 8
+        f = tmp / f"in{k}"
+        if kind == 0:
+            cut = int(rng.integers(20, len(robot_good) - 5))
+            f.with_suffix(".csv").write_text(robot_good[:cut] + ",x")
+            return f"handeye: a robot CSV cut at byte {cut}", [
+                "handeye",
+                "--robot",
+                str(f.with_suffix(".csv")),
+                "--poses",
+                str(tmp / "poses0.csv"),
+                "--setup",
+                "eye-to-hand",
+                "--out",
+                str(tmp / f"h{k}.yaml"),
+            ]
+        if kind == 1:
+            bad = rng.choice(["a row of one field", "times going back", "a NaN time"]).item()
+            text = {
+                "a row of one field": "file,timestamp_s\n000.png\n",
+                "times going back": "file,timestamp_s\n000.png,1.0\n001.png,0.5\n002.png,0.7\n",
+                "a NaN time": "file,timestamp_s\n000.png,nan\n001.png,1\n002.png,2\n",
+            }[bad]
+            d = tmp / f"us{k}"
+            d.mkdir()
+            for p in us.iterdir():
+                (d / p.name).write_bytes(p.read_bytes())
+            (d / "timestamps.csv").write_text(text)
+            return f"ultrasound calibrate: timestamps with {bad}", [
+                "ultrasound",
+                "calibrate",
+                "--poses",
+                str(tmp / "poses0.csv"),
+                "--images",
+                str(d),
+                "--spacing",
+                "0.1,0.1",
+                "--out",
+                str(tmp / f"p{k}.yaml"),
+            ]
+        if kind == 2:
+            bad = rng.choice(["spacing", "T_marker_image", "all"]).item()
+            text = {
+                "spacing": probe_good.replace("spacing: [ 0.1, 0.1 ]", "spacing: [ 0.1 ]"),
+                "T_marker_image": probe_good.replace("rows: 4", "rows: 2").replace("cols: 4", "cols: 8"),
+                "all": "garbage: [\n",
+            }[bad]
+            f.with_suffix(".yaml").write_text(text)
+            return f"ultrasound reconstruct: a probe file with a bad {bad}", [
+                "ultrasound",
+                "reconstruct",
+                "--poses",
+                str(tmp / "poses0.csv"),
+                "--images",
+                str(us),
+                "--calibration",
+                str(f.with_suffix(".yaml")),
+                "--out",
+                str(tmp / f"r{k}"),
+                "--fps",
+                "10",
+                "--quiet",
+            ]
+        if kind == 3:
+            bad = rng.choice(["without rings", "rings of 2 points", "a word for a diameter", "not YAML"]).item()
+            text = {
+                "without rings": yaml.safe_dump({k: v for k, v in yaml.safe_load(tool_text).items() if k != "rings"}),
+                "rings of 2 points": "name: t\nrings: [[0, 0], [25, 0]]\nouter_diameter: 20\ninner_diameter: 8\nplate_margin: 10\n",
+                "a word for a diameter": re.sub(r"outer_diameter: .*", "outer_diameter: big", tool_text),
+                "not YAML": "{[}: :\n",
+            }[bad]
+            f.with_suffix(".yaml").write_text(text)
+            return f"track --tools: a tool file {bad}", [
+                "track",
+                str(frames),
+                str(frames),
+                "--tools",
+                str(f.with_suffix(".yaml")),
+                str(tmp / "marker.yaml"),
+                "--out",
+                str(tmp / f"t{k}.csv"),
+                "--quiet",
+            ]
+        if kind == 4:
+            f.with_suffix(".txt").write_text(rng.choice(["a b c d e\n", "missing-folder\n", "x y\n"]).item())
+            return "batch: a list file with a bad line", [
+                "batch",
+                str(f.with_suffix(".txt")),
+                "--serial",
+                "--quiet",
+                "--out",
+                str(tmp / f"b{k}"),
+            ]
+        if kind == 5:
+            return "sync: an empty folder", ["sync", str(empty), str(frames)]
+        if kind == 6:
+            return "calibrate: a folder without the grid", [
+                "calibrate",
+                str(frames),
+                str(frames),
+                "--grid",
+                "4x11",
+                "--spacing",
+                "15",
+                "--out",
+                str(tmp / f"c{k}.yaml"),
+            ]
+        return "track --tools: the same tool twice", [
+            "track",
+            str(frames),
+            str(frames),
+            "--tools",
+            str(tmp / "marker.yaml"),
+            str(tmp / "marker.yaml"),
+            "--out",
+            str(tmp / f"t{k}.csv"),
+            "--quiet",
+        ]
+
+    for k in range(n):
+        what, argv = case(k)
+        yield what, True, lambda a=argv: cli(a, True)
+
+
 CLASSES = {
     "rig files": rig_files,
     "settings": settings,
@@ -398,6 +550,7 @@ CLASSES = {
     "tracking inputs": tracking,
     "poses CSVs": poses_csvs,
     "command-line numbers": numbers,
+    "other commands' files": command_files,
 }
 FAULTS = ("accepted", "traceback", "crash", "hang", "wrong refusal")
 

@@ -21,11 +21,15 @@ default_conf = {
     "epipolar_tol": 3.0,  # max epipolar distance of same-ID refined centres, px
     "plate_check": True,  # each view's refined rings must fit one plate pose (ours)
     "max_shape_error": 2.0,  # mm: RMS misfit of the triangulated centres to the marker's layout
+    # px: the six centres' RMS reprojection error above which a synchronised pair's views do not
+    # fit the rig (a camera moved, the wrong rig file): no pose rather than one millimetres off
+    "max_residual_px": 1.0,
 }
 RULES = {
     "epipolar_tol": number(0, above=True, no_limit=True),
     "plate_check": flag(),
     "max_shape_error": number(0, above=True, no_limit=True),
+    "max_residual_px": number(0, above=True, no_limit=True),
 }
 
 EPIPOLAR_TOL_COARSE = 12.0  # max epipolar distance of same-ID points that could not be refined, px

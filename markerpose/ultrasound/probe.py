@@ -104,8 +104,9 @@ class ProbeCalibration:
             rms = float(node.real()) if node.isReal() or node.isInt() else None
         finally:
             fs.release()
-        if T.size != 16 or sp.size != 2:
-            raise ValueError(f"{path}: T_marker_image must be 4x4 and spacing two numbers")
+        flat = T.ndim == 1 or 1 in T.shape  # sixteen numbers in a row, read row by row
+        if T.size != 16 or not (T.shape == (4, 4) or flat) or sp.size != 2:
+            raise ValueError(f"{path}: T_marker_image must be 4x4 (got {'x'.join(map(str, T.shape))}) and spacing two numbers")
         try:
             return cls(T.reshape(4, 4), tuple(sp.ravel()), size, rms)
         except ValueError as e:
