@@ -269,7 +269,7 @@ def _register_pipeline(esub) -> None:
           ("frames", positive_int, 120, "pairs per recording"),
           ("workers", positive_int, 2, "the local Ray's workers")]),
         ("faults", "faults", "a seeded fault campaign: bad rig files, settings, images, folders, CSVs and numbers, each class in its own process",
-         [("cases", positive_int, 45, "cases per class (seven classes)")]),
+         [("cases", positive_int, 45, "cases per class (eight classes)")]),
         ("temporal", "ultrasound.temporal",
          "the ultrasound-to-tracker delay on a simulated session (probe up and down over a plate), 0-150 ms",
          [("seconds", float, 6.0, "length of the session, s")]),
