@@ -139,19 +139,6 @@ def done_record(out) -> dict | None:
     return record if isinstance(record, dict) and record.get("status") == "done" else None
 
 
-class _Frames:
-    """A sink counting the frames into the run's progress."""
-
-    def __init__(self, report):
-        self.report = report
-
-    def __call__(self, *frame):
-        self.report(1)
-
-    def close(self):
-        pass
-
-
 def track_recording(job: Job, report=lambda n: None) -> dict:
     """Track one recording as ``markerpose track`` would, reconstruct its sweep where asked,
     then write ``batch.json``. Returns its summary row (:data:`SUMMARY_COLUMNS`)."""
@@ -163,7 +150,7 @@ def track_recording(job: Job, report=lambda n: None) -> dict:
     tracker = job.make_tracker(rec.rig)
     stream = open_stereo(rec.left, rec.right, job.fps)
     csv_path, jsonl = out / "poses.csv", (out / "poses.jsonl" if job.jsonl else None)
-    sinks = (_Frames(report),)
+    sinks = (lambda *frame: report(1),)  # each frame tracked counts into the run's progress
     if job.tools:
         s = track_tools_stream(
             tracker, stream, csv_path, jsonl, progress=False, reference=job.reference, sinks=sinks, right_delay=job.right_delay

@@ -30,10 +30,10 @@ def cmd_batch(args):
     from ..engine import ray_installed
 
     recordings = find_recordings(args.sources)
-    use_ray = False if args.serial else (None if args.address is None else True)
-    if use_ray is None and not ray_installed():
+    use_ray = not args.serial and (args.address is not None or ray_installed())
+    if not args.serial and not use_ray:
         print("Ray is not installed: the recordings run here, one after the other (pip install 'markerpose[ray]')", file=sys.stderr)
-    factory = TrackerFactory(args, threads=None if use_ray is False or (use_ray is None and not ray_installed()) else 1)
+    factory = TrackerFactory(args, threads=1 if use_ray else None)  # on Ray each worker has one CPU
     factory(None)  # the options checked here, before any task: a bad --set or tool file fails once, not per recording
     if args.reference is not None and not args.tools:
         raise ValueError("--reference needs --tools: the reference is one of the tools")

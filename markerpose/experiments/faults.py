@@ -322,14 +322,19 @@ def tracking(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple[str,
         yield what, bad, run
 
 
-def poses_csvs(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple[str, bool, Callable]]:
-    """``markerpose pivot`` on poses CSVs cut, emptied, non-numeric or non-rigid, and good."""
+def _pivoting_csv() -> tuple[str, list[list[str]]]:
+    """A track CSV's header and rows of 60 poses of a tool pivoting about its tip."""
     from ..pivot import pivoting_poses
     from ..video import CSV_HEADER
 
     T = pivoting_poses((12.5, -110.0, -4.0), (10.0, 100.0, 560.0), 60, 25.0, np.random.default_rng(5))
     rows = [[str(k), f"{k / 30:.6f}", "", "1"] + [""] * 10 + [f"{v:.9g}" for v in Ti.ravel()] + ["", "", "", ""] for k, Ti in enumerate(T)]
-    header = ",".join(CSV_HEADER)
+    return ",".join(CSV_HEADER), rows
+
+
+def poses_csvs(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple[str, bool, Callable]]:
+    """``markerpose pivot`` on poses CSVs cut, emptied, non-numeric or non-rigid, and good."""
+    header, rows = _pivoting_csv()
     good = header + "\n" + "\n".join(",".join(r) for r in rows) + "\n"
     for k in range(n):
         kind = k % 7
@@ -402,8 +407,9 @@ def command_files(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple
 
     rows = [f"{k / 10:.3f}," + ",".join(f"{v:g}" for v in np.eye(4).ravel()) for k in range(6)]
     robot_good = "timestamp_s," + ",".join(f"T{i}{j}" for i in range(4) for j in range(4)) + "\n" + "\n".join(rows) + "\n"
-    poses = next(iter(poses_csvs(1, rng, tmp)))  # writes tmp/poses0.csv, 60 good poses
-    del poses
+    header, pose_rows = _pivoting_csv()
+    good_poses = tmp / "poses-good.csv"
+    good_poses.write_text(header + "\n" + "\n".join(",".join(r) for r in pose_rows) + "\n")
     us = tmp / "us"
     us.mkdir()
     for k in range(3):
@@ -428,7 +434,7 @@ def command_files(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple
                 "--robot",
                 str(f.with_suffix(".csv")),
                 "--poses",
-                str(tmp / "poses0.csv"),
+                str(good_poses),
                 "--setup",
                 "eye-to-hand",
                 "--out",
@@ -450,7 +456,7 @@ def command_files(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple
                 "ultrasound",
                 "calibrate",
                 "--poses",
-                str(tmp / "poses0.csv"),
+                str(good_poses),
                 "--images",
                 str(d),
                 "--spacing",
@@ -470,7 +476,7 @@ def command_files(n: int, rng: np.random.Generator, tmp: Path) -> Iterator[tuple
                 "ultrasound",
                 "reconstruct",
                 "--poses",
-                str(tmp / "poses0.csv"),
+                str(good_poses),
                 "--images",
                 str(us),
                 "--calibration",
