@@ -378,13 +378,25 @@ def test_blur_distance_c0_c1_under_blur_along_it(tmp_path, monkeypatch):
     poses = []
     render = bd.render_stereo
     monkeypatch.setattr(bd, "render_stereo", lambda rig_, T, *a, **k: (poses.append(T), render(rig_, T, *a, **k))[1])
-    res = bd.main({"pairs": 2, "lengths": (0.0, 25.0, 25.0), "configs": ("classical",)}, tmp_path, progress=False)
+    conf = {"pairs": 2, "lengths": (0.0, 25.0, 25.0), "configs": ("classical",), "path_poses": 3}
+    res = bd.main(conf, tmp_path, progress=False)
     rows = res["summary"]["classical"]
     assert [r["length_px"] for r in rows] == [0.0, 25.0] and res["true_mm"] == 25.0  # a repeated length once
-    assert len(poses) == 4 and np.array_equal(poses[0], poses[1]) and np.array_equal(poses[2], poses[3])  # the same poses at both
-    # Found, the distance within a few hundredths of a mm.
+    assert len(poses) == 4 + 6 and np.array_equal(poses[0], poses[1]) and np.array_equal(poses[2], poses[3])  # the same poses at both
+    # Found, the distances within a few hundredths of a mm.
     assert all(r["found"] == 1.0 and abs(r["mean_mm"]) < 0.03 and r["max_abs_mm"] >= r["p95_abs_mm"] for r in rows)
-    assert (tmp_path / "report.md").read_text().startswith("# Distance c0-c1") and (tmp_path / "blur-distance.png").stat().st_size > 0
+    assert all(r["found"] == 1.0 and r["max_abs_mm"] < 0.05 for r in res["summary_c0_c2"]["classical"])
+    # The robot path: three poses 10 mm apart along x (c0 -> c1) at 560 mm facing the left
+    # camera, blurred along the left view's travel (+x: unrolled) in both views.
+    path = bd.path_poses(bd.default_conf | {"path_poses": 3})
+    assert np.allclose([T[:3, 3] for T in path], [[-10, 0, 560], [0, 0, 560], [10, 0, 560]])
+    assert all(abs(bd.along_travel(rig, T)) < 1.0 for T in path)
+    assert abs(bd.along_travel(rig, look_at_pose([0.0, 0.0, 560.0], roll_deg=30)) + 30) < 1.0
+    for row in res["path"]["classical"]:
+        assert row["c0_c1"]["found"] == 1.0 and row["c0_c1"]["max_abs_mm"] < 0.05 and row["c0_c2"]["max_abs_mm"] < 0.05
+        assert row["displacement"]["max_abs_mm"] < 0.05 and 0 < row["same_sign_c0_c1"] <= 1
+    report = (tmp_path / "report.md").read_text()
+    assert report.startswith("# Distance c0-c1") and "robot path" in report and (tmp_path / "blur-distance.png").stat().st_size > 0
     for bad in (
         {"pairs": 0},
         {"lengths": (-1.0,)},
@@ -392,6 +404,9 @@ def test_blur_distance_c0_c1_under_blur_along_it(tmp_path, monkeypatch):
         {"lengths": (0.5,)},
         {"lengths": (float("inf"),)},
         {"lengths": (float("nan"),)},
+        {"path_poses": 1},
+        {"path_step": 0.0},
+        {"path_distance": float("nan")},
     ):
         with pytest.raises(ValueError):
             bd.main(bad, None, progress=False)

@@ -141,7 +141,7 @@ def cmd_eval_pipeline(args):
 def cmd_eval_blur_distance(args):
     from ..experiments import blurdistance
 
-    conf = {"pairs": args.pairs}
+    conf = {"pairs": args.pairs, "path_poses": args.path_poses}
     if args.lengths:
         conf["lengths"] = tuple(args.lengths)
     if args.configs:
@@ -230,9 +230,18 @@ def _register_pipeline(esub) -> None:
     ep.add_argument("--json", help="also write the figures as JSON")
     ep.add_argument("--quiet", action="store_true")
     ep.set_defaults(func=cmd_eval_pipeline)
-    eb = esub.add_parser("blur-distance", help="the distance c0-c1 under motion blur along it, per blur length and configuration")
+    eb = esub.add_parser(
+        "blur-distance", help="the distances c0-c1 and c0-c2 under motion blur along c0-c1, per blur length and configuration; a robot path"
+    )
     eb.add_argument("--pairs", type=positive_int, default=40, help="poses, each rendered at every blur length (default 40)")
     eb.add_argument("--lengths", type=float, nargs="+", help="blur lengths, px (default 0 5 9 13 17 21 25)")
+    eb.add_argument(
+        "--path-poses",
+        type=int,
+        default=20,
+        help="also a robot path of this many poses 10 mm apart along c0 -> c1 at 560 mm, blurred in both views along the "
+        "left view's travel (0: none; default 20)",
+    )
     eb.add_argument(
         "--configs", nargs="*", help="configuration names: presets or ablations, markerpose.experiments.configs (default: default paper)"
     )

@@ -10,6 +10,14 @@ rendered with linear motion blur of each length along the image direction of c0 
 in each view, and every configuration's distance |c1 - c0| is compared with the
 marker's (25 mm for the default marker).
 
+A second part repeats a robot's path as an independent renderer set it up: the marker,
+facing the left camera at ``path_distance``, put down ``path_poses`` times ``path_step``
+mm apart along c0 -> c1, and every pair blurred in BOTH views along the LEFT image's
+direction of that travel (the right view's own direction differs by the rig's
+convergence). From 22 px of blur on at 560 mm, the blurred rings c0 and c1 reach into
+each other (their outer edges are 5 mm apart). It reports c0-c1, c0-c2 and the
+displacement between consecutive poses.
+
 The blur is the renderer's: a line kernel in each image (:class:`~markerpose.synth.Imaging`),
 the model the blurred-ring fit assumes. Real motion adds what that model leaves out
 (rolling shutter, a motion that turns or speeds up within the exposure, the camera's
@@ -42,6 +50,9 @@ default_conf = {
     "roll": 360.0,  # roll drawn from [0, this), degrees: the motion's direction in the image
     "alpha": 0.7,  # exposure gain (1: a full white level)
     "seed": 4001,
+    "path_poses": 20,  # the robot path: poses (0: none) ...
+    "path_step": 10.0,  # ... this far apart along c0 -> c1, mm ...
+    "path_distance": 560.0,  # ... at this distance from the left camera, facing it, mm
 }
 
 
@@ -49,6 +60,10 @@ def check_conf(conf: dict) -> dict:
     """``conf`` with its values checked (``ValueError`` naming the key)."""
     if int(conf["pairs"]) < 1:
         raise ValueError(f"pairs must be >= 1, got {conf['pairs']!r}")
+    if int(conf["path_poses"]) < 0 or int(conf["path_poses"]) == 1:
+        raise ValueError(f"path_poses must be 0 (no path) or at least 2, got {conf['path_poses']!r}")
+    if not (np.isfinite(conf["path_step"]) and conf["path_step"] > 0 and np.isfinite(conf["path_distance"]) and conf["path_distance"] > 0):
+        raise ValueError(f"path_step and path_distance must be > 0 mm, got {conf['path_step']!r} and {conf['path_distance']!r}")
     lengths = list(dict.fromkeys(float(v) for v in conf["lengths"]))  # each once, in order
     # The renderer blurs only beyond a pixel: a length in (0, 1] would be reported blurred.
     if not lengths or not all(np.isfinite(v) and (v == 0 or v > 1) for v in lengths):
@@ -71,6 +86,24 @@ def _poses(conf: dict) -> list[np.ndarray]:
     ]
 
 
+def path_poses(conf: dict) -> list[np.ndarray]:
+    """The robot path: the marker facing the left camera (unrolled: c0 -> c1 along the
+    camera's x) at ``path_distance``, ``path_poses`` poses ``path_step`` mm apart along x,
+    centred on the optical axis."""
+    n, step = int(conf["path_poses"]), float(conf["path_step"])
+    return [look_at_pose([(k - (n - 1) / 2) * step, 0.0, float(conf["path_distance"])]) for k in range(n)]
+
+
+def along_travel(rig: StereoRig, T_left_marker: np.ndarray) -> float:
+    """The LEFT image's direction (degrees) of the marker's travel along its x axis (c0 ->
+    c1) at pose ``T_left_marker``: what the path's blur takes in both views."""
+    T = T_left_marker
+    ends = np.array([T[:3, 3], T[:3, 3] + T[:3, 0]])  # the origin and 1 mm along the travel
+    d = rig.left.project(ends)
+    d = d[1] - d[0]
+    return float(np.degrees(np.arctan2(d[1], d[0])))
+
+
 def along_c0_c1(rig: StereoRig, marker: Marker, T_left_marker: np.ndarray) -> list[float]:
     """Per view, the image direction of c0 -> c1 (degrees, image axes: x right, y down)."""
     T = T_left_marker
@@ -89,31 +122,76 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
     trackers = {name: build(name, rig, marker) for name in names}
-    true = float(np.linalg.norm(marker.points3d[1] - marker.points3d[0]))
     lengths = [float(v) for v in c["lengths"]]
-    errors = {name: {L: [] for L in lengths} for name in names}  # mm, None where no pose
-    poses = _poses(c)
-    with tqdm(total=len(poses) * len(lengths), desc="blur-distance", unit="pair", disable=not progress) as bar:
-        for n, T in enumerate(poses):
-            angles = along_c0_c1(rig, marker, T)
-            for L in lengths:
-                imaging = tuple(Imaging(alpha=c["alpha"], motion_blur=L, motion_angle=a) for a in angles)
-                frame = render_stereo(rig, T, marker, imaging, seed=c["seed"] + 1 + n)
-                for name, tr in trackers.items():
-                    est = tr.estimate(*frame.images)
-                    errors[name][L].append(None if est is None else float(np.linalg.norm(est.points3d[1] - est.points3d[0]) - true))
-                bar.update()
+    poses, path = _poses(c), path_poses(c)
+    # Per configuration and length, per pose: (c0-c1 error, c0-c2 error, translation) or None.
+    found: dict = {part: {name: {L: [] for L in lengths} for name in names} for part in ("poses", "path")}
+    with tqdm(total=(len(poses) + len(path)) * len(lengths), desc="blur-distance", unit="pair", disable=not progress) as bar:
+        for part, Ts in (("poses", poses), ("path", path)):
+            for n, T in enumerate(Ts):
+                angles = along_c0_c1(rig, marker, T) if part == "poses" else [along_travel(rig, T)] * 2
+                for L in lengths:
+                    imaging = tuple(Imaging(alpha=c["alpha"], motion_blur=L, motion_angle=a) for a in angles)
+                    seed = c["seed"] + 1 + n + (10_000 if part == "path" else 0)
+                    frame = render_stereo(rig, T, marker, imaging, seed=seed)
+                    for name, tr in trackers.items():
+                        found[part][name][L].append(_measured(tr.estimate(*frame.images), marker))
+                    bar.update()
+    true = float(np.linalg.norm(marker.points3d[1] - marker.points3d[0]))
     res = {
         "conf": {**c, "lengths": lengths},
         "true_mm": true,
-        "summary": {name: [_summary(L, errors[name][L]) for L in lengths] for name in names},
-        "errors": {name: {str(L): v for L, v in e.items()} for name, e in errors.items()},
+        "true_c0_c2_mm": float(np.linalg.norm(marker.points3d[2] - marker.points3d[0])),
+        "summary": {name: [_summary(L, _column(found["poses"][name][L], 0)) for L in lengths] for name in names},
+        "summary_c0_c2": {name: [_summary(L, _column(found["poses"][name][L], 1)) for L in lengths] for name in names},
+        "path": {name: [_path_summary(L, found["path"][name][L], path) for L in lengths] for name in names} if path else {},
+        "errors": {name: {str(L): _column(v, 0) for L, v in e.items()} for name, e in found["poses"].items()},
+        "errors_c0_c2": {name: {str(L): _column(v, 1) for L, v in e.items()} for name, e in found["poses"].items()},
+        "path_errors": {
+            name: {str(L): [None if m is None else [m[0], m[1]] for m in v] for L, v in e.items()} for name, e in found["path"].items()
+        },
     }
     if out is not None:
         write_json(out / "results.json", res)
         (out / "report.md").write_text(report(res))
         plot(res, out / "blur-distance.png")
     return res
+
+
+def _measured(est, marker: Marker) -> tuple | None:
+    """(c0-c1 error, c0-c2 error, translation (3,)) of an estimate, mm; None without one."""
+    if est is None:
+        return None
+    p, m = est.points3d, marker.points3d
+    e01 = float(np.linalg.norm(p[1] - p[0]) - np.linalg.norm(m[1] - m[0]))
+    e02 = float(np.linalg.norm(p[2] - p[0]) - np.linalg.norm(m[2] - m[0]))
+    return e01, e02, np.asarray(est.T[:3, 3], np.float64)
+
+
+def _column(rows: list, k: int) -> list:
+    return [None if r is None else r[k] for r in rows]
+
+
+def _path_summary(length: float, rows: list, poses: list) -> dict:
+    """The path's c0-c1 and c0-c2 errors, and the error of each displacement between
+    consecutive poses both found (its length against the true one), mm."""
+    moved = []
+    for a, b, Ta, Tb in zip(rows, rows[1:], poses, poses[1:]):
+        if a is not None and b is not None:
+            moved.append(float(np.linalg.norm(b[2] - a[2]) - np.linalg.norm(Tb[:3, 3] - Ta[:3, 3])))
+    return {
+        "length_px": length,
+        "c0_c1": _summary(length, _column(rows, 0)),
+        "c0_c2": _summary(length, _column(rows, 1)),
+        "displacement": _summary(length, moved) if moved else _summary(length, [None]),
+        "same_sign_c0_c1": _same_sign(_column(rows, 0)),
+    }
+
+
+def _same_sign(errors: list) -> float | None:
+    """The share of the errors with the sign of their mean (None without any)."""
+    e = np.array([v for v in errors if v is not None], np.float64)
+    return None if not len(e) else float(np.mean(np.sign(e) == np.sign(e.mean())))
 
 
 def _summary(length: float, errs: list) -> dict:
@@ -140,8 +218,17 @@ def _summary(length: float, errs: list) -> dict:
     }
 
 
+def _cells(s: dict, p95: bool = True) -> list[str]:
+    """found, mean ± sd, and p95 / largest (or the largest alone) of a summary."""
+    if s["mean_mm"] is None:
+        return [f"{100 * s['found']:.0f} %", "—", "—"]
+    size = f"{s['p95_abs_mm']:.4f} / {s['max_abs_mm']:.4f}" if p95 else f"{s['max_abs_mm']:.4f}"
+    return [f"{100 * s['found']:.0f} %", f"{s['mean_mm']:+.4f} ± {s['sd_mm']:.4f}", size]
+
+
 def report(res: dict) -> str:
-    """Markdown: per blur length and configuration, the pairs found and the error of c0-c1."""
+    """Markdown: per blur length and configuration, the pairs found and the errors of c0-c1
+    and c0-c2; then the robot path's."""
     c = res["conf"]
     names = list(res["summary"])
     lines = [
@@ -150,53 +237,87 @@ def report(res: dict) -> str:
         (
             f"Each pose ({c['distance'][0]:g}-{c['distance'][1]:g} mm, tilt up to {c['tilt']:g}°, roll in [0, {c['roll']:g})°, "
             f"α {c['alpha']:g}) rendered at every blur length, the blur along the image direction of c0 -> c1 in each view. "
-            "Error = the triangulated distance c0-c1 minus the marker's, over the pairs a configuration found: mean ± standard "
-            "deviation, and the 95th percentile and the largest of its size."
+            "Error = the triangulated distance c0-c1 (or c0-c2) minus the marker's, over the pairs a configuration found: mean ± "
+            "standard deviation, and the 95th percentile and the largest of its size."
         ),
         "",
         "| blur (px) | "
-        + " | ".join(f"`{n}` found | `{n}` error, mean ± sd (mm) | `{n}` error size, p95 / largest (mm)" for n in names)
+        + " | ".join(
+            f"`{n}` found | `{n}` c0-c1 error, mean ± sd (mm) | `{n}` c0-c1 size, p95 / largest (mm) | `{n}` c0-c2 size, p95 / largest (mm)"
+            for n in names
+        )
         + " |",
-        "|---|" + "---|---|---|" * len(names),
+        "|---|" + "---|---|---|---|" * len(names),
     ]
     for k, L in enumerate(c["lengths"]):
         cells = []
         for n in names:
-            s = res["summary"][n][k]
-            if s["mean_mm"] is None:
-                cells += [f"{100 * s['found']:.0f} %", "—", "—"]
-            else:
-                cells += [
-                    f"{100 * s['found']:.0f} %",
-                    f"{s['mean_mm']:+.4f} ± {s['sd_mm']:.4f}",
-                    f"{s['p95_abs_mm']:.4f} / {s['max_abs_mm']:.4f}",
-                ]
+            cells += _cells(res["summary"][n][k]) + _cells(res["summary_c0_c2"][n][k])[2:]
         lines.append(f"| {L:g} | " + " | ".join(cells) + " |")
+    if res.get("path"):
+        lines += [
+            "",
+            (
+                f"**The robot path**: {c['path_poses']} poses {c['path_step']:g} mm apart along c0 -> c1 at {c['path_distance']:g} mm, "
+                "facing the left camera, each pair blurred in both views along the left image's direction of the travel. "
+                "c0-c1 and c0-c2: mean ± sd and the largest size of the error, and the share of the c0-c1 errors with their "
+                "mean's sign; displacement: the largest error of the distance between consecutive poses (mm)."
+            ),
+            "",
+            "| blur (px) | "
+            + " | ".join(
+                f"`{n}` found | `{n}` c0-c1 (mm) | `{n}` largest | `{n}` same sign | `{n}` c0-c2 (mm) | `{n}` largest | `{n}` displacement, largest"
+                for n in names
+            )
+            + " |",
+            "|---|" + "---|---|---|---|---|---|---|" * len(names),
+        ]
+        for k, L in enumerate(c["lengths"]):
+            cells = []
+            for n in names:
+                row = res["path"][n][k]
+                a, b, d = _cells(row["c0_c1"], False), _cells(row["c0_c2"], False), row["displacement"]
+                same = "—" if row["same_sign_c0_c1"] is None else f"{100 * row['same_sign_c0_c1']:.0f} %"
+                cells += [a[0], a[1], a[2], same, b[1], b[2], "—" if d["max_abs_mm"] is None else f"{d['max_abs_mm']:.4f}"]
+            lines.append(f"| {L:g} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
 def plot(res: dict, path: Path) -> Path:
-    """The mean error of c0-c1 (± one standard deviation) against the blur length."""
+    """The mean error of c0-c1 (± one standard deviation) against the blur length: the
+    random poses, and beside them the robot path (c0-c1 and c0-c2) where it ran."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for n, rows in res["summary"].items():
-        ok = [r for r in rows if r["mean_mm"] is not None]
-        x = np.array([r["length_px"] for r in ok])
-        m, s = np.array([r["mean_mm"] for r in ok]), np.array([r["sd_mm"] for r in ok])
-        ax.errorbar(x, m, yerr=s, marker="o", ms=4, capsize=3, label=n)
-    ax.axhline(0, color="0.5", lw=0.8)
-    ax.set_xlabel("motion blur along c0 -> c1 (px)")
-    ax.set_ylabel("error of the distance c0-c1 (mm)")
-    ax.grid(alpha=0.3)
-    ax.legend(frameon=False)
+    parts = [("random poses, blur along c0 -> c1 in each view", res["summary"], None)]
+    if res.get("path"):
+        parts.append(("robot path, blur along the left view's travel in both", None, res["path"]))
+    fig, axes = plt.subplots(1, len(parts), figsize=(6.5 * len(parts), 4), squeeze=False, sharey=True)
+    for ax, (title, summary, path_rows) in zip(axes[0], parts):
+        for i, n in enumerate(res["summary"]):
+            series = (
+                [("c0-c1", summary[n])]
+                if summary
+                else [("c0-c1", [r["c0_c1"] for r in path_rows[n]]), ("c0-c2", [r["c0_c2"] for r in path_rows[n]])]
+            )
+            for what, rows in series:
+                ok = [r for r in rows if r["mean_mm"] is not None]
+                x = np.array([r["length_px"] for r in ok])
+                m, s = np.array([r["mean_mm"] for r in ok]), np.array([r["sd_mm"] for r in ok])
+                ax.errorbar(
+                    x, m, yerr=s, marker="o", ms=4, capsize=3, color=f"C{i}", ls="-" if what == "c0-c1" else "--", label=f"{n}, {what}"
+                )
+        ax.axhline(0, color="0.5", lw=0.8)
+        for lim in (-0.02, 0.02):
+            ax.axhline(lim, color="0.7", lw=0.8, ls=":")
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("motion blur (px)")
+        ax.grid(alpha=0.3)
+        ax.legend(frameon=False, fontsize=8)
+    axes[0][0].set_ylabel("error of the distance (mm)")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
-
-
-__all__ = ["along_c0_c1", "check_conf", "default_conf", "main", "plot", "report"]

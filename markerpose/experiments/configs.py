@@ -13,6 +13,7 @@ from ..pipeline import MarkerPose
 from ..presets import ABOUT as PRESET_ABOUT
 from ..presets import ORDER as PRESET_ORDER
 from ..presets import PAPER_POSE, PRESETS, is_neural
+from ..stages import propose
 
 DEFAULT = "default"
 _NO_EDGE = {"edge_refit": False}
@@ -74,15 +75,19 @@ def available(names=None, require: bool = False) -> list[str]:
     if unknown:
         raise ValueError(f"unknown configuration(s) {unknown}; known: {list(ORDER)}")
     runtime = have_onnxruntime() or importlib.util.find_spec("torch") is not None
-    nets = runtime and default_weights("keypoints").is_file() and default_weights("ellipses").is_file()
+
+    def stem(name):  # the file stem of the configuration's stage-1 network
+        return propose.NETWORKS[diff(name).get("propose", {}).get("network", propose.default_conf["network"])]
 
     def runs(name):  # OpenVINO runs the .onnx files only, and so does int8
+        if not (runtime and default_weights(stem(name)).is_file() and default_weights("ellipses").is_file()):
+            return False
         backend = diff(name).get("backend", "onnxruntime")
         if diff(name).get("propose", {}).get("int8"):
-            return have_backend(backend) and int8_weights("keypoints").is_file()
-        return backend == "onnxruntime" or (have_backend(backend) and default_weights("keypoints").suffix == ".onnx")
+            return have_backend(backend) and int8_weights(stem(name)).is_file()
+        return backend == "onnxruntime" or (have_backend(backend) and default_weights(stem(name)).suffix == ".onnx")
 
-    out = [n for n in ORDER if (names is None or n in names) and (not is_neural(diff(n)) or (nets and runs(n)))]
+    out = [n for n in ORDER if (names is None or n in names) and (not is_neural(diff(n)) or runs(n))]
     if require and not out:
         raise ValueError(f"none of the configurations {list(names or ORDER)} can run here (their networks or runtime are missing)")
     return out

@@ -16,22 +16,28 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import numpy as np
 
 from .. import classical, settings
 from ..keypoints import KeypointNet
 from ..marker import Marker
-from ..nets import int8_weights
-from ..settings import flag, number, path
+from ..nets import default_weights, int8_weights
+from ..settings import choice, flag, number, path
+
+# The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
+# markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx).
+NETWORKS = {"standard": "keypoints", "lite": "keypoints-lite"}
 
 default_conf = {
-    "weights": None,  # neural: stage-1 weights file (None: the shipped one)
+    "network": "standard",  # neural: which shipped stage-1 network (NETWORKS) ...
+    "weights": None,  # ... or this weights file (None: the shipped network)
     "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
     "threshold": 0.01,  # neural: the candidates' least location score
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
 }
-RULES = {"weights": path(), "int8": flag(), "threshold": number(0, 1), "second_look": number(1)}
+RULES = {"network": choice(*NETWORKS), "weights": path(), "int8": flag(), "threshold": number(0, 1), "second_look": number(1)}
 
 # Stage 1's candidate list for the stereo detector: the same quantities, under the same
 # names, as the decoded detector's (markerpose.decode.default_conf: threshold,
@@ -44,6 +50,11 @@ NMS_RADIUS = 4  # non-maximum-suppression radius between candidates, px of the 3
 # many px of its input each side (a large ring needs context beyond its own size).
 SECOND_LOOK_NEAR = 5
 SECOND_LOOK_WINDOW = 64
+
+
+def network_weights(network: str) -> Path:
+    """The shipped weights file of a stage-1 network named in :data:`NETWORKS`."""
+    return default_weights(NETWORKS[network])
 
 
 def check_conf(conf: dict) -> dict:
@@ -73,7 +84,9 @@ class NeuralProposer:
                     "propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
                     "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8"
                 )
-            weights = int8_weights("keypoints")
+            weights = int8_weights(NETWORKS[conf["network"]])
+        elif weights is None:
+            weights = network_weights(conf["network"])
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
 
     def for_marker(self, marker: Marker) -> NeuralProposer:
@@ -131,6 +144,7 @@ def classical_view(image: np.ndarray, marker: Marker, conf: dict | None = None):
 
 __all__ = [
     "MAX_CANDIDATES",
+    "NETWORKS",
     "NMS_RADIUS",
     "RULES",
     "SECOND_LOOK_NEAR",
@@ -138,5 +152,6 @@ __all__ = [
     "NeuralProposer",
     "check_conf",
     "classical_view",
+    "network_weights",
     "default_conf",
 ]
