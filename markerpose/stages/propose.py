@@ -85,6 +85,11 @@ class NeuralProposer:
                     "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8"
                 )
             weights = int8_weights(NETWORKS[conf["network"]])
+            if not weights.is_file():
+                raise ValueError(
+                    f"no int8 copy of the {conf['network']} stage-1 network is shipped ({weights.name}); make one with "
+                    "`markerpose train keypoints --int8 SRC DEST` and give DEST as weights, without int8"
+                )
         elif weights is None:
             weights = network_weights(conf["network"])
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
