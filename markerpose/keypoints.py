@@ -224,6 +224,21 @@ class KeypointNet:
         self.conf["width"] = float(meta["width"])
         self.conf["stem_width"] = meta.get("stem_width")
         self.marker = marker or _MARKER
+        # The input's height: the paper's 240 whatever the image (a 1280x1024 image squeezed
+        # by 4.27 in y and 4 in x), or, isotropic, the image's own aspect at 320 wide (an
+        # exact 4x4 area resize there, cheaper, with rings as round as in the renders
+        # stage 1 is trained on).
+        self.isotropic = False
+
+    def look_size(self, zoom: float, shape: tuple) -> tuple[int, int]:
+        """The input's (width, height) for an image of ``shape`` (H, W) at the look ``zoom``:
+        :func:`look_size`, or with :attr:`isotropic` the image's aspect at 320 px wide (the
+        height in whole cells)."""
+        if not self.isotropic:
+            return look_size(zoom)
+        w = INPUT_SIZE[0]
+        h = max(CELL, CELL * round(w * shape[0] / shape[1] / CELL))
+        return round(w * zoom), round(h * zoom)
 
     def decode_conf(self, conf: dict | None = None, stereo: bool = False) -> dict:
         """Decoding settings: the defaults, the thresholds tuned at export for the ID mode
@@ -258,7 +273,7 @@ class KeypointNet:
     def _input(self, image: np.ndarray, zoom: float, kept: list | None = None) -> tuple[np.ndarray, np.ndarray]:
         """:func:`to_input` of an image at the look ``zoom``. ``kept``: one call's inputs,
         (image, size, input, scale), which it reuses and adds to (None: none kept)."""
-        size = look_size(zoom)
+        size = self.look_size(zoom, image.shape)
         found = self._kept(image, size, kept)
         if found is not None:
             return found
@@ -270,7 +285,7 @@ class KeypointNet:
     def _window(self, image: np.ndarray, zoom: float, x0: int, y0: int, size: int, kept: list | None = None) -> np.ndarray:
         """The input of the look ``zoom`` in the window of ``size`` px at (x0, y0): from the
         kept whole input if there is one, else from the window's part of the image."""
-        shape = look_size(zoom)
+        shape = self.look_size(zoom, image.shape)
         found = self._kept(image, shape, kept)
         if found is not None:
             return found[0][y0 : y0 + size, x0 : x0 + size]
@@ -280,7 +295,10 @@ class KeypointNet:
         """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
         looked at ``zoom`` times the paper's input size."""
         inputs, scales = zip(*(self._input(g, zoom, kept) for g in images))
-        return (*self.logits(np.stack(inputs)), scales, inputs)
+        if len({x.shape for x in inputs}) == 1:
+            return (*self.logits(np.stack(inputs)), scales, inputs)
+        outs = [self.logits(x[None]) for x in inputs]  # views of different sizes: one pass each
+        return [o[0][0] for o in outs], [o[1][0] for o in outs], scales, inputs
 
     def candidates(
         self,
@@ -310,17 +328,18 @@ class KeypointNet:
             return self._candidates_near(images, threshold, k, zoom, r, near, window, kept)
         det, _, scales, _ = self._forward(images, zoom, kept)
         out = []
-        for cand, s in zip(peaks(det, threshold, k, r), scales):
+        found = peaks(det, threshold, k, r) if isinstance(det, np.ndarray) else [peaks(d[None], threshold, k, r)[0] for d in det]
+        for cand, s in zip(found, scales):
             cand[:, :2] = to_full(cand[:, :2], s)
             out.append(cand)
         return out
 
     def _candidates_near(self, images, threshold, k, zoom, r, near, window, kept=None):
-        W, H = look_size(zoom)
-        scales = [input_scale(g.shape, (W, H)) for g in images]
+        sizes = [self.look_size(zoom, g.shape) for g in images]
+        scales = [input_scale(g.shape, wh) for g, wh in zip(images, sizes)]
         size = 2 * window
         crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
-        for j, (g, s, pts) in enumerate(zip(images, scales, near)):
+        for j, (g, s, pts, (W, H)) in enumerate(zip(images, scales, near, sizes)):
             if min(H, W) < size:  # a small input: the whole of it
                 crops.append(self._input(g, zoom, kept)[0])
                 where.append((j, 0, 0))

@@ -54,3 +54,21 @@ def test_int8_of_a_network_without_a_shipped_copy_says_how_to_make_one(monkeypat
     monkeypatch.setattr(propose, "int8_weights", lambda stem: tmp_path / f"{stem}-int8.onnx")
     with pytest.raises(ValueError, match="no int8 copy of the lite stage-1 network.*--int8 SRC DEST"):
         mp.MarkerPose(mp.StereoRig.default(), propose={"network": "lite", "int8": True})
+
+
+@needs_lite
+def test_isotropic_input_keeps_the_images_aspect_and_takes_views_of_two_sizes():
+    """``propose.input`` "isotropic": 320 px wide at the image's aspect in whole cells
+    (320x256 for 1280x1024, 640x512 at the second look); "paper": 320x240 whatever the image.
+    Views of different sizes each get their own pass, and a ring is still found."""
+    rig = mp.StereoRig.default()
+    lite = mp.MarkerPose(rig, preset="default-lite").detector.proposer
+    assert lite.net.isotropic and lite.look_size(1.0, (1024, 1280)) == (320, 256) and lite.look_size(2.0, (1024, 1280)) == (640, 512)
+    assert lite.look_size(1.0, (960, 1280)) == (320, 240) and lite.look_size(1.0, (1200, 1600)) == (320, 240)
+    paper = mp.MarkerPose(rig, propose={"network": "lite"}).detector.proposer
+    assert not paper.net.isotropic and paper.look_size(1.0, (1024, 1280)) == (320, 240)
+    frame = render_stereo(rig, look_at_pose([0, 0, 500]), imaging=Imaging(alpha=0.8), seed=3)
+    left, right = frame.images[0], frame.images[1][:960]  # the right view cropped: another aspect
+    cands = lite.candidates([left, right])
+    for cand, view in zip(cands, frame.views):
+        assert min(np.linalg.norm(cand[:, :2] - view.centers[0], axis=1)) < 3.0

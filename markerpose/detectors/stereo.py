@@ -81,7 +81,7 @@ class StereoDetector(NeuralDetector):
         if not margin:
             return
         mk = self.marker
-        w, h = look_size(1.0)
+        w, h = self.proposer.look_size(1.0, frame.grays[0].shape)
         centres, half = [], 0.0
         for gray, cam, T in zip(frame.grays, self.rig.cameras, (T_pred, self.rig.T_right_left @ T_pred)):
             ell = ring_ellipses(cam, T, mk.points3d, mk.outer_radius)

@@ -34,6 +34,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
     "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),
     "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
+    "default-lite-paper-input": (
+        {"propose": {"network": "lite"}},
+        "default-lite with stage 1's input at the paper's 320x240 instead of the image's aspect",
+    ),
     "neural-classical-refine": ({"refine": {"method": "classical"}}, "default with the classical ring fit instead of EllipSegNet"),
     "default-masks-first": (
         {"refine": {"layout_seed": False}},

@@ -36,8 +36,17 @@ default_conf = {
     "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
     "threshold": 0.01,  # neural: the candidates' least location score
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
+    "input": "paper",  # neural: the input's size: "paper" 320x240 whatever the image, "isotropic"
+    #                    the image's aspect at 320 wide (320x256 for 1280x1024: an exact 4x4 area resize)
 }
-RULES = {"network": choice(*NETWORKS), "weights": path(), "int8": flag(), "threshold": number(0, 1), "second_look": number(1)}
+RULES = {
+    "network": choice(*NETWORKS),
+    "weights": path(),
+    "int8": flag(),
+    "threshold": number(0, 1),
+    "second_look": number(1),
+    "input": choice("paper", "isotropic"),
+}
 
 # Stage 1's candidate list for the stereo detector: the same quantities, under the same
 # names, as the decoded detector's (markerpose.decode.default_conf: threshold,
@@ -93,6 +102,7 @@ class NeuralProposer:
         elif weights is None:
             weights = network_weights(conf["network"])
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
+        self.net.isotropic = conf["input"] == "isotropic"
 
     def for_marker(self, marker: Marker) -> NeuralProposer:
         """This stage 1 for another marker (its layout and rings' evidence), sharing the network."""
@@ -100,6 +110,10 @@ class NeuralProposer:
         other.net = copy.copy(self.net)
         other.net.marker = marker
         return other
+
+    def look_size(self, zoom: float, shape: tuple) -> tuple[int, int]:
+        """Stage 1's input (width, height) for an image of ``shape`` at the look ``zoom``."""
+        return self.net.look_size(zoom, shape)
 
     def looks(self) -> tuple[float, ...]:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""
