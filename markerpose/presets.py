@@ -55,7 +55,7 @@ ABOUT: dict[str, str] = {
     "default-int8": "default with stage 1's network in int8 on ONNX Runtime (shipped, no extra)",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra): faster on CPUs with AMX",
     "default-lite": "default with the lite stage-1 network (a quarter of the paper's widths, an eighth in the first four "
-    "convolutions) looking at the image's aspect (320x256 for 1280x1024): the cold detection's largest costs cut",
+    "convolutions) looking at the image's aspect (320x256 for 1280x1024)",
 }
 
 ORDER = tuple(PRESETS)  # the order reports list them in
