@@ -226,6 +226,12 @@ def _cells(s: dict, p95: bool = True) -> list[str]:
     return [f"{100 * s['found']:.0f} %", f"{s['mean_mm']:+.4f} ± {s['sd_mm']:.4f}", size]
 
 
+def _head(names: list, columns: tuple) -> list[str]:
+    """A table's header and separator lines: the blur length, then each column for each configuration."""
+    cols = [f"`{n}` {col}" for n in names for col in columns]
+    return ["| blur (px) | " + " | ".join(cols) + " |", "|---|" + "---|" * len(cols)]
+
+
 def report(res: dict) -> str:
     """Markdown: per blur length and configuration, the pairs found and the errors of c0-c1
     and c0-c2; then the robot path's."""
@@ -241,13 +247,7 @@ def report(res: dict) -> str:
             "standard deviation, and the 95th percentile and the largest of its size."
         ),
         "",
-        "| blur (px) | "
-        + " | ".join(
-            f"`{n}` found | `{n}` c0-c1 error, mean ± sd (mm) | `{n}` c0-c1 size, p95 / largest (mm) | `{n}` c0-c2 size, p95 / largest (mm)"
-            for n in names
-        )
-        + " |",
-        "|---|" + "---|---|---|---|" * len(names),
+        *_head(names, ("found", "c0-c1 error, mean ± sd (mm)", "c0-c1 size, p95 / largest (mm)", "c0-c2 size, p95 / largest (mm)")),
     ]
     for k, L in enumerate(c["lengths"]):
         cells = []
@@ -264,13 +264,7 @@ def report(res: dict) -> str:
                 "mean's sign; displacement: the largest error of the distance between consecutive poses (mm)."
             ),
             "",
-            "| blur (px) | "
-            + " | ".join(
-                f"`{n}` found | `{n}` c0-c1 (mm) | `{n}` largest | `{n}` same sign | `{n}` c0-c2 (mm) | `{n}` largest | `{n}` displacement, largest"
-                for n in names
-            )
-            + " |",
-            "|---|" + "---|---|---|---|---|---|---|" * len(names),
+            *_head(names, ("found", "c0-c1 (mm)", "largest", "same sign", "c0-c2 (mm)", "largest", "displacement, largest")),
         ]
         for k, L in enumerate(c["lengths"]):
             cells = []
