@@ -92,8 +92,30 @@ def test_generation_does_not_depend_on_the_number_of_workers(monkeypatch):
     monkeypatch.setattr(data, "CHUNK", 2)
     a = tk.generate(4, seed=9, workers=1)
     b = tk.generate(4, seed=9, workers=2)
+    monkeypatch.setattr(data, "ray_installed", lambda: False)  # a machine without Ray: forked processes
+    c = tk.generate(4, seed=9, workers=2)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k])
+        np.testing.assert_array_equal(a[k], c[k])
+
+
+def test_parallel_augmentation_does_not_depend_on_the_number_of_workers():
+    from markerpose.train import keypoints as tk
+
+    data = tk.generate(6, seed=3, workers=1)
+    idx = np.array([0, 1, 2, 3, 4, 5, 0, 2, 4])
+
+    def epoch(workers, seed=5):
+        return list(tk._batches(data, idx, np.random.default_rng(seed), 4, (160, 128), workers))
+
+    two, three = epoch(2), epoch(3)
+    assert len(two) == 2 and two[0][0].shape == (4, 128, 160) and two[0][1].shape == (4, 16, 20) and two[0][2].shape == (4, 16, 20)
+    for a, b in zip(two, three):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+    assert not np.array_equal(two[0][0], epoch(2, seed=6)[0][0])  # each epoch's own draws
+    one = epoch(1)
+    assert len(one) == 2 and one[0][0].shape == (4, 128, 160)
 
 
 def test_training_loop_checkpoints_and_resumes(tmp_path):

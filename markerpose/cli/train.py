@@ -57,7 +57,7 @@ def cmd_train_keypoints(args):
     _train(
         keypoints,
         args,
-        ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window") + _TRAIN_KEYS,
+        ("width", "stem_width", "background_weight", "steep_size", "small_boost", "window", "loader_workers") + _TRAIN_KEYS,
         data_dir=args.data,
         val_size=args.val_size,
         negatives=args.val_negatives,
@@ -79,7 +79,7 @@ def _add_train_args(p, name: str, batch: int, size: int, unit: str):
     p.add_argument("--train-size", type=int, default=size, help=f"rendered training {unit}, cached")
     p.add_argument("--val-size", type=int, default=400)
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--workers", type=int, default=2, help="Ray workers rendering the data where Ray is installed (1: in this process)")
+    p.add_argument("--workers", type=int, default=2, help="processes rendering the data: Ray's where it is installed (1: this process)")
     p.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
     p.add_argument("--out", default=f"runs/{name}", help="checkpoints and history")
     p.add_argument("--data", default="runs/data", help="cache of rendered sets")
@@ -130,6 +130,12 @@ def _register_keypoints(tsub) -> None:
         type=float,
         default=1.0,
         help="draw views whose rings are under 12 input px this many times as often (1 = each view once per epoch)",
+    )
+    tk.add_argument(
+        "--loader-workers",
+        type=int,
+        default=1,
+        help="processes augmenting the batches (1: this process; more keep a GPU fed, with other random draws than 1)",
     )
     _add_train_args(tk, "keypoints", batch=16, size=12000, unit="images")
     tk.set_defaults(func=cmd_train_keypoints)

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from ..engine import run_tasks
+from ..engine import ray_installed, run_tasks
 
 CHUNK = 50  # samples per job; job k draws from np.random.default_rng([seed, k])
 
@@ -19,18 +20,26 @@ def render_many(render_chunk: Callable, n: int, seed: int, conf: dict | None, wo
     """``n`` samples from ``render_chunk((seed, k, count, conf)) -> list``, in order.
 
     Chunks are seeded by (seed, chunk index), so the result does not depend on ``workers``
-    nor on where they run: on Ray's ``workers`` CPUs where it is installed, else one after
-    the other (:func:`markerpose.engine.run_tasks`).
+    nor on where they run: on Ray's ``workers`` CPUs where it is installed
+    (:func:`markerpose.engine.run_tasks`), else in ``workers`` forked processes (a
+    machine without Ray, e.g. a GPU machine that trains), or in this process for 1.
     """
     jobs = [(seed, k, min(CHUNK, n - k * CHUNK), conf) for k in range(math.ceil(n / CHUNK))]
     with tqdm(total=n, desc=desc, unit=unit) as bar:
+        if workers > 1 and len(jobs) > 1 and not ray_installed():
+            chunks = []
+            with mp.get_context("fork").Pool(min(workers, len(jobs))) as pool:
+                for chunk in pool.imap(_chunk, [(render_chunk, job) for job in jobs]):
+                    chunks.append(chunk)
+                    bar.update(len(chunk))
+            return [sample for chunk in chunks for sample in chunk]
         chunks = run_tasks(
             _chunk, [(render_chunk, job) for job in jobs], workers=workers, on_result=lambda i, r: bar.update(len(r)), strict=True
         )
     return [sample for chunk in chunks for sample in chunk]
 
 
-def _chunk(task, report=None) -> list:
+def _chunk(task, report=None) -> list:  # module level: Ray and the pool pickle it by name
     render_chunk, job = task
     return render_chunk(job)
 

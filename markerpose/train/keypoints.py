@@ -59,6 +59,7 @@ default_conf = {
     "val_size": 400,
     "seed": 0,
     "workers": 2,  # processes rendering the cached sets
+    "loader_workers": 1,  # processes augmenting the batches (1: in this process; more keep a GPU fed)
     "device": None,  # None: CUDA when present, else CPU
     "init": None,  # checkpoint whose weights start the run (fine-tuning); None: random
     "tolerance_px": 8.0,  # a centre is found when within this many full-resolution px
@@ -458,18 +459,48 @@ def epoch_order(data: dict, rng, small_boost: float = 1.0) -> np.ndarray:
     return rng.choice(n, n, replace=True, p=w / w.sum())
 
 
-def _batches(data: dict, idx: np.ndarray, rng, bs: int, window=None):
-    for k in range(0, len(idx) - bs + 1, bs):
-        imgs, dets, ids = [], [], []
-        for j in idx[k : k + bs]:
-            im, p, lab = augment(data["image"][j], data["points"][j], data["labels"][j], rng)
-            if window is not None:
-                im, p, lab = crop(im, p, lab, rng, window)
-            d, i = make_targets(p, lab, size=(im.shape[1], im.shape[0]))
-            imgs.append(im)
-            dets.append(d)
-            ids.append(i)
-        yield np.stack(imgs), np.stack(dets), np.stack(ids)
+def _batch(data: dict, idx: np.ndarray, rng, window=None) -> tuple:
+    """The views ``idx`` augmented (and cut to ``window``): images, location and ID targets."""
+    imgs, dets, ids = [], [], []
+    for j in idx:
+        im, p, lab = augment(data["image"][j], data["points"][j], data["labels"][j], rng)
+        if window is not None:
+            im, p, lab = crop(im, p, lab, rng, window)
+        d, i = make_targets(p, lab, size=(im.shape[1], im.shape[0]))
+        imgs.append(im)
+        dets.append(d)
+        ids.append(i)
+    return np.stack(imgs), np.stack(dets), np.stack(ids)
+
+
+_BATCH_JOB: tuple = ()  # (data, window) of the running _batches, inherited by its forked workers
+
+
+def _seeded_batch(job: tuple) -> tuple:
+    idx, seed = job
+    data, window = _BATCH_JOB
+    return _batch(data, idx, np.random.default_rng(seed), window)
+
+
+def _batches(data: dict, idx: np.ndarray, rng, bs: int, window=None, workers: int = 1):
+    """One epoch's batches of ``bs`` views in the order ``idx``. ``workers`` > 1: augmented
+    in that many forked processes (the views are inherited, not pickled), each batch from
+    its own seed drawn from ``rng``, so the batches do not depend on the number of
+    workers, but differ from those of one worker (one stream through the epoch), which
+    is what the shipped weights were trained on."""
+    global _BATCH_JOB
+    starts = range(0, len(idx) - bs + 1, bs)
+    if workers <= 1:
+        for k in starts:
+            yield _batch(data, idx[k : k + bs], rng, window)
+        return
+    jobs = [(idx[k : k + bs], int(s)) for k, s in zip(starts, rng.integers(0, 2**63, len(starts)))]
+    _BATCH_JOB = (data, window)
+    try:
+        with mp.get_context("fork").Pool(workers) as pool:
+            yield from pool.imap(_seeded_batch, jobs, chunksize=4)
+    finally:
+        _BATCH_JOB = ()
 
 
 def main(
@@ -512,7 +543,7 @@ def main(
     ce_id = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0, 1.0, 1.0, w], device=dev), ignore_index=-100)
 
     def batches(rng):
-        return _batches(train, epoch_order(train, rng, c["small_boost"]), rng, c["batch_size"], c["window"])
+        return _batches(train, epoch_order(train, rng, c["small_boost"]), rng, c["batch_size"], c["window"], c["loader_workers"])
 
     def loss_fn(net, im, det, ids):
         d_logits, i_logits = net(torch.from_numpy(im.astype(np.float32) / 255.0)[:, None].to(dev))
