@@ -27,7 +27,7 @@ PRESETS: dict[str, dict] = {
     "default": {},
     "paper": {
         "match": {"method": "head"},
-        "propose": {"second_look": 1.0},
+        "propose": {"second_look": 1.0, **propose.PAPER_NETWORK},
         "refine": {"patch": "fixed", "fit": "ellipse", "edge_refit": False},
         "solve": PAPER_POSE,
         "verify": {"max_residual_px": math.inf},  # the paper gives every pose it solves
@@ -41,11 +41,11 @@ PRESETS: dict[str, dict] = {
     "classical": {"detector": "classical"},
     "default-bf16": {"backend": "openvino-bf16"},
     "default-int8": {"propose": {"int8": True}},
-    "default-lite": {"propose": {"network": "lite", "input": "isotropic"}},
+    "default-lite": {"propose": {"network": "lite"}},
 }
 
 ABOUT: dict[str, str] = {
-    "default": "ours: stage-1 candidates of both views matched by the marker's 3D shape, the rings' edges fitted from the "
+    "default": "ours: stage-1 candidates (the mid network at the image's aspect) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
     "ellipses the three points predict (EllipSegNet's masks where that fails), blurred-ring fit, plate check, "
     "perspective-bias correction, rigid pose; a second look at 640x480 when nothing is found",
     "paper": "the paper's MarkerPose: ring IDs from the ID head, EllipSegNet on fixed 120 px patches with cv2.fitEllipse, "
@@ -55,7 +55,7 @@ ABOUT: dict[str, str] = {
     "default-int8": "default with stage 1's network in int8 on ONNX Runtime (shipped, no extra)",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra): faster on CPUs with AMX",
     "default-lite": "default with the lite stage-1 network (a quarter of the paper's widths, an eighth in the first four "
-    "convolutions) looking at the image's aspect (320x256 for 1280x1024)",
+    "convolutions; the default's mid network has three eighths)",
 }
 
 ORDER = tuple(PRESETS)  # the order reports list them in

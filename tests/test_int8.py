@@ -10,6 +10,7 @@ import markerpose as mp
 from markerpose import nets
 from markerpose.experiments import configs
 from markerpose.keypoints import KeypointNet
+from markerpose.stages import propose
 from markerpose.synth import Imaging, look_at_pose, render_stereo
 
 POSES = ([10, 0, 600], [-40, 30, 450], [0, -20, 750])
@@ -21,10 +22,12 @@ def _frames():
         yield render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
 
 
-def test_int8_stage1_finds_float32s_candidates():
+@pytest.mark.parametrize("stem", ["keypoints", "keypoints-mid"])
+def test_int8_stage1_finds_float32s_candidates(stem):
     """The quantized network's candidates near each ring centre are within a fraction of
-    a pixel of the float32 network's, with scores within 0.1."""
-    f32, i8 = KeypointNet(), KeypointNet(nets.int8_weights("keypoints"))
+    a pixel of the float32 network's, with scores within 0.1 (the standard network and the
+    default's mid one)."""
+    f32, i8 = KeypointNet(nets.default_weights(stem)), KeypointNet(nets.int8_weights(stem))
     for frame in _frames():
         grays = [np.asarray(im) for im in frame.images]
         for a, b, view in zip(f32.candidates(grays), i8.candidates(grays), frame.views):
@@ -44,7 +47,8 @@ def test_default_int8_gives_the_defaults_poses(gain):
     rig = mp.StereoRig.default()
     ref, i8 = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-int8")
     assert (
-        i8.detector.proposer.net.path == nets.int8_weights("keypoints") and ref.detector.proposer.net.path != i8.detector.proposer.net.path
+        i8.detector.proposer.net.path == nets.int8_weights(propose.NETWORKS[propose.default_conf["network"]])
+        and ref.detector.proposer.net.path != i8.detector.proposer.net.path
     )
     for frame in _frames():
         images = [np.clip(np.asarray(im, np.float32) * gain, 0, 255).astype(np.uint8) for im in frame.images]

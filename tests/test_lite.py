@@ -1,5 +1,6 @@
-"""The lite stage-1 network (preset ``default-lite``): the shipped file it runs, the poses
-it gives beside the default's, and the setting that names it."""
+"""The shipped stage-1 networks (the default's mid, ``default-lite``'s lite, the former
+default's standard): the file each runs, the poses they give side by side, and the
+settings that name the network and its input."""
 
 from pathlib import Path
 
@@ -17,25 +18,30 @@ needs_lite = pytest.mark.skipif(not propose.network_weights("lite").is_file(), r
 
 
 @needs_lite
-def test_default_lite_runs_the_lite_network_and_gives_the_defaults_poses():
-    """Stage 1 only proposes: the edge fit places the centres, so where both find the
-    marker the poses agree to 1e-3 mm; the lite network is the smaller one."""
+def test_the_three_networks_give_the_same_poses():
+    """Stage 1 only proposes: the edge fit places the centres, so where the default (the mid
+    network), default-lite and the former default's network find the marker the poses
+    agree to 1e-3 mm; each runs its own file, the default's between the other two in size."""
     rig = mp.StereoRig.default()
     ref, lite = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-lite")
-    nets = ref.detector.proposer.net, lite.detector.proposer.net
-    assert nets[0].path == propose.network_weights("standard") and nets[1].path == propose.network_weights("lite")
-    assert nets[1].conf["width"] < nets[0].conf["width"] and nets[1].conf["stem_width"] < nets[0].conf["stem_width"]
+    former = configs.build("default-standard-net", rig)
+    nets = ref.detector.proposer.net, lite.detector.proposer.net, former.detector.proposer.net
+    assert [n.path for n in nets] == [propose.network_weights(k) for k in ("mid", "lite", "standard")]
+    assert nets[1].conf["width"] < nets[0].conf["width"] < nets[2].conf["width"]
+    assert nets[1].conf["stem_width"] == nets[0].conf["stem_width"] < nets[2].conf["stem_width"]
+    assert nets[0].isotropic and nets[1].isotropic and not nets[2].isotropic
     for seed, pose in enumerate(POSES):
         frame = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
-        a, b = ref.estimate(*frame.images), lite.estimate(*frame.images)
-        assert a is not None and b is not None
-        assert np.linalg.norm(a.t - b.t) < 1e-3
-        assert np.linalg.norm(b.t - frame.T_left_marker[:3, 3]) < 0.05
+        a, b, c = (tr.estimate(*frame.images) for tr in (ref, lite, former))
+        assert a is not None and b is not None and c is not None
+        assert np.linalg.norm(a.t - b.t) < 1e-3 and np.linalg.norm(a.t - c.t) < 1e-3
+        assert np.linalg.norm(a.t - frame.T_left_marker[:3, 3]) < 0.05
 
 
 def test_the_paper_keeps_the_standard_network_and_a_wrong_network_name_is_refused():
     rig = mp.StereoRig.default()
-    assert mp.MarkerPose(rig, preset="paper").detector.proposer.net.path == propose.network_weights("standard")
+    paper = mp.MarkerPose(rig, preset="paper").detector.proposer
+    assert paper.net.path == propose.network_weights("standard") and not paper.net.isotropic
     with pytest.raises(ValueError, match="network"):
         mp.MarkerPose(rig, propose={"network": "tiny"})
 
@@ -65,7 +71,7 @@ def test_isotropic_input_keeps_the_images_aspect_and_takes_views_of_two_sizes():
     lite = mp.MarkerPose(rig, preset="default-lite").detector.proposer
     assert lite.net.isotropic and lite.look_size(1.0, (1024, 1280)) == (320, 256) and lite.look_size(2.0, (1024, 1280)) == (640, 512)
     assert lite.look_size(1.0, (960, 1280)) == (320, 240) and lite.look_size(1.0, (1200, 1600)) == (320, 240)
-    paper = mp.MarkerPose(rig, propose={"network": "lite"}).detector.proposer
+    paper = mp.MarkerPose(rig, propose={"network": "lite", "input": "paper"}).detector.proposer
     assert not paper.net.isotropic and paper.look_size(1.0, (1024, 1280)) == (320, 240)
     frame = render_stereo(rig, look_at_pose([0, 0, 500]), imaging=Imaging(alpha=0.8), seed=3)
     left, right = frame.images[0], frame.images[1][:960]  # the right view cropped: another aspect

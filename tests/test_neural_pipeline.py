@@ -203,7 +203,8 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
 
 def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypatch):
     # Regression (held-out blur pair 316): 54° tilt, 25 px of blur; stage 1 puts the right
-    # view's rings 20-30 px off. The left view's pose predicts the right view's ellipses to
+    # view's rings 7-30 px off (the pair is completed, or transferred, from the left view's
+    # pose: test below). The left view's pose predicts the right view's ellipses to
     # a fraction of a pixel; refined at the predicted centres instead (the former way), the
     # right view's rings slide onto their neighbours' blur and the pair is lost.
     R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
@@ -218,6 +219,26 @@ def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypat
 
     monkeypatch.setattr(stereo, "ring_ellipses", lambda *a: [None] * 3)  # no predicted ellipses
     assert mp.MarkerPose(rig).estimate(*f.images) is None
+
+
+def test_a_triple_refined_in_one_view_is_completed_by_its_pose(rig, monkeypatch):
+    # The same blurred pair: the default's stage 1 matches a triple whose right-view points
+    # are 7-16 px off; the left view's rings refine, the right view's c1 does not. The left
+    # view's plate pose completes the pair on the spot, without the transfer fallback;
+    # without the completion the budget of hypotheses is spent before the transfer runs.
+    from markerpose.detectors import stereo
+
+    R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
+    U, _, Vt = np.linalg.svd(R)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = U @ Vt, [-18.155, 9.052, 408.286]
+    f = render_stereo(rig, T, imaging=Imaging(alpha=0.75, motion_blur=25.0, motion_angle=151.1), seed=0)
+    monkeypatch.setattr(stereo.StereoDetector, "transferred", lambda *a: iter(()))
+    est = mp.MarkerPose(rig).estimate(*f.images)
+    assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
+    monkeypatch.setattr(stereo.StereoDetector, "completed", lambda *a: iter(()))
+    tracker = mp.MarkerPose(rig)
+    assert tracker.estimate(*f.images) is None and "not refined in the right view" in tracker.why
 
 
 def test_single_view_detect_checks_the_rings_share_one_plate(rig, tracker):

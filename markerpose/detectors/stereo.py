@@ -63,9 +63,45 @@ class StereoDetector(NeuralDetector):
             found = self.fit(frame, frame.grays, list(self.rig.cameras), [(pl, s), (pr, s)], *gates)
             if found is None:
                 break
+            if m["transfer"]:
+                yield from self.completed(frame, found, s, zoom, gates[0])
             yield found
         if m["transfer"]:
             yield from self.transferred(frame, cand, zoom)
+
+    def completed(self, frame: Frame, found: list, s: float, zoom: float, blur_gate) -> Iterator[list[Detection]]:
+        """A matched triple whose rings refined in one view only, completed in the other
+        by the refined view's plate pose (:meth:`_guided`), before the pair itself is
+        judged: stage 1 can match a steep, blurred view's points well enough to pass the
+        matching but too far off for their rings to refine, and the pair would cost
+        another hypothesis; the transfer fallback comes only after all of them. Nothing
+        where both views or neither refined."""
+        ok = [d is not None and bool(d.refined.all()) for d in found]
+        if ok[0] == ok[1]:
+            return
+        yield from self._carried(frame, 0 if ok[0] else 1, found[0 if ok[0] else 1], s, zoom, blur_gate)
+
+    def _carried(self, frame: Frame, a: int, det_a: Detection, s: float, zoom: float, blur_gate) -> Iterator[list[Detection]]:
+        """(left, right) pairs of view ``a``'s refined rings ``det_a`` and the other view's
+        rings fitted where det_a's plate poses put them (:meth:`_guided`)."""
+        for _, T_b in self._predicted(frame, a, det_a, zoom):
+            guided = self._guided(frame, 1 - a, T_b, s, det_a, blur_gate)
+            if guided is not None:
+                yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
+
+    def _predicted(self, frame: Frame, a: int, det_a: Detection, zoom: float) -> Iterator[tuple]:
+        """(the rings' centres (3, 2), the pose T_b) in the other view for each of view
+        ``a``'s plate poses of ``det_a``, where that view shows ring evidence there
+        (``transfer_min_evidence``)."""
+        cams, mk, b = self.rig.cameras, self.marker, 1 - a
+        gate = self.conf["match"]["transfer_min_evidence"]
+        for pred, T_b in transfer(self.rig, a, verify.plate_poses(det_a, cams[a], mk, verify.PLATE_TOL), mk.points3d):
+            # Cheap first: the other view must show ring evidence where the pose puts the
+            # rings (an inconsistent pair, e.g. one view given twice, does not), before any
+            # costly fit there.
+            if gate and frame.timed("verify", self.proposer.evidence, frame.grays[b], pred[None], zoom, frame.looked)[0] < gate:
+                continue
+            yield pred, T_b
 
     def near(self, frame: Frame, T_pred: np.ndarray) -> Iterator[list[Detection]]:
         """A cold detection whose stage 1 sees, in each view, only a window around where the
@@ -157,13 +193,7 @@ class StereoDetector(NeuralDetector):
             if det_a is None:
                 return
             det_a = det_a[0]
-            poses = verify.plate_poses(det_a, cams[a], mk, verify.PLATE_TOL)
-            for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
-                # Cheap first: the other view must show ring evidence where the pose puts the
-                # rings (an inconsistent pair, e.g. one view given twice, does not), before
-                # any costly fit there.
-                if gate and frame.timed("verify", self.proposer.evidence, grays[b], pred[None], zoom, frame.looked)[0] < gate:
-                    continue
+            for pred, T_b in self._predicted(frame, a, det_a, zoom):
                 guided = self._guided(frame, b, T_b, s, det_a, blur_gate)
                 if guided is not None:
                     yield [det_a, guided][:: 1 - 2 * a]  # (left, right)

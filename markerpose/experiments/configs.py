@@ -17,25 +17,33 @@ from ..stages import propose
 
 DEFAULT = "default"
 _NO_EDGE = {"edge_refit": False}
+_PAPER_NET = propose.PAPER_NETWORK
 
 # name -> (diff over the stages' defaults, what it is)
 ABLATIONS: dict[str, tuple[dict, str]] = {
     # the neural pipeline, from the paper's towards ours
     "neural-layout": (
-        {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE, "solve": PAPER_POSE},
+        {"match": {"method": "layout"}, "propose": {"second_look": 1.0, **_PAPER_NET}, "refine": _NO_EDGE, "solve": PAPER_POSE},
         "paper + IDs from the marker's layout, adaptive patches, sub-pixel mask fit",
     ),
     "neural-layout-rigid": (
-        {"match": {"method": "layout"}, "propose": {"second_look": 1.0}, "refine": _NO_EDGE},
+        {"match": {"method": "layout"}, "propose": {"second_look": 1.0, **_PAPER_NET}, "refine": _NO_EDGE},
         "neural-layout + bias correction + rigid pose",
     ),
-    "neural-stereo": ({"refine": _NO_EDGE}, "neural-layout-rigid with candidates matched across views by the 3D shape"),
+    "neural-stereo": (
+        {"propose": _PAPER_NET, "refine": _NO_EDGE},
+        "neural-layout-rigid with candidates matched across views by the 3D shape",
+    ),
+    "default-standard-net": (
+        {"propose": _PAPER_NET},
+        "default with the former default's stage 1: the standard network at the paper's 320x240 input",
+    ),
     # the default with one part switched off or replaced
     "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),
     "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (
-        {"propose": {"network": "lite"}},
+        {"propose": {"network": "lite", "input": "paper"}},
         "default-lite with stage 1's input at the paper's 320x240 instead of the image's aspect",
     ),
     "neural-classical-refine": ({"refine": {"method": "classical"}}, "default with the classical ring fit instead of EllipSegNet"),

@@ -27,16 +27,21 @@ from ..nets import default_weights, int8_weights
 from ..settings import choice, flag, number, path
 
 # The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
-# markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx).
-NETWORKS = {"standard": "keypoints", "lite": "keypoints-lite"}
+# markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx). "standard" is the paper's
+# layers at half their widths (a quarter in the first four), "mid" at three eighths (an
+# eighth), "lite" at a quarter (an eighth).
+NETWORKS = {"mid": "keypoints-mid", "standard": "keypoints", "lite": "keypoints-lite"}
+# The paper's configuration and the ablations from it towards ours keep the network and
+# the input they were measured with.
+PAPER_NETWORK = {"network": "standard", "input": "paper"}
 
 default_conf = {
-    "network": "standard",  # neural: which shipped stage-1 network (NETWORKS) ...
+    "network": "mid",  # neural: which shipped stage-1 network (NETWORKS) ...
     "weights": None,  # ... or this weights file (None: the shipped network)
     "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
     "threshold": 0.01,  # neural: the candidates' least location score
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
-    "input": "paper",  # neural: the input's size: "paper" 320x240 whatever the image, "isotropic"
+    "input": "isotropic",  # neural: the input's size: "paper" 320x240 whatever the image, "isotropic"
     #                    the image's aspect at 320 wide (320x256 for 1280x1024: an exact 4x4 area resize)
 }
 RULES = {
