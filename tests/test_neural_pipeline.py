@@ -484,3 +484,19 @@ def test_windowed_looks_find_what_the_whole_input_gives(rig, tracker):
             net._input(g, zoom, looked)  # the whole inputs kept, as after a first look
         cut = net.candidates(grays, 0.01, 16, zoom, near=near, window=window, kept=looked)
         assert len(alone[0]) and all(np.array_equal(a, b) for a, b in zip(alone, cut))
+
+
+def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
+    # The views swapped: no triple matches strictly, every fit is the transfer's. By default
+    # its fits stop where the layout's seeds do not fit (the masks cost most of such a
+    # pair's time and found no held-out pair); transfer_masks=True lets them go on.
+    from markerpose.experiments.bench import _pairs
+    from markerpose.stages import refine
+
+    frame = _pairs(1, 0)[2][0]
+    calls = []
+    masks = refine.Refiner._from_masks
+    monkeypatch.setattr(refine.Refiner, "_from_masks", lambda self, *a: (calls.append(1), masks(self, *a))[1])
+    left, right = frame.images
+    assert mp.MarkerPose(rig).estimate(right, left) is None and not calls
+    assert mp.MarkerPose(rig, match={"transfer_masks": True}).estimate(right, left) is None and calls

@@ -27,6 +27,10 @@ from .base import NeuralDetector
 MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
 
 
+def _NO_MASKS(gray, points) -> bool:  # a mask gate that refuses every view
+    return False
+
+
 class StereoDetector(NeuralDetector):
     """Stage-1 candidates matched across the views by the marker's 3D shape."""
 
@@ -187,9 +191,10 @@ class StereoDetector(NeuralDetector):
         gate = m["transfer_min_evidence"]
         if gate:
             sources = self._evidenced(frame, sources, zoom, gate)
+        no_masks = None if m["transfer_masks"] else _NO_MASKS
         for a, pts, s in sources[: match.TRANSFER_SOURCES]:
             b = 1 - a
-            det_a = self.fit(frame, [grays[a]], [cams[a]], [(pts, s)], blur_gate)
+            det_a = self.fit(frame, [grays[a]], [cams[a]], [(pts, s)], blur_gate, no_masks)
             if det_a is None:
                 return
             det_a = det_a[0]
@@ -197,7 +202,7 @@ class StereoDetector(NeuralDetector):
                 guided = self._guided(frame, b, T_b, s, det_a, blur_gate)
                 if guided is not None:
                     yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
-                det_b = self.fit(frame, [grays[b]], [cams[b]], [(pred, s)], blur_gate)
+                det_b = self.fit(frame, [grays[b]], [cams[b]], [(pred, s)], blur_gate, no_masks)
                 if det_b is None:
                     return
                 yield [det_a, det_b[0]][:: 1 - 2 * a]

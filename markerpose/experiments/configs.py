@@ -40,6 +40,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
     ),
     # the default with one part switched off or replaced
     "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),
+    "default-transfer-masks": (
+        {"match": {"transfer_masks": True}},
+        "default with EllipSegNet's masks for transfer sources whose edges do not fit from their layout (v0.38)",
+    ),
     "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (

@@ -49,6 +49,10 @@ default_conf = {
     "mask_min_evidence": 0.05,  # a matched triple whose edges do not fit from the layout's
     #                             seeds in a view goes on to EllipSegNet's masks only with at
     #                             least this ring evidence there; 0: no test
+    "transfer_masks": False,  # the transfer's fits (a source, the other view at the predicted
+    #                           centres) go on to EllipSegNet's masks where their edges do not
+    #                           fit from the layout's seeds (False: they fail there; on an
+    #                           inconsistent pair the masks were most of the worst pair's time)
     "transfer_min_evidence": 0.05,  # sources with less ring evidence are not refined (decoy
     #                                 triples on marker-free pairs cost refits); 0: every one.
     #                                 Lower than min_evidence: a source from the steep view
@@ -69,6 +73,7 @@ RULES = {
     "transfer": flag(),
     "blur_min_evidence": number(0),  # above the largest evidence: refuse all
     "mask_min_evidence": number(0),  # above the largest evidence: refuse all
+    "transfer_masks": flag(),
     "transfer_min_evidence": number(0),  # above the largest evidence: refuse all
     "max_fits": number(1, integer=True),
 }
