@@ -201,17 +201,22 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer_min_evidence": 1.01}).estimate(*f.images) is None
 
 
+def _steep_blurred_pair(rig):
+    """Held-out blur pair 316: the marker's pose and the rendered pair (54° tilt, 25 px of blur)."""
+    R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
+    U, _, Vt = np.linalg.svd(R)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = U @ Vt, [-18.155, 9.052, 408.286]
+    return T, render_stereo(rig, T, imaging=Imaging(alpha=0.75, motion_blur=25.0, motion_angle=151.1), seed=0)
+
+
 def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypatch):
     # Regression (held-out blur pair 316): 54° tilt, 25 px of blur; stage 1 puts the right
     # view's rings 7-30 px off (the pair is completed, or transferred, from the left view's
     # pose: test below). The left view's pose predicts the right view's ellipses to
     # a fraction of a pixel; refined at the predicted centres instead (the former way), the
     # right view's rings slide onto their neighbours' blur and the pair is lost.
-    R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
-    U, _, Vt = np.linalg.svd(R)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = U @ Vt, [-18.155, 9.052, 408.286]
-    f = render_stereo(rig, T, imaging=Imaging(alpha=0.75, motion_blur=25.0, motion_angle=151.1), seed=0)
+    T, f = _steep_blurred_pair(rig)
     est = mp.MarkerPose(rig).estimate(*f.images)
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
@@ -228,11 +233,7 @@ def test_a_triple_refined_in_one_view_is_completed_by_its_pose(rig, monkeypatch)
     # without the completion the budget of hypotheses is spent before the transfer runs.
     from markerpose.detectors import stereo
 
-    R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
-    U, _, Vt = np.linalg.svd(R)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = U @ Vt, [-18.155, 9.052, 408.286]
-    f = render_stereo(rig, T, imaging=Imaging(alpha=0.75, motion_blur=25.0, motion_angle=151.1), seed=0)
+    T, f = _steep_blurred_pair(rig)
     monkeypatch.setattr(stereo.StereoDetector, "transferred", lambda *a: iter(()))
     est = mp.MarkerPose(rig).estimate(*f.images)
     assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
