@@ -47,7 +47,7 @@ PRESETS: dict[str, dict] = {
 ABOUT: dict[str, str] = {
     "default": "ours: stage-1 candidates (the mid network at the image's aspect) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
     "ellipses the three points predict (EllipSegNet's masks where that fails), blurred-ring fit, plate check, "
-    "perspective-bias correction, rigid pose; a second look at 640x480 when nothing is found",
+    "perspective-bias correction, rigid pose; a second look at twice the input's size when nothing is found",
     "paper": "the paper's MarkerPose: ring IDs from the ID head, EllipSegNet on fixed 120 px patches with cv2.fitEllipse, "
     "DLT of the ellipse centres, R = [x y x×y]",
     "paper-classical": "the paper's classical detector (§3.4): binarisation, contours, concentric ellipses, epipolar pairing; paper pose",
