@@ -81,9 +81,9 @@ class StereoDetector(NeuralDetector):
         another hypothesis; the transfer fallback comes only after all of them. Nothing
         where both views or neither refined."""
         ok = [d is not None and bool(d.refined.all()) for d in found]
-        if ok[0] == ok[1]:
-            return
-        yield from self._carried(frame, 0 if ok[0] else 1, found[0 if ok[0] else 1], s, zoom, blur_gate)
+        if ok[0] != ok[1]:
+            a = 0 if ok[0] else 1
+            yield from self._carried(frame, a, found[a], s, zoom, blur_gate)
 
     def _carried(self, frame: Frame, a: int, det_a: Detection, s: float, zoom: float, blur_gate) -> Iterator[list[Detection]]:
         """(left, right) pairs of view ``a``'s refined rings ``det_a`` and the other view's

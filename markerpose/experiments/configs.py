@@ -42,7 +42,7 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
     "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),
     "default-transfer-masks": (
         {"match": {"transfer_masks": True}},
-        "default with EllipSegNet's masks for transfer sources whose edges do not fit from their layout (v0.38)",
+        "default with EllipSegNet's masks in the transfer's fits where the layout's seeds do not fit (the former default)",
     ),
     "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),

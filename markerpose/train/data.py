@@ -26,16 +26,15 @@ def render_many(render_chunk: Callable, n: int, seed: int, conf: dict | None, wo
     """
     jobs = [(seed, k, min(CHUNK, n - k * CHUNK), conf) for k in range(math.ceil(n / CHUNK))]
     with tqdm(total=n, desc=desc, unit=unit) as bar:
+        tasks = [(render_chunk, job) for job in jobs]
         if workers > 1 and len(jobs) > 1 and not ray_installed():
-            chunks = []
             with mp.get_context("fork").Pool(min(workers, len(jobs))) as pool:
-                for chunk in pool.imap(_chunk, [(render_chunk, job) for job in jobs]):
+                chunks = []
+                for chunk in pool.imap(_chunk, tasks):
                     chunks.append(chunk)
                     bar.update(len(chunk))
-            return [sample for chunk in chunks for sample in chunk]
-        chunks = run_tasks(
-            _chunk, [(render_chunk, job) for job in jobs], workers=workers, on_result=lambda i, r: bar.update(len(r)), strict=True
-        )
+        else:
+            chunks = run_tasks(_chunk, tasks, workers=workers, on_result=lambda i, r: bar.update(len(r)), strict=True)
     return [sample for chunk in chunks for sample in chunk]
 
 
