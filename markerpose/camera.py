@@ -249,50 +249,61 @@ class Camera:
 
 
 @compiled
-def _distort(xn, K, dist, out):  # pragma: no cover - compiled
-    """:meth:`Camera.distort` of each row of ``xn`` into ``out``."""
+def distort_point(x, y, K, dist):  # pragma: no cover - compiled
+    """The distorted pixel (u, v) of the normalised point (x, y): the lens model of
+    :meth:`Camera.distort` for one point, callable from other compiled loops."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for i in range(xn.shape[0]):
-        x, y = xn[i, 0], xn[i, 1]
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]
+
+
+@compiled
+def undistort_point(u, v, K, dist):  # pragma: no cover - compiled
+    """The normalised point (x, y) whose distorted pixel is (u, v), by Newton's method from
+    the distorted point, and whether it converged (re-distorted within 1e-7 px): one point
+    of :meth:`Camera.undistort_points`, callable from other compiled loops."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    yt = (v - cy) / fy
+    xt = (u - cx - skew * yt) / fx
+    x, y = xt, yt
+    ok = False
+    for _ in range(30):
         r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        out[i, 0] = K[0, 0] * xd + K[0, 1] * yd + K[0, 2]
-        out[i, 1] = K[1, 1] * yd + K[1, 2]
+        ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xt
+        ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yt
+        if abs(fx * ex + skew * ey) <= 1e-7 and abs(fy * ey) <= 1e-7:
+            # Converged in pixels; one more step takes it to the float limit.
+            ok = True
+        dr = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # d radial / d r2, times 2
+        a = radial + x * x * dr + 2 * p1 * y + 6 * p2 * x
+        b = x * y * dr + 2 * p1 * x + 2 * p2 * y
+        d = radial + y * y * dr + 6 * p1 * y + 2 * p2 * x
+        det = a * d - b * b
+        if not det > 0:  # past the lens's fold (or not finite): not the physical branch
+            return x, y, False
+        x, y = x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
+        if ok:
+            break
+    return x, y, ok
+
+
+@compiled
+def _distort(xn, K, dist, out):  # pragma: no cover - compiled
+    """:meth:`Camera.distort` of each row of ``xn`` into ``out``."""
+    for i in range(xn.shape[0]):
+        out[i, 0], out[i, 1] = distort_point(xn[i, 0], xn[i, 1], K, dist)
 
 
 @compiled
 def _undistort(px, K, dist, xn, ok):  # pragma: no cover - compiled
-    """Normalised coordinates ``xn`` whose distorted pixels are ``px``, by Newton's method
-    from the distorted point; ``ok`` where the re-distorted point is within 1e-7 px."""
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    fx, skew, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    """:func:`undistort_point` of each row of ``px`` into ``xn`` and ``ok``."""
     for i in range(px.shape[0]):
-        yt = (px[i, 1] - cy) / fy
-        xt = (px[i, 0] - cx - skew * yt) / fx
-        x, y = xt, yt
-        ok[i] = False
-        for _ in range(30):
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xt
-            ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yt
-            if abs(fx * ex + skew * ey) <= 1e-7 and abs(fy * ey) <= 1e-7:
-                # Converged in pixels; one more step takes it to the float limit.
-                ok[i] = True
-            dr = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # d radial / d r2, times 2
-            a = radial + x * x * dr + 2 * p1 * y + 6 * p2 * x
-            b = x * y * dr + 2 * p1 * x + 2 * p2 * y
-            d = radial + y * y * dr + 6 * p1 * y + 2 * p2 * x
-            det = a * d - b * b
-            if not det > 0:  # past the lens's fold (or not finite): not the physical branch
-                ok[i] = False
-                break
-            x, y = x - (d * ex - b * ey) / det, y - (a * ey - b * ex) / det
-            if ok[i]:
-                break
-        xn[i, 0], xn[i, 1] = x, y
+        xn[i, 0], xn[i, 1], ok[i] = undistort_point(px[i, 0], px[i, 1], K, dist)
 
 
 _WARM = False

@@ -14,7 +14,8 @@ import math
 import cv2
 import numpy as np
 
-from .camera import StereoRig
+from .camera import StereoRig, distort_point, undistort_point
+from .jit import compiled
 
 POSE_METHODS = ("paper", "rigid")
 # A pose's rotation part read from a file may depart from a rotation by this much (max of
@@ -87,8 +88,9 @@ def ring_diameter(points: np.ndarray, marker) -> float:
 def triangulate(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> np.ndarray:
     """Linear (DLT) triangulation of corresponding distorted pixels, as the paper does.
 
-    Points are undistorted to ideal pixels first, then ``cv2.triangulatePoints``
-    solves the homogeneous system with ``P1 = K1 [I|0]`` and ``P2 = K2 [R|t]``.
+    Points are undistorted to ideal pixels first, then each point's homogeneous system
+    with ``P1 = K1 [I|0]`` and ``P2 = K2 [R|t]`` is solved by SVD (as
+    ``cv2.triangulatePoints`` does; compiled, for three points at a time).
 
     Args:
         rig: the calibrated stereo rig.
@@ -102,8 +104,9 @@ def triangulate(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> 
         raise ValueError(f"p2d_left and p2d_right differ in shape: {pl.shape} vs {pr.shape}")
     ul = rig.left.undistort_points(pl)
     ur = rig.right.undistort_points(pr)
-    X = cv2.triangulatePoints(rig.P1, rig.P2, ul.T.copy(), ur.T.copy())
-    return (X[:3] / X[3]).T
+    X = np.empty((len(pl), 3))
+    _dlt(rig.P1, rig.P2, ul, ur, X)
+    return X
 
 
 def epipolar_distance(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarray) -> np.ndarray:
@@ -128,10 +131,20 @@ def epipolar_distance(rig: StereoRig, p2d_left: np.ndarray, p2d_right: np.ndarra
 
 def fundamental_matrix(rig: StereoRig) -> np.ndarray:
     """(3, 3) F with ``x_r^T F x_l = 0`` for ideal (undistorted) pixels."""
-    t = rig.t
+    key = (np.asarray(a, np.float64).tobytes() for a in (rig.left.K, rig.right.K, rig.R, rig.t))
+    return _fundamental(*key)
+
+
+@functools.lru_cache(maxsize=16)
+def _fundamental(K1: bytes, K2: bytes, R: bytes, t: bytes) -> np.ndarray:
+    """:func:`fundamental_matrix` of a rig given as its arrays' bytes (float64), read-only:
+    computed once per rig state, however often the checks ask."""
+    t = np.frombuffer(t)
     tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    E = tx @ rig.R
-    return np.linalg.inv(rig.right.K).T @ E @ np.linalg.inv(rig.left.K)
+    E = tx @ np.frombuffer(R).reshape(3, 3)
+    F = np.linalg.inv(np.frombuffer(K2).reshape(3, 3)).T @ E @ np.linalg.inv(np.frombuffer(K1).reshape(3, 3))
+    F.flags.writeable = False
+    return F
 
 
 # --- pose from three points -------------------------------------------------------
@@ -173,14 +186,8 @@ def pose_rigid(points3d: np.ndarray, model: np.ndarray) -> np.ndarray:
     M = np.asarray(model, dtype=np.float64).reshape(-1, 3)
     if X.shape != M.shape or len(X) < 3:
         raise ValueError(f"need matching (N>=3, 3) point sets, got {X.shape} and {M.shape}")
-    mx, mm = X.mean(0), M.mean(0)
-    H = (M - mm).T @ (X - mx)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
     T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = mx - R @ mm
+    _kabsch(np.ascontiguousarray(X), np.ascontiguousarray(M), T)
     return T
 
 
@@ -249,19 +256,20 @@ def rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
 
 def cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
     """(centre, Q) → RotatedRect ((cx, cy), (w, h), angle_deg), width = major axis along angle."""
-    lam, V = np.linalg.eigh(Q)  # ascending: lam[0] ↔ major axis
-    a, b = 1 / np.sqrt(lam[0]), 1 / np.sqrt(lam[1])
-    ang = np.degrees(np.arctan2(V[1, 0], V[0, 0])) % 180.0
-    return ((float(c[0]), float(c[1])), (float(2 * a), float(2 * b)), float(ang))
+    # The symmetric 2 x 2 eigen-decomposition in closed form (a ring's every fit makes one):
+    # the smaller eigenvalue is the major axis', along 0.5 atan2(-2 q, r - p).
+    (p, q), (_, r) = np.asarray(Q, np.float64).tolist()
+    m, d = 0.5 * (p + r), math.hypot(0.5 * (p - r), q)
+    ang = math.degrees(0.5 * math.atan2(-2.0 * q, r - p)) % 180.0
+    return ((float(c[0]), float(c[1])), (2.0 / math.sqrt(m - d), 2.0 / math.sqrt(m + d)), ang)
 
 
 def cq_to_conic(c: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """(3, 3) conic ``x^T C x = 0`` of the ellipse (x - c)^T Q (x - c) = 1."""
-    C = np.zeros((3, 3))
-    C[:2, :2] = Q
-    C[:2, 2] = C[2, :2] = -Q @ c
-    C[2, 2] = c @ Q @ c - 1.0
-    return C
+    (q00, q01), (q10, q11) = Q.tolist()
+    cx, cy = float(c[0]), float(c[1])
+    d0, d1 = -(q00 * cx + q01 * cy), -(q10 * cx + q11 * cy)  # -Q c, in floats: a conic per ring per check
+    return np.array([[q00, q01, d0], [q10, q11, d1], [d0, d1, -(d0 * cx + d1 * cy) - 1.0]])
 
 
 def ellipse_to_conic(center, axes, angle_deg) -> np.ndarray:
@@ -291,23 +299,18 @@ def imaged_circle_centers(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray
     Returns:
         (N, 2) distorted pixel coordinates of the imaged ellipses' centres.
     """
-    H = plane_homography(camera.K, T_cam_plane)
-    # An ellipse's centre is the pole of the line at infinity: its dual conic applied to
-    # (0, 0, 1). The image's dual conic is H C* H^T, with the circle's dual conic
-    # C* = m m^T - r^2 diag(1, 1, 0), m = (cx, cy, 1): all circles at once.
-    m = np.column_stack([np.asarray(centers2d, np.float64).reshape(-1, 2), np.ones(len(centers2d))])
-    h = H[2]
-    pole = (m * (m @ h)[:, None] - radius**2 * np.array([h[0], h[1], 0.0])) @ H.T
-    ideal = pole[:, :2] / pole[:, 2:]
-    Kinv = np.linalg.inv(camera.K)
-    xn = ideal @ Kinv[:2, :2].T + Kinv[:2, 2]
-    return camera.distort(xn)
+    c2 = np.ascontiguousarray(centers2d, np.float64).reshape(-1, 2)
+    out = np.empty((len(c2), 2))
+    _ellipse_centres(camera.K, camera.dist, np.asarray(T_cam_plane, np.float64), c2, float(radius), out, False)
+    return out
 
 
 def perspective_bias(camera, T_cam_plane: np.ndarray, centers2d: np.ndarray, radius: float) -> np.ndarray:
     """(N, 2) imaged-ellipse centre minus projected circle centre, distorted px."""
-    c3 = np.column_stack([np.asarray(centers2d, dtype=np.float64), np.zeros(len(centers2d))])
-    return imaged_circle_centers(camera, T_cam_plane, centers2d, radius) - camera.project(c3 @ T_cam_plane[:3, :3].T + T_cam_plane[:3, 3])
+    c2 = np.ascontiguousarray(centers2d, np.float64).reshape(-1, 2)
+    out = np.empty((len(c2), 2))
+    _ellipse_centres(camera.K, camera.dist, np.asarray(T_cam_plane, np.float64), c2, float(radius), out, True)
+    return out
 
 
 def plane_homography(K: np.ndarray, T_cam_plane: np.ndarray) -> np.ndarray:
@@ -336,26 +339,25 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
         list of (misfit, T_cam_marker (4, 4)), smallest misfit first; the misfit is the mean
         relative radial distance of the projected circles from the ellipses (0 = exact).
     """
-    model = np.asarray(model, np.float64)
+    model = np.ascontiguousarray(model, np.float64)
     xn = camera.undistort_points(np.asarray(centers, np.float64), ideal_pixels=False)
     n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
-    Ts = []
-    for rv, tv in zip(rvecs[:n], tvecs[:n]):
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = cv2.Rodrigues(rv)[0], np.ravel(tv)
-        if not np.isfinite(T).all() or np.any(model @ T[2, :3] + T[2, 3] <= 0):
-            continue  # degenerate, or behind the camera
-        Ts.append(T)
-    if not Ts:
+    if not n:
+        return []
+    Ts = np.zeros((n, 4, 4))
+    Ts[:, 3, 3] = 1.0
+    for k in range(n):
+        Ts[k, :3, :3], Ts[k, :3, 3] = cv2.Rodrigues(rvecs[k])[0], tvecs[k].ravel()
+    # degenerate, or behind the camera
+    Ts = Ts[np.isfinite(Ts).all(axis=(1, 2)) & ((model @ Ts[:, 2, :3].T + Ts[:, 2, 3]) > 0).all(axis=0)]
+    if not len(Ts):
         return []
     have = [k for k, e in enumerate(ellipses or []) if e is not None]
     misfit = np.zeros(len(Ts))
-    if have:  # every pose's projected circles against the ellipses, in one batch
+    if have:  # every pose's projected circles against the ellipses, in one compiled call
         C = np.stack([ellipse_to_conic(*ellipses[k]) for k in have])
-        edges = ring_edges(camera, np.stack(Ts), model[have], radius)  # (P, R, n, 2)
-        h = np.concatenate([edges, np.ones(edges.shape[:-1] + (1,))], axis=-1)
-        lam2 = np.einsum("prni,rij,prnj->prn", h, C, h) + 1.0  # (p - c)^T A (p - c) = lambda^2
-        misfit = np.abs(np.sqrt(np.maximum(lam2, 0)) - 1).mean(2).mean(1)
+        pts = _circle_points(model[have].tobytes(), len(have), float(radius), 24)
+        _plate_misfit(Ts, C, pts, camera.K, camera.dist, misfit)
     poses = [(float(m), T) for m, T in zip(misfit, Ts) if np.isfinite(m)]
     poses.sort(key=lambda p: p[0])
     return poses
@@ -387,3 +389,182 @@ def ring_ellipses(camera, T_cam_marker: np.ndarray, model: np.ndarray, radius: f
     """The rings' outer ellipses (OpenCV RotatedRects) in a view where the marker has pose
     ``T_cam_marker``: ellipses fitted to the projected circles (lens distortion included)."""
     return [cv2.fitEllipseDirect(e.astype(np.float32)) for e in ring_edges(camera, T_cam_marker, model, radius, 36)]
+
+
+# --- compiled kernels: a few points at a time, where numpy's per-call cost would dominate ---
+@compiled
+def _dlt(P1, P2, ul, ur, X):  # pragma: no cover - compiled
+    """Each row of ``X`` (N, 3): the DLT triangulation of the ideal pixels ``ul[i]``, ``ur[i]``
+    (the right singular vector of the smallest singular value, as ``cv2.triangulatePoints``)."""
+    A = np.empty((4, 4))
+    for i in range(ul.shape[0]):
+        for k in range(4):
+            A[0, k] = ul[i, 0] * P1[2, k] - P1[0, k]
+            A[1, k] = ul[i, 1] * P1[2, k] - P1[1, k]
+            A[2, k] = ur[i, 0] * P2[2, k] - P2[0, k]
+            A[3, k] = ur[i, 1] * P2[2, k] - P2[1, k]
+        h = np.linalg.svd(A)[2][3]
+        for k in range(3):
+            X[i, k] = h[k] / h[3]
+
+
+@compiled
+def _kabsch(X, M, T):  # pragma: no cover - compiled
+    """``T`` (4, 4, its last row 0 0 0 1) := the least-squares rigid fit of ``M`` onto ``X``."""
+    n = X.shape[0]
+    mx, mm = np.zeros(3), np.zeros(3)
+    for i in range(n):
+        mx += X[i]
+        mm += M[i]
+    mx /= n
+    mm /= n
+    H = np.zeros((3, 3))
+    for i in range(n):
+        H += np.outer(M[i] - mm, X[i] - mx)
+    U, _, Vt = np.linalg.svd(H)
+    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0  # a reflection: turn the least singular direction
+    for r in range(3):
+        for c in range(3):
+            T[r, c] = Vt[0, r] * U[c, 0] + Vt[1, r] * U[c, 1] + (-1.0 if flip else 1.0) * Vt[2, r] * U[c, 2]
+        T[r, 3] = mx[r] - T[r, 0] * mm[0] - T[r, 1] * mm[1] - T[r, 2] * mm[2]
+
+
+@compiled
+def _ellipse_centres(K, dist, T, centres2d, radius, out, bias):  # pragma: no cover - compiled
+    """Per circle of the plane z = 0 (centres ``centres2d``, ``radius``) under the pose ``T``:
+    its imaged ellipse's centre in distorted pixels, or (``bias``) that minus the projected
+    circle centre. An ellipse's centre is the pole of the line at infinity: its dual conic
+    applied to (0, 0, 1); the image's dual conic is G C* G^T in normalised coordinates
+    (G = [r1 r2 t]), with the circle's C* = m m^T - r^2 diag(1, 1, 0), m = (cx, cy, 1)."""
+    for i in range(centres2d.shape[0]):
+        cx, cy = centres2d[i, 0], centres2d[i, 1]
+        g0, g1, g2 = T[2, 0], T[2, 1], T[2, 3]
+        s = cx * g0 + cy * g1 + g2
+        v0, v1, v2 = cx * s - radius * radius * g0, cy * s - radius * radius * g1, s
+        q = np.empty(3)
+        for r in range(3):
+            q[r] = T[r, 0] * v0 + T[r, 1] * v1 + T[r, 3] * v2
+        u, v = distort_point(q[0] / q[2], q[1] / q[2], K, dist)
+        if bias:
+            for r in range(3):
+                q[r] = T[r, 0] * cx + T[r, 1] * cy + T[r, 3]
+            pu, pv = distort_point(q[0] / q[2], q[1] / q[2], K, dist)
+            u, v = u - pu, v - pv
+        out[i, 0], out[i, 1] = u, v
+
+
+@compiled
+def _undistort_pairs(centers, K1, d1, K2, d2, ul, ur):  # pragma: no cover - compiled
+    """Ideal pixels ``ul``, ``ur`` of the (2, N, 2) distorted ``centers``; False where
+    Newton's method did not converge for a point (then the caller's fallback)."""
+    ok = True
+    for i in range(centers.shape[1]):
+        x, y, good = undistort_point(centers[0, i, 0], centers[0, i, 1], K1, d1)
+        ul[i, 0], ul[i, 1] = K1[0, 0] * x + K1[0, 1] * y + K1[0, 2], K1[1, 1] * y + K1[1, 2]
+        ok = ok and good
+        x, y, good = undistort_point(centers[1, i, 0], centers[1, i, 1], K2, d2)
+        ur[i, 0], ur[i, 1] = K2[0, 0] * x + K2[0, 1] * y + K2[0, 2], K2[1, 1] * y + K2[1, 2]
+        ok = ok and good
+    return ok
+
+
+@compiled
+def _rigid_solve(measured, K1, d1, K2, d2, P1, P2, T_rl, model, centres2d, radius, rounds, centers, X, T):  # pragma: no cover - compiled
+    """:func:`solve_rigid`'s work; returns the RMS reprojection (px), or -1 where an
+    undistortion did not converge."""
+    n = measured.shape[1]
+    ul, ur, bias = np.empty((n, 2)), np.empty((n, 2)), np.empty((n, 2))
+    centers[:] = measured
+    if not _undistort_pairs(centers, K1, d1, K2, d2, ul, ur):
+        return -1.0
+    _dlt(P1, P2, ul, ur, X)
+    for _ in range(rounds):
+        _kabsch(X, model, T)
+        _ellipse_centres(K1, d1, T, centres2d, radius, bias, True)
+        centers[0] = measured[0] - bias
+        _ellipse_centres(K2, d2, T_rl @ T, centres2d, radius, bias, True)
+        centers[1] = measured[1] - bias
+        if not _undistort_pairs(centers, K1, d1, K2, d2, ul, ur):
+            return -1.0
+        _dlt(P1, P2, ul, ur, X)
+    _kabsch(X, model, T)
+    sq = 0.0
+    Tr = T_rl @ T
+    p = np.empty(3)
+    for i in range(n):
+        for view in range(2):
+            A, K, d = (T, K1, d1) if view == 0 else (Tr, K2, d2)
+            for r in range(3):
+                p[r] = A[r, 0] * model[i, 0] + A[r, 1] * model[i, 1] + A[r, 2] * model[i, 2] + A[r, 3]
+            u, v = distort_point(p[0] / p[2], p[1] / p[2], K, d)
+            sq += (u - centers[view, i, 0]) ** 2 + (v - centers[view, i, 1]) ** 2
+    return np.sqrt(sq / (2 * n))
+
+
+@compiled
+def _plate_misfit(Ts, C, pts, K, dist, misfit):  # pragma: no cover - compiled
+    """Per pose ``Ts[p]``: the mean relative radial distance of the rings' projected circle
+    points ``pts`` (R * n, 3; n per ring, marker frame) from the fitted ellipses' conics
+    ``C`` (R, 3, 3): (x - c)^T A (x - c) = lambda^2, |lambda - 1| averaged."""
+    rings = C.shape[0]
+    n = pts.shape[0] // rings
+    for p in range(Ts.shape[0]):
+        T = Ts[p]
+        total = 0.0
+        for r in range(rings):
+            for j in range(n):
+                q = pts[r * n + j]
+                z = T[2, 0] * q[0] + T[2, 1] * q[1] + T[2, 2] * q[2] + T[2, 3]
+                x = (T[0, 0] * q[0] + T[0, 1] * q[1] + T[0, 2] * q[2] + T[0, 3]) / z
+                y = (T[1, 0] * q[0] + T[1, 1] * q[1] + T[1, 2] * q[2] + T[1, 3]) / z
+                u, v = distort_point(x, y, K, dist)
+                h = (u, v, 1.0)
+                lam2 = 1.0
+                for a in range(3):
+                    for b in range(3):
+                        lam2 += h[a] * C[r, a, b] * h[b]
+                total += abs(np.sqrt(max(lam2, 0.0)) - 1.0)
+        misfit[p] = total / (rings * n)
+
+
+def solve_rigid(rig: StereoRig, centers: np.ndarray, model: np.ndarray, centres2d: np.ndarray, radius: float, rounds: int):
+    """The rigid pose from matched centres of both views, each view's perspective bias of
+    ellipse centres removed ``rounds`` times (:func:`perspective_bias` under the pose so
+    far, then triangulated again), in one compiled call.
+
+    Args:
+        centers: (2, N, 2) the views' measured ellipse centres, distorted px.
+        model: (N, 3) the marker's centres (mm); ``centres2d`` (N, 2) the same on its plate;
+            ``radius`` the rings' outer radius, mm.
+    Returns:
+        (centers (2, N, 2) corrected, points3d (N, 3), T_left_marker (4, 4), RMS reprojection
+        px of the model under T against the corrected centres), or None where a centre lies
+        where the lens model's Newton inversion does not converge (the caller's numpy path
+        then falls back to OpenCV's iteration).
+    """
+    measured = np.ascontiguousarray(centers, np.float64)
+    out, X, T = np.empty_like(measured), np.empty((measured.shape[1], 3)), np.eye(4)
+    L, R = rig.cameras
+    args = (L.K, L.dist, R.K, R.dist, rig.P1, rig.P2, rig.T_right_left, np.ascontiguousarray(model, np.float64))
+    rms = _rigid_solve(measured, *args, np.ascontiguousarray(centres2d, np.float64), float(radius), int(rounds), out, X, T)
+    return None if rms < 0 else (out, X, T, float(rms))
+
+
+_GEOMETRY_WARM = False
+
+
+def warm_up() -> None:
+    """Compile the geometry kernels (or load them from numba's cache) once per process."""
+    global _GEOMETRY_WARM
+    if not _GEOMETRY_WARM:
+        rig = StereoRig.default()
+        model = np.array([[0.0, 0, 0], [25, 0, 0], [0, 40, 0]])
+        X = model + [0.0, 0.0, 500.0]
+        solve_rigid(rig, np.stack(rig.project(X)), model, model[:, :2], 10.0, 1)
+        triangulate(rig, *rig.project(X))
+        perspective_bias(rig.left, pose_rigid(X, model), model[:, :2], 10.0)
+        imaged_circle_centers(rig.left, pose_rigid(X, model), model[:, :2], 10.0)
+        T = np.eye(4)
+        T[2, 3] = 500.0
+        view_poses(rig.left, rig.project(X)[0], ring_ellipses(rig.left, T, model, 10.0), model, 10.0)
+        _GEOMETRY_WARM = True

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .geometry import fundamental_matrix
 from .uncertainty import point_covariances
 
 default_conf = {
@@ -30,12 +31,6 @@ default_conf = {
     "k": 0.5,  # CUSUM drift, sigmas
     "h": 12.0,  # CUSUM threshold, sigmas
 }
-
-
-def _fundamental(rig) -> np.ndarray:
-    tx = np.array([[0, -rig.t[2], rig.t[1]], [rig.t[2], 0, -rig.t[0]], [-rig.t[1], rig.t[0], 0]])
-    E = tx @ rig.R
-    return np.linalg.inv(rig.right.K).T @ E @ np.linalg.inv(rig.left.K)
 
 
 def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = None) -> tuple[float, float] | None:
@@ -47,7 +42,7 @@ def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = N
     covs = np.stack([d.center_cov for d in dets])
     if not np.all(np.isfinite(covs)):
         return None
-    F = _fundamental(rig) if F is None else F
+    F = fundamental_matrix(rig) if F is None else F
     ul = rig.left.undistort_points(est.centers[0])
     ur = rig.right.undistort_points(est.centers[1])
     lines = ul @ F[:, :2].T + F[:, 2]  # epipolar lines in the right view
@@ -76,7 +71,7 @@ class RigCheck:
 
     def __init__(self, rig, conf: dict | None = None):
         self.rig, self.conf = rig, {**default_conf, **(conf or {})}
-        self._F = _fundamental(rig)
+        self._F = fundamental_matrix(rig)
         self.reset()
 
     def reset(self) -> None:

@@ -374,3 +374,67 @@ class TestConics:
         C1 = g.ellipse_to_conic((10.0, 20.0), (30.0, 12.0), 20.0)
         C2 = g.ellipse_to_conic((10.0, 20.0), (12.0, 30.0), 110.0)
         np.testing.assert_allclose(C1, C2, atol=1e-12)
+
+
+# --- the compiled kernels against the numpy / OpenCV computations they replace ----------
+class TestCompiled:
+    def test_triangulate_is_opencv_dlt(self, rig):
+        P = _working_volume(np.random.default_rng(40), 50)
+        uv = rig.project(P) + np.random.default_rng(41).normal(0, 0.5, (2, 50, 2))
+        ul, ur = rig.left.undistort_points(uv[0]), rig.right.undistort_points(uv[1])
+        H = cv2.triangulatePoints(rig.P1, rig.P2, ul.T.copy(), ur.T.copy())
+        np.testing.assert_allclose(g.triangulate(rig, uv[0], uv[1]), (H[:3] / H[3]).T, atol=1e-8)
+
+    def test_perspective_bias_is_the_conic_centre_minus_the_projected_centre(self, rig, model):
+        for seed in range(5):
+            T = _random_pose(np.random.default_rng(50 + seed))
+            H = g.plane_homography(rig.left.K, T)
+            centres = np.array([g.conic_center(g.project_conic(g.circle_conic(c, 10.0), H)) for c in model[:, :2]])
+            xn = (centres - rig.left.K[:2, 2]) / np.diag(rig.left.K)[:2]  # the default rig has no skew
+            expected = rig.left.distort(xn) - rig.left.project(_apply(T, model))
+            np.testing.assert_allclose(g.perspective_bias(rig.left, T, model[:, :2], 10.0), expected, atol=1e-7)
+
+    @pytest.mark.parametrize("bias", [True, False])
+    def test_solve_rigid_equals_the_stepwise_solve(self, rig, model, bias, monkeypatch):
+        """The one compiled call of the bias-corrected rigid solve gives what the chain of
+        triangulation, rigid fit and bias steps gives (the paper's pose takes that chain)."""
+        from markerpose.results import Detection
+        from markerpose.stages import solve
+
+        marker, conf = Marker(), {"pose": "rigid", "bias_correction": bias}
+        rng = np.random.default_rng(60)
+        for _ in range(10):
+            uv = rig.project(_apply(_random_pose(rng), model)) + rng.normal(0, 0.2, (2, 3, 2))
+            fast = solve.solve(rig, marker, Detection(uv[0]), Detection(uv[1]), conf)
+            with monkeypatch.context() as m:
+                m.setattr(solve, "solve_rigid", lambda *a: None)
+                slow = solve.solve(rig, marker, Detection(uv[0]), Detection(uv[1]), conf)
+            np.testing.assert_allclose(fast.T, slow.T, atol=1e-9)
+            np.testing.assert_allclose(fast.centers, slow.centers, atol=1e-9)
+            np.testing.assert_allclose(fast.points3d, slow.points3d, atol=1e-9)
+            assert fast.residual_px == pytest.approx(slow.residual_px, abs=1e-9)
+
+    def test_view_poses_misfit_is_the_mean_relative_radial_distance(self, rig, model):
+        T = _random_pose(np.random.default_rng(70))
+        ellipses = g.ring_ellipses(rig.left, T, model, 10.0)
+        centres = rig.left.project(_apply(T, model))
+        poses = g.view_poses(rig.left, centres, ellipses, model, 10.0)
+        assert poses[0][0] < 1e-3 and np.abs(poses[0][1] - T).max() < 1e-6
+        for misfit, Tp in poses:
+            edges = g.ring_edges(rig.left, Tp, model, 10.0)
+            lam = [
+                np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", h, g.ellipse_to_conic(*e), h) + 1, 0))
+                for e, h in zip(ellipses, np.concatenate([edges, np.ones(edges.shape[:-1] + (1,))], -1))
+            ]
+            assert misfit == pytest.approx(np.mean(np.abs(np.array(lam) - 1)), abs=1e-9)
+
+    def test_cq_to_rect_is_the_eigen_decomposition(self):
+        rng = np.random.default_rng(80)
+        for _ in range(200):
+            rect = ((rng.uniform(0, 900), rng.uniform(0, 900)), tuple(rng.uniform(4, 90, 2)), rng.uniform(0, 180))
+            c, Q = g.rect_to_cq(rect)
+            (cx, cy), (w, h), ang = g.cq_to_rect(c, Q)
+            lam, V = np.linalg.eigh(Q)
+            assert (w, h) == pytest.approx((2 / np.sqrt(lam[0]), 2 / np.sqrt(lam[1])), rel=1e-12)
+            expected = np.degrees(np.arctan2(V[1, 0], V[0, 0])) % 180
+            assert abs((ang - expected + 90) % 180 - 90) < 1e-9 and (cx, cy) == rect[0]

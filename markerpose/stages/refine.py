@@ -24,7 +24,7 @@ import copy
 
 import numpy as np
 
-from .. import camera, classical, edges, jit
+from .. import camera, classical, edges, geometry, jit
 from ..ellipses import FITS, PATCH_MODES
 from ..frame import Frame
 from ..geometry import cq_to_rect, layout_affine
@@ -76,7 +76,7 @@ class Refiner:
         self.conf, self.marker = conf, marker
         self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
-        steps = [edges.warm_up, camera.warm_up, classical.warm_up]
+        steps = [edges.warm_up, camera.warm_up, geometry.warm_up, classical.warm_up]
         if conf["blur_fit"]:
             from .. import blurfit
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..geometry import POSE_METHODS, nearest_rotation, perspective_bias, pose_from_points, pose_rigid, triangulate
+from ..geometry import POSE_METHODS, nearest_rotation, perspective_bias, pose_from_points, pose_rigid, solve_rigid, triangulate
 from ..marker import Marker
 from ..results import Detection, Estimate
 from ..settings import choice, flag
@@ -24,6 +24,7 @@ default_conf = {
 
 
 RULES = {"pose": choice(*POSE_METHODS), "bias_correction": flag()}
+BIAS_ROUNDS = 2  # the bias varies slowly with pose: two rounds converge
 
 
 def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: dict, source: str = "detected") -> Estimate:
@@ -35,22 +36,27 @@ def solve(rig, marker: Marker, det_left: Detection, det_right: Detection, conf: 
     projected under the pose.
     """
     centers = np.stack([det_left.centers, det_right.centers]).astype(np.float64)
-    X = triangulate(rig, centers[0], centers[1])
-    if conf["bias_correction"]:
+    rounds = BIAS_ROUNDS if conf["bias_correction"] else 0
+    fast = solve_rigid(rig, centers, marker.points3d, marker.centers2d, marker.outer_radius, rounds) if conf["pose"] == "rigid" else None
+    if fast is not None:
+        centers, X, T, residual = fast
+    else:  # the paper's pose, or a centre where the compiled lens inversion gives up
+        X = triangulate(rig, centers[0], centers[1])
         measured = centers.copy()
-        for _ in range(2):  # the bias varies slowly with pose: two rounds converge
+        for _ in range(rounds):
             T = pose_rigid(X, marker.points3d)
             Ts = (T, rig.T_right_left @ T)
             for i, cam in enumerate(rig.cameras):
                 centers[i] = measured[i] - perspective_bias(cam, Ts[i], marker.centers2d, marker.outer_radius)
             X = triangulate(rig, centers[0], centers[1])
-    T = pose_from_points(X, marker.points3d, conf["pose"])
+        T = pose_from_points(X, marker.points3d, conf["pose"])
+        residual = reprojection_rms(rig, marker, T, centers)
     return Estimate(
         T=T,
         points3d=X,
         centers=centers,
         detections=(det_left, det_right),
-        residual_px=reprojection_rms(rig, marker, T, centers),
+        residual_px=residual,
         source=source,
         _context=(rig, marker.points3d, conf["pose"]),
     )
