@@ -21,6 +21,7 @@ numbers in 1..``MAX_IMAGE_SIDE``; R a proper rotation; the baseline |t| within
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -328,6 +329,18 @@ def _look_at(center: np.ndarray, target: np.ndarray, up=(0.0, -1.0, 0.0)) -> np.
     return np.column_stack([x, y, z])
 
 
+@functools.lru_cache(maxsize=16)
+def _rig_matrices(K1: bytes, K2: bytes, R: bytes, t: bytes) -> tuple:
+    """(T_right_left, P1, P2) of a rig given as its arrays' bytes (float64), read-only."""
+    K1, K2, R, t = np.frombuffer(K1).reshape(3, 3), np.frombuffer(K2).reshape(3, 3), np.frombuffer(R).reshape(3, 3), np.frombuffer(t)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, t
+    out = (T, K1 @ np.hstack([np.eye(3), np.zeros((3, 1))]), K2 @ np.hstack([R, t.reshape(3, 1)]))
+    for a in out:
+        a.flags.writeable = False
+    return out
+
+
 @dataclass
 class StereoRig:
     """Two calibrated cameras; ``X_right = R @ X_left + t`` (mm).
@@ -370,22 +383,25 @@ class StereoRig:
     def cameras(self) -> tuple[Camera, Camera]:
         return (self.left, self.right)
 
+    def _matrices(self) -> tuple:
+        """(T_right_left, P1, P2) of the rig as it is now (computed once per state: the
+        solve and the checks ask for them at every pose)."""
+        return _rig_matrices(*(np.asarray(a, np.float64).tobytes() for a in (self.left.K, self.right.K, self.R, self.t)))
+
     @property
     def T_right_left(self) -> np.ndarray:
         """(4, 4) transform from left-camera to right-camera coordinates."""
-        T = np.eye(4)
-        T[:3, :3], T[:3, 3] = self.R, self.t
-        return T
+        return self._matrices()[0].copy()
 
     @property
     def P1(self) -> np.ndarray:
         """(3, 4) projection matrix of the left camera (ideal pixels), ``K1 [I | 0]``."""
-        return self.left.K @ np.hstack([np.eye(3), np.zeros((3, 1))])
+        return self._matrices()[1].copy()
 
     @property
     def P2(self) -> np.ndarray:
         """(3, 4) projection matrix of the right camera (ideal pixels), ``K2 [R | t]``."""
-        return self.right.K @ np.hstack([self.R, self.t.reshape(3, 1)])
+        return self._matrices()[2].copy()
 
     @property
     def baseline(self) -> float:

@@ -403,9 +403,50 @@ def _dlt(P1, P2, ul, ur, X):  # pragma: no cover - compiled
             A[1, k] = ul[i, 1] * P1[2, k] - P1[1, k]
             A[2, k] = ur[i, 0] * P2[2, k] - P2[0, k]
             A[3, k] = ur[i, 1] * P2[2, k] - P2[1, k]
-        h = np.linalg.svd(A)[2][3]
+        h = _least_singular_vector(A)
         for k in range(3):
             X[i, k] = h[k] / h[3]
+
+
+@compiled
+def _least_singular_vector(A):  # pragma: no cover - compiled
+    """The right singular vector of ``A``'s smallest singular value, by one-sided Jacobi
+    rotations (as accurate as LAPACK's SVD, without its per-call cost on a 4 x 4)."""
+    U = A.copy()
+    n = U.shape[1]
+    V = np.eye(n)
+    for _ in range(60):
+        rotated = False
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                alpha = beta = gamma = 0.0
+                for r in range(U.shape[0]):
+                    alpha += U[r, p] * U[r, p]
+                    beta += U[r, q] * U[r, q]
+                    gamma += U[r, p] * U[r, q]
+                if abs(gamma) <= 1e-15 * np.sqrt(alpha * beta) or gamma == 0.0:
+                    continue
+                rotated = True
+                zeta = (beta - alpha) / (2.0 * gamma)
+                t = (1.0 if zeta >= 0 else -1.0) / (abs(zeta) + np.sqrt(1.0 + zeta * zeta))
+                c = 1.0 / np.sqrt(1.0 + t * t)
+                s = c * t
+                for r in range(U.shape[0]):
+                    up, uq = U[r, p], U[r, q]
+                    U[r, p], U[r, q] = c * up - s * uq, s * up + c * uq
+                for r in range(n):
+                    vp, vq = V[r, p], V[r, q]
+                    V[r, p], V[r, q] = c * vp - s * vq, s * vp + c * vq
+        if not rotated:
+            break
+    best, smallest = 0, np.inf
+    for k in range(n):
+        norm = 0.0
+        for r in range(U.shape[0]):
+            norm += U[r, k] * U[r, k]
+        if norm < smallest:
+            best, smallest = k, norm
+    return V[:, best].copy()
 
 
 @compiled
