@@ -426,7 +426,8 @@ def speed(rig: StereoRig, tools: list, frames: list, pairs: int = 20, seed: int 
     """In one run: the cold pair (``estimate_all``, 3 tools in view) against the first
     tool's cold pair alone (``estimate``), on ``pairs`` scenes in alternating order; and
     ``track_all`` with 1, 2 and 3 tools through the frames of ``frames`` where all three
-    are in view (each tracker's median of its own pass, the passes in turn)."""
+    are in view (three passes, the three trackers on each pair in turn; the medians of the
+    pairs where every tool was tracked, in all and per stage)."""
     three, one = MarkerPose(rig, markers=tools[:3]), MarkerPose(rig, tools[0])
     rng = np.random.default_rng(seed)
     cold = {"three": [], "one": []}
@@ -444,23 +445,32 @@ def speed(rig: StereoRig, tools: list, frames: list, pairs: int = 20, seed: int 
     in_view = [f for f in frames if len(f.truths) == 3]
     trackers = {k: MarkerPose(rig, markers=tools[:k]) for k in (1, 2, 3)}
     tracked: dict = {k: [] for k in trackers}
-    for _ in range(2):
-        for k, tr in trackers.items():
+    stages: dict = {k: [] for k in trackers}
+    for rep in range(3):
+        for tr in trackers.values():
             tr.reset()
-            for f in in_view:
+        for i, f in enumerate(in_view):  # the three trackers on each pair in turn: the machine's drift is theirs alike
+            for k, tr in sorted(trackers.items(), reverse=(rep + i) % 2 == 1):
                 t = time.perf_counter()
                 found = tr.track_all(*f.images)
                 dt = time.perf_counter() - t
                 if len(found) == k and all(e.source == "tracked" for e in found.values()):
                     tracked[k].append(dt)
+                    stages[k].append(dict(tr.timings))
     med = {k: float(np.median(v)) * 1e3 if v else float("nan") for k, v in tracked.items()}
+    names = ("refine", "verify", "solve")
+    per_stage = {
+        k: {n: float(np.median([st.get(n, 0.0) for st in v])) * 1e3 if v else float("nan") for n in names} for k, v in stages.items()
+    }
     return {
         "cold_three_ms": float(np.median(cold["three"])) * 1e3,
         "cold_one_ms": float(np.median(cold["one"])) * 1e3,
         "cold_ratio": float(np.median(cold["three"]) / np.median(cold["one"])),
         "tracked_ms": {str(k): v for k, v in med.items()},
         "tracked_frames": {str(k): len(v) for k, v in tracked.items()},
+        "tracked_stages_ms": {str(k): v for k, v in per_stage.items()},
         "per_extra_tool_ms": (med[3] - med[1]) / 2,
+        "per_extra_tool_stages_ms": {n: (per_stage[3][n] - per_stage[1][n]) / 2 for n in names},
     }
 
 
@@ -531,6 +541,9 @@ def report(res: dict) -> str:
             f"| tracked pair, 1 / 2 / 3 tools (`track_all`), median ms | {t['1']:.1f} / {t['2']:.1f} / {t['3']:.1f} |",
             f"| each extra tracked tool, ms | **{sp['per_extra_tool_ms']:.1f}** |",
         ]
+        if "per_extra_tool_stages_ms" in sp:
+            e = sp["per_extra_tool_stages_ms"]
+            lines.append(f"| ... of which edge fits / checks / solve, ms | {e['refine']:.2f} / {e['verify']:.2f} / {e['solve']:.2f} |")
     return "\n".join(lines)
 
 
