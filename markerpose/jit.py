@@ -13,6 +13,8 @@ from collections.abc import Callable
 import numba
 import numpy as np
 
+from .signals import held_interrupt
+
 
 def compiled(fn):
     """``fn`` compiled by numba (nopython, releasing the GIL), its machine code cached on
@@ -28,13 +30,14 @@ class CompileError(RuntimeError):
 
 
 def warm_up(*steps: Callable[[], None]) -> None:
-    """Run each module's warm-up (which compiles its loops, or loads them from the cache);
-    a typing failure, which a numpy or numba outside the tested ranges can cause, becomes
-    one :class:`CompileError` that names the versions and the fix instead of numba's
-    page-long trace at the first frame."""
+    """Run each module's warm-up (which compiles its loops, or loads them from the cache),
+    a Ctrl-C held until it ends; a typing failure, which a numpy or numba outside the tested
+    ranges can cause, becomes one :class:`CompileError` that names the versions and the fix
+    instead of numba's page-long trace at the first frame."""
     try:
-        for step in steps:
-            step()
+        with held_interrupt():  # a Ctrl-C inside LLVM's callbacks is printed and lost, not raised: held to the end
+            for step in steps:
+                step()
     except numba.core.errors.NumbaError as exc:
         first = next((line for line in str(exc).splitlines() if line.strip()), type(exc).__name__)
         raise CompileError(
