@@ -433,3 +433,24 @@ def test_tools_scenes_and_the_judge_of_each_pose():
     assert te.judge(Pose(a), a, {b.marker.name: b}, 3.0) == "right"
     assert te.judge(Pose(b), a, {b.marker.name: b}, 3.0) == "swap"
     assert te.judge(Pose(a, 10.0), a, {b.marker.name: b}, 3.0) == "false"
+
+
+def test_tools_report_names_the_speed_and_each_stage_of_an_extra_tool():
+    """The speed table: the cold ratio, the tracked pairs of 1 / 2 / 3 tools, each extra
+    tool's cost and its split by stage (a result without the split, as older JSON, still reports)."""
+    from markerpose.experiments import tools as te
+
+    speed = {
+        "cold_three_ms": 45.0,
+        "cold_one_ms": 30.0,
+        "cold_ratio": 1.5,
+        "tracked_ms": {"1": 5.0, "2": 8.0, "3": 11.0},
+        "per_extra_tool_ms": 3.0,
+        "per_extra_tool_stages_ms": {"refine": 2.0, "verify": 0.5, "solve": 0.25},
+    }
+    res = {"tools": [{"name": "a"}, {"name": "b"}], "least_difference_mm": 9.0, "pairs_by_count": {"2": 1}, "configs": {}, "speed": speed}
+    text = te.report(res)
+    assert "45.0 / 30.0 = **1.50x**" in text and "5.0 / 8.0 / 11.0" in text and "**3.0**" in text
+    assert "| ... of which edge fits / checks / solve, ms | 2.00 / 0.50 / 0.25 |" in text
+    del speed["per_extra_tool_stages_ms"]
+    assert "of which" not in te.report(res)
