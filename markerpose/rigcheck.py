@@ -42,7 +42,7 @@ def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = N
     covs = np.stack([d.center_cov for d in dets])
     if not np.all(np.isfinite(covs)):
         return None
-    F = fundamental_matrix(rig) if F is None else F
+    F = fundamental_matrix(rig) if F is None else F  # computed once per rig state
     ul = rig.left.undistort_points(est.centers[0])
     ur = rig.right.undistort_points(est.centers[1])
     lines = ul @ F[:, :2].T + F[:, 2]  # epipolar lines in the right view
@@ -71,7 +71,6 @@ class RigCheck:
 
     def __init__(self, rig, conf: dict | None = None):
         self.rig, self.conf = rig, {**default_conf, **(conf or {})}
-        self._F = fundamental_matrix(rig)
         self.reset()
 
     def reset(self) -> None:
@@ -86,7 +85,7 @@ class RigCheck:
         reason once the check has fired (from that pose on), else None."""
         if self.fired is not None:
             return self.fired
-        z = statistics(self.rig, est, model, self.conf, self._F)
+        z = statistics(self.rig, est, model, self.conf)
         if z is None:
             return None
         self.frames += 1

@@ -81,17 +81,13 @@ class StereoDetector(NeuralDetector):
         another hypothesis; the transfer fallback comes only after all of them. Nothing
         where both views or neither refined."""
         ok = [d is not None and bool(d.refined.all()) for d in found]
-        if ok[0] != ok[1]:
-            a = 0 if ok[0] else 1
-            yield from self._carried(frame, a, found[a], s, zoom, blur_gate)
-
-    def _carried(self, frame: Frame, a: int, det_a: Detection, s: float, zoom: float, blur_gate) -> Iterator[list[Detection]]:
-        """(left, right) pairs of view ``a``'s refined rings ``det_a`` and the other view's
-        rings fitted where det_a's plate poses put them (:meth:`_guided`)."""
-        for _, T_b in self._predicted(frame, a, det_a, zoom):
-            guided = self._guided(frame, 1 - a, T_b, s, det_a, blur_gate)
+        if ok[0] == ok[1]:
+            return
+        a = 0 if ok[0] else 1
+        for _, T_b in self._predicted(frame, a, found[a], zoom):
+            guided = self._guided(frame, 1 - a, T_b, s, found[a], blur_gate)
             if guided is not None:
-                yield [det_a, guided][:: 1 - 2 * a]  # (left, right)
+                yield [found[a], guided][:: 1 - 2 * a]  # (left, right)
 
     def _predicted(self, frame: Frame, a: int, det_a: Detection, zoom: float) -> Iterator[tuple]:
         """(the rings' centres (3, 2), the pose T_b) in the other view for each of view
