@@ -109,8 +109,18 @@ default_conf: dict = {
     "refine_tol": 0.005,  # ... stopping when the ellipse moves less than this, px
     "refine_first_tol": 0.0,  # ... or after the first pass already when it moved the ellipse
     #                           less than this, px (a seed known to be that close: tracking)
+    "refine_predict": True,  # ... or when the next move, extrapolated from the last two (the
+    #                          passes converge geometrically), is under refine_tol and the
+    #                          last one under 10 x refine_tol: saves the pass that only confirms
+    "first_pass_spacing": 4.5,  # arc length between rays in the first pass where it may not
+    #                             stop the fit (refine_first_tol 0: a seed that may be a pixel
+    #                             or more off, which coarse rays move as far), px; 0: edge_spacing
+    "first_pass_max_width": 0.2,  # ... its fit discarded where the edges are wider (10-90 %) than
+    #                               this fraction of the minor semi-axis (blur: every ray counts)
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
+    "rescreen_frac": 0.03,  # the next pass screens its points by least median again only after a
+    #                         fit that rejected more than this fraction of them (negative: always)
     "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse
     "min_free_frac": 0.25,  # rays kept after dropping those near neighbours, else keep all
     "refine_inner": False,  # also refine the inner (hole) ellipse (always for "concentric")

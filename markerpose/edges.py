@@ -1153,11 +1153,19 @@ def lmeds_inliers(P: np.ndarray, mask: np.ndarray, cen: np.ndarray, Q: np.ndarra
     return keep
 
 
-def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = None, weights: np.ndarray | None = None):
+def fit_robust(
+    P: np.ndarray,
+    mask: np.ndarray,
+    c: dict,
+    frame: tuple | None = None,
+    weights: np.ndarray | None = None,
+    screen: np.ndarray | None = None,
+):
     """Ellipse fits with iterative rejection of points far from the fitted curve (after a
     least-median-of-squares screen around ``frame`` = (cen (K, 2), Q (K, 2, 2)) for fits of
-    at least 12 points); ``weights`` (K, N) weigh the points in the fit. ``P``'s valid
-    points come first in each row (as :func:`edge_points` returns them).
+    at least 12 points, of the ellipses ``screen`` (K,) only where given); ``weights``
+    (K, N) weigh the points in the fit. ``P``'s valid points come first in each row (as
+    :func:`edge_points` returns them).
 
     Returns (centres (K, 2), Q (K, 2, 2), fitted (K,), keep (K, N)).
 
@@ -1171,7 +1179,7 @@ def fit_robust(P: np.ndarray, mask: np.ndarray, c: dict, frame: tuple | None = N
     mask = np.ascontiguousarray(mask, bool)
     W = np.ones((K, N)) if weights is None else np.ascontiguousarray(weights, np.float64)
     cnt = mask.sum(1)
-    screen = np.zeros(K, bool) if frame is None else cnt >= 12
+    screen = np.zeros(K, bool) if frame is None else (cnt >= 12) & (True if screen is None else np.asarray(screen, bool))
     n_sub = 40
     idx = np.zeros((K, n_sub, 5), np.int64)
     for k in np.nonzero(screen)[0]:
@@ -1347,21 +1355,40 @@ def _fit_passes(
     found: list = [None] * K
     width = np.zeros(K)
     shared = np.zeros((K, 2, 2))
-    for it in range(max(1, c["refine_iters"])):
+    last = np.full(K, np.inf)  # each ellipse's move in the pass before
+    # The least-median screen is for a spoilt sector (an occluder): after a pass whose fit
+    # rejected (almost) no point (conf["rescreen_frac"]), the next pass's rays see the same
+    # clean edge.
+    screen = np.ones(K, bool)
+    tol = c["refine_tol"]
+    sparse = c.get("first_pass_spacing", 0.0) if not c["refine_first_tol"] else 0.0
+    taken = np.zeros(K, np.int64)  # passes whose fit each ellipse took
+    for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
         if not len(a):
             break
-        P, M, n_use, W, wd, sh = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, c, floor[a], [others[k] for k in a])
+        coarse = it == 0 and sparse > 0  # an ellipse the coarse pass fails gets a full one
+        cp = {**c, "edge_spacing": sparse} if coarse else c
+        P, M, n_use, W, wd, sh = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, cp, floor[a], [others[k] for k in a])
         need = np.maximum(6, c["min_valid_frac"] * n_use)
         go = M.sum(1) >= need
-        active[a[~go]] = False
+        if not coarse:
+            active[a[~go]] = False
         if not go.any():
+            if coarse:
+                continue
             break
         g = a[go]
         Pg, Wg, wdg, shg = P[go], W[go], wd[go], sh[go]
-        cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg)
-        okf = fitted & (keep.sum(1) >= need[go])
-        active[g[~okf]] = False
+        cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg, screen[g])
+        nk, nm = keep.sum(1), M[go].sum(1)
+        okf = fitted & (nk >= need[go])
+        if coarse:
+            # Wide (blurred) edges need every ray: there the full passes start from the seed.
+            okf &= wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)
+        else:
+            active[g[~okf]] = False
+        screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
         move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(_semi_axes(np.where(okf[:, None, None], Qf, Q[g])) - _semi_axes(Q[g])).max(1)
         for i in np.nonzero(okf)[0]:
@@ -1370,7 +1397,13 @@ def _fit_passes(
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
             shared[k] = shg[i]
-            if move[i] < (c["refine_tol"] if it >= 1 else c["refine_first_tol"]):
+            if not taken[k]:
+                done = move[i] < c["refine_first_tol"]
+            else:
+                done = move[i] < tol or (c.get("refine_predict", False) and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
+            last[k] = move[i]
+            taken[k] += 1
+            if done:
                 active[k] = False
     return found, width, shared
 

@@ -323,3 +323,68 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
                 np.testing.assert_array_equal(got, want)
             else:  # numba's eig and numpy's may come from different LAPACK builds
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
+def _seeded_rings(blur: float, seed: int = 0):
+    """The six rings of a rendered pair (blurred along 30° by ``blur`` px), each seed about a
+    pixel off its ellipse, and the rendered outer centres per view."""
+    rig, mk = mp.StereoRig.default(), mp.Marker()
+    T = look_at_pose([10, -5, 520], 30, 40, 15)
+    f = render_stereo(rig, T, imaging=Imaging(motion_blur=blur, motion_angle=30), seed=3)
+    grays = [classical.to_gray(i) for i in f.images]
+    rng = np.random.default_rng(seed)
+    rings = []
+    for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T)):
+        view = []
+        for (cx, cy), (w, h), ang in ring_ellipses(cam, Tv, mk.points3d, mk.outer_radius):
+            rect = ((cx + rng.normal(0, 1), cy + rng.normal(0, 1)), (w * 1.03, h * 0.98), ang + 2)
+            view.append(classical.Ring(np.array(rect[0]), rect, rect, 1.0, _outer_cq=rect_to_cq(rect)))
+        rings.append(view)
+    return rig, mk, grays, rings, [v.outer_centers for v in f.views]
+
+
+def _passes(monkeypatch) -> list:
+    """Records, per call of edges.edge_points, how many ellipses it sampled and how many rays each had."""
+    calls, real = [], edges.edge_points
+
+    def counted(grays, view, cen, Q, half, dark, c, *rest):
+        calls.append((len(cen), c["edge_spacing"]))
+        return real(grays, view, cen, Q, half, dark, c, *rest)
+
+    monkeypatch.setattr(edges, "edge_points", counted)
+    return calls
+
+
+def test_a_coarse_first_pass_and_the_predicted_stop_land_where_full_passes_do(monkeypatch):
+    """From seeds a pixel off, a first pass on coarse rays and the stop predicted from the
+    last two moves give the same centres as full passes to a converged stop (within the
+    stopping tolerance), in fewer ray samples; and both land on the true centres."""
+    rig, mk, grays, rings, truth = _seeded_rings(0.0)
+    calls = _passes(monkeypatch)
+    old = classical.refine_views(
+        grays, rings, mk, {"first_pass_spacing": 0.0, "refine_predict": False, "rescreen_frac": -1.0}, cameras=list(rig.cameras)
+    )
+    full = list(calls)
+    calls.clear()
+    new = classical.refine_views(grays, rings, mk, cameras=list(rig.cameras))
+    assert calls[0] == (6, classical.default_conf["first_pass_spacing"]) and all(s == classical.default_conf["edge_spacing"] for _, s in calls[1:])
+    assert sum(n for n, _ in calls[1:]) < sum(n for n, _ in full)  # fewer full-density ellipse passes
+    for v in range(2):
+        a, b = np.array([r.center for r in old[v]]), np.array([r.center for r in new[v]])
+        assert np.abs(a - b).max() < 0.01
+        assert np.abs(b - truth[v]).max() < 0.05
+
+
+def test_a_coarse_first_pass_is_discarded_on_blurred_edges(monkeypatch):
+    """Under heavy blur the coarse pass's fit is not taken (wide edges need every ray): the
+    full passes start from the seeds and give exactly what they give without it."""
+    rig, mk, grays, rings, _ = _seeded_rings(25.0)
+    calls = _passes(monkeypatch)
+    plain = classical.refine_views(grays, rings, mk, {"first_pass_spacing": 0.0, "blur_fit": False}, cameras=list(rig.cameras))
+    n_plain = len(calls)
+    coarse = classical.refine_views(grays, rings, mk, {"blur_fit": False}, cameras=list(rig.cameras))
+    assert len(calls) - n_plain == n_plain + 1  # the coarse pass, then the same full passes
+    for v in range(2):
+        for a, b in zip(plain[v], coarse[v]):
+            assert a.refined == b.refined
+            np.testing.assert_array_equal(a.center, b.center)
