@@ -367,7 +367,9 @@ def test_a_coarse_first_pass_and_the_predicted_stop_land_where_full_passes_do(mo
     full = list(calls)
     calls.clear()
     new = classical.refine_views(grays, rings, mk, cameras=list(rig.cameras))
-    assert calls[0] == (6, classical.default_conf["first_pass_spacing"]) and all(s == classical.default_conf["edge_spacing"] for _, s in calls[1:])
+    assert calls[0] == (6, classical.default_conf["first_pass_spacing"]) and all(
+        s == classical.default_conf["edge_spacing"] for _, s in calls[1:]
+    )
     assert sum(n for n, _ in calls[1:]) < sum(n for n, _ in full)  # fewer full-density ellipse passes
     for v in range(2):
         a, b = np.array([r.center for r in old[v]]), np.array([r.center for r in new[v]])
