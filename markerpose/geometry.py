@@ -409,6 +409,13 @@ def _dlt(P1, P2, ul, ur, X):  # pragma: no cover - compiled
 
 
 @compiled
+def triangulate_ideal(P1, P2, ul, ur, X):  # pragma: no cover - compiled
+    """:func:`triangulate` of ideal pixels ``ul``, ``ur`` (N, 2) into ``X`` (N, 3), the
+    projection matrices given (``rig.P1``, ``rig.P2``): callable from other compiled loops."""
+    _dlt(P1, P2, ul, ur, X)
+
+
+@compiled
 def _least_singular_vector(A):  # pragma: no cover - compiled
     """The right singular vector of ``A``'s smallest singular value, by one-sided Jacobi
     rotations (as accurate as LAPACK's SVD, without its per-call cost on a 4 x 4)."""

@@ -20,10 +20,15 @@ or :meth:`RigCheck.reset` called).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from .geometry import fundamental_matrix
-from .uncertainty import point_covariances
+from . import jit
+from .camera import StereoRig, undistort_point
+from .geometry import fundamental_matrix, triangulate_ideal
+from .jit import compiled
+from .uncertainty import H_PX, point_covariances
 
 default_conf = {
     "epipolar_px": 0.1,  # the calibration's own epipolar error a stable rig may show, px
@@ -43,6 +48,34 @@ def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = N
     if not np.all(np.isfinite(covs)):
         return None
     F = fundamental_matrix(rig) if F is None else F  # computed once per rig state
+    centres = np.ascontiguousarray(est.centers, np.float64)
+    X = np.ascontiguousarray(est.points3d, np.float64)
+    model = np.ascontiguousarray(model, np.float64)
+    out = np.empty(2)
+    cams = rig.cameras
+    if _statistics(
+        centres,
+        covs,
+        cams[0].K,
+        cams[0].dist,
+        cams[1].K,
+        cams[1].dist,
+        F,
+        rig.P1,
+        rig.P2,
+        X,
+        model,
+        conf["epipolar_px"],
+        conf["scale"],
+        out,
+    ):
+        return float(out[0]), float(out[1])
+    return _statistics_numpy(rig, est, covs, model, conf, F)  # a centre the compiled undistortion refused
+
+
+def _statistics_numpy(rig, est, covs: np.ndarray, model: np.ndarray, conf: dict, F: np.ndarray) -> tuple[float, float]:
+    """:func:`statistics` in numpy (:meth:`~markerpose.camera.Camera.undistort_points` and
+    :func:`~markerpose.uncertainty.point_covariances`, with their fallbacks)."""
     ul = rig.left.undistort_points(est.centers[0])
     ur = rig.right.undistort_points(est.centers[1])
     lines = ul @ F[:, :2].T + F[:, 2]  # epipolar lines in the right view
@@ -61,6 +94,80 @@ def statistics(rig, est, model: np.ndarray, conf: dict, F: np.ndarray | None = N
     return z_e, float(log_s / np.sqrt(var_s))
 
 
+@compiled
+def _ideal(u, v, K, dist):  # pragma: no cover - compiled
+    """The ideal pixel of the distorted pixel (u, v) and whether the undistortion converged."""
+    x, y, ok = undistort_point(u, v, K, dist)
+    return K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 0] * x + K[1, 1] * y + K[1, 2], ok
+
+
+@compiled
+def _statistics(c, covs, K1, d1, K2, d2, F, P1, P2, X, model, epi_px, scale, out):  # pragma: no cover - compiled
+    """:func:`statistics`' arithmetic in one call (``c`` (2, N, 2) the views' centres, ``covs``
+    (2, N, 2, 2) theirs, ``X`` the pose's points): ``out`` = (z_epipolar, z_scale); False where
+    an undistortion did not converge (the numpy path then takes over). The points'
+    covariances as :func:`~markerpose.uncertainty.point_covariances`: the triangulation
+    moved by ``H_PX`` in each of a point's four pixel coordinates."""
+    N = c.shape[1]
+    ul, ur = np.empty((5 * N, 2)), np.empty((5 * N, 2))
+    for case in range(5):  # none, then the left x, left y, right x, right y moved
+        for i in range(N):
+            lu, lv, ru, rv = c[0, i, 0], c[0, i, 1], c[1, i, 0], c[1, i, 1]
+            if case == 1:
+                lu += H_PX
+            elif case == 2:
+                lv += H_PX
+            elif case == 3:
+                ru += H_PX
+            elif case == 4:
+                rv += H_PX
+            a, b, ok1 = _ideal(lu, lv, K1, d1)
+            e, f, ok2 = _ideal(ru, rv, K2, d2)
+            if not (ok1 and ok2):
+                return False
+            ul[case * N + i, 0], ul[case * N + i, 1] = a, b
+            ur[case * N + i, 0], ur[case * N + i, 1] = e, f
+    # Epipolar: each right centre's signed distance from its left centre's line.
+    num = den = 0.0
+    for i in range(N):
+        l0 = F[0, 0] * ul[i, 0] + F[0, 1] * ul[i, 1] + F[0, 2]
+        l1 = F[1, 0] * ul[i, 0] + F[1, 1] * ul[i, 1] + F[1, 2]
+        l2 = F[2, 0] * ul[i, 0] + F[2, 1] * ul[i, 1] + F[2, 2]
+        norm = math.sqrt(l0 * l0 + l1 * l1)
+        d = (l0 * ur[i, 0] + l1 * ur[i, 1] + l2) / norm
+        n0, n1 = l0 / norm, l1 / norm
+        c00 = covs[0, i, 0, 0] + covs[1, i, 0, 0]
+        c01 = covs[0, i, 0, 1] + covs[1, i, 0, 1]
+        c11 = covs[0, i, 1, 1] + covs[1, i, 1, 1]
+        var = n0 * n0 * c00 + 2 * n0 * n1 * c01 + n1 * n1 * c11 + epi_px * epi_px
+        num += d / var
+        den += 1 / var
+    out[0] = num / math.sqrt(den)
+    # Scale: the triangulated rings' size over the marker's, and its variance.
+    T = np.empty((5 * N, 3))
+    triangulate_ideal(P1, P2, ul, ur, T)
+    mx, mm = np.zeros(3), np.zeros(3)
+    for i in range(N):
+        for a in range(3):
+            mx[a] += X[i, a] / N
+            mm[a] += model[i, a] / N
+    S2 = Sm = q = 0.0
+    for i in range(N):
+        dx = X[i] - mx
+        dm = model[i] - mm
+        S2 += dx @ dx
+        Sm += dm @ dm
+        for v in range(2):  # dx^T J_v C_v J_v^T dx, J_v the point's derivatives by view v's pixel
+            g0 = g1 = 0.0
+            for a in range(3):
+                g0 += dx[a] * (T[(1 + 2 * v) * N + i, a] - T[i, a]) / H_PX
+                g1 += dx[a] * (T[(2 + 2 * v) * N + i, a] - T[i, a]) / H_PX
+            q += g0 * g0 * covs[v, i, 0, 0] + 2 * g0 * g1 * covs[v, i, 0, 1] + g1 * g1 * covs[v, i, 1, 1]
+    log_s = 0.5 * math.log(S2 / Sm)
+    out[1] = log_s / math.sqrt(q / (S2 * S2) + scale * scale)
+    return True
+
+
 class RigCheck:
     """Follows the statistics of every pose fed to :meth:`update` (see the module's docstring).
 
@@ -71,6 +178,7 @@ class RigCheck:
 
     def __init__(self, rig, conf: dict | None = None):
         self.rig, self.conf = rig, {**default_conf, **(conf or {})}
+        jit.warm_up(warm_up)  # compiled now, not at a stream's first pose
         self.reset()
 
     def reset(self) -> None:
@@ -107,4 +215,35 @@ class RigCheck:
         return self.fired
 
 
-__all__ = ["RigCheck", "default_conf", "statistics"]
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile the statistics' kernel (or load it from numba's cache) once per process."""
+    global _WARM
+    if not _WARM:
+        rig = StereoRig.default()  # the argument types of a real call (the cached F is read-only)
+        X = np.array([[0.0, 0, 500], [25, 0, 500], [0, 40, 500]])
+        c = np.ascontiguousarray(np.stack(rig.project(X)), np.float64)
+        covs = np.tile(np.eye(2) * 1e-4, (2, 3, 1, 1))
+        cams = rig.cameras
+        _statistics(
+            c,
+            covs,
+            cams[0].K,
+            cams[0].dist,
+            cams[1].K,
+            cams[1].dist,
+            fundamental_matrix(rig),
+            rig.P1,
+            rig.P2,
+            X,
+            X - X[0],
+            0.1,
+            0.001,
+            np.empty(2),
+        )
+        _WARM = True
+
+
+__all__ = ["RigCheck", "default_conf", "statistics", "warm_up"]

@@ -78,3 +78,23 @@ def test_a_pair_whose_views_do_not_fit_the_rig_gives_no_pose_and_says_why():
     assert tracker.track(left, shifted).status() == "rig changed" and tracker.rig_check.fired
     assert mp.MarkerPose(rig, preset="paper").estimate(left, shifted) is not None
     assert mp.MarkerPose(rig, verify={"max_residual_px": float("inf")}).estimate(left, shifted) is not None
+
+
+def test_the_compiled_statistics_equal_the_numpy_ones(rig, monkeypatch):
+    """The statistics in one compiled call equal numpy's (undistortion, epipolar distances,
+    the points' covariances by the moved triangulations) on tracked poses of a stable and of a
+    turned rig; where the compiled undistortion refuses a centre, numpy's path answers."""
+    from markerpose import rigcheck
+
+    model = mp.Marker().points3d
+    for r in (rig, _turned(rig, 0.05, (1, 0, 0))):
+        tracker = mp.MarkerPose(r)
+        for f in _frames(r, 3, seed=20):
+            est = tracker.track(*f.images)
+            covs = np.stack([d.center_cov for d in est.detections])
+            F = rigcheck.fundamental_matrix(r)
+            want = rigcheck._statistics_numpy(r, est, covs, model, default_conf, F)
+            got = statistics(r, est, model, default_conf)
+            np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9)
+    monkeypatch.setattr(rigcheck, "_statistics", lambda *a: False)
+    assert statistics(r, est, model, default_conf) == want
