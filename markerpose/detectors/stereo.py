@@ -41,6 +41,8 @@ class StereoDetector(NeuralDetector):
             self.start_budget(frame)
         cand = None
         for zoom in self.proposer.looks():
+            if cand is not None and not self.proposer.worth_second_look(cand):
+                return
             cand = frame.unclaimed(self.look(frame, zoom, cand))
             yield from self.from_candidates(frame, cand, zoom)
 

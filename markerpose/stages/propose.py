@@ -7,7 +7,9 @@
   (:meth:`NeuralProposer.decoded`). When a look finds no marker, stage 1 looks again at
   ``second_look`` times the input size, resized from the full image (ours): rings under
   ~12 px at 320x240 are found far more often. That look sees only windows around the
-  first look's best candidates (``second_look_near``, ``second_look_window``).
+  first look's best candidates (``second_look_near``, ``second_look_window``), and only
+  where some view has three candidates of some strength (``second_look_min``): a marker's
+  rings score that even where they are too small to be matched, most clutter does not.
 - Classical (paper §3.4, :mod:`markerpose.classical`): binarise, contours, concentric
   ellipses; each view's ring candidates and its marker-like triples named by layout
   (:func:`classical_view`).
@@ -40,7 +42,10 @@ default_conf = {
     "weights": None,  # ... or this weights file (None: the shipped network)
     "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
     "threshold": 0.01,  # neural: the candidates' least location score
-    "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none)
+    "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none) ...
+    "second_look_min": 0.2,  # ... and has, in some view, three candidates scoring at least this (a
+    #                          marker's rings do, even too small to be matched there; clutter
+    #                          mostly does not: no second look on most marker-free pairs; 0: always)
     "input": "isotropic",  # neural: the input's size: "paper" 320x240 whatever the image, "isotropic"
     #                    the image's aspect at 320 wide (320x256 for 1280x1024: an exact 4x4 area resize)
 }
@@ -50,6 +55,7 @@ RULES = {
     "int8": flag(),
     "threshold": number(0, 1),
     "second_look": number(1),
+    "second_look_min": number(0, 1),
     "input": choice("paper", "isotropic"),
 }
 
@@ -124,6 +130,12 @@ class NeuralProposer:
         """Stage 1's zoom factors, tried in turn while the marker is not found."""
         zoom = float(self.conf["second_look"])
         return (1.0, zoom) if zoom > 1 else (1.0,)
+
+    def worth_second_look(self, cand: list) -> bool:
+        """Whether the first look's candidates (per view, (N, 3) rows (x, y, score)) may hide a
+        marker the second look would find: some view has three scoring ``second_look_min`` or more."""
+        least = float(self.conf["second_look_min"])
+        return any(int(np.count_nonzero(c[:, 2] >= least)) >= 3 for c in cand)
 
     def candidates(
         self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None

@@ -40,3 +40,25 @@ def test_settings_are_checked():
         propose.check_conf({**propose.default_conf, "second_look": 0.5})
     with pytest.raises(ValueError, match=r"unknown propose setting 'candidates'"):  # a constant now: MAX_CANDIDATES
         propose.check_conf({**propose.default_conf, "candidates": 8})
+
+
+@needs_nets
+def test_the_second_look_is_skipped_where_no_view_has_three_strong_candidates(rig):
+    """A marker at 1.9 m (rings too small to be matched at the first look) still gets the
+    second look: its rings score above ``second_look_min`` at the first. Clutter without the
+    marker whose candidates all score under it does not (one forward pass, not two)."""
+    from markerpose.experiments.endtoend import SETS, random_pairs
+
+    proposer = propose.NeuralProposer(propose.default_conf, mp.Marker(), "stereo")
+    far = render_stereo(rig, look_at_pose([-40, 20, 1900], 50, 30, 120), imaging=Imaging(alpha=0.6), seed=2)
+    assert proposer.worth_second_look(proposer.candidates(Frame(list(far.images)).grays))
+    weak = [np.array([[10.0, 10, 0.9], [50, 50, 0.25], [90, 90, 0.19]]), np.array([[10.0, 10, 0.9], [50, 50, 0.1]])]
+    assert not proposer.worth_second_look(weak)
+    assert propose.NeuralProposer({**propose.default_conf, "second_look_min": 0.0}, mp.Marker(), "stereo").worth_second_look(weak)
+    # Marker-free held-out pairs: most are decided after one look.
+    tracker = mp.MarkerPose(rig)
+    looks = []
+    for f, _ in random_pairs({**SETS["marker_free"], "seed": 77}, 6, rig, mp.Marker()):
+        assert tracker.estimate(*f.images) is None
+        looks.append(proposer.worth_second_look(proposer.candidates(Frame(list(f.images)).grays)))
+    assert sum(looks) <= 3, looks
