@@ -45,6 +45,7 @@ class Frame:
         self.max_fits = 0
         self.blur_fits: classical.FitBudget | None = None
         self.looked: list = []
+        self.plate_seen = False  # a view's refined rings fitted the marker's plate (no second look helps)
         self.claimed: list[list] = [[], []]  # per view, (centre (2,), radius px, tool name) of the rings found
         self._noise: dict[int, tuple[np.ndarray, float]] = {}
         self._memo: dict = {}
@@ -56,7 +57,7 @@ class Frame:
         rings shared with this one."""
         sub = Frame.__new__(Frame)
         sub.__dict__.update(self.__dict__)
-        sub.why, sub.fits_left, sub.max_fits, sub.blur_fits = None, None, 0, None
+        sub.why, sub.fits_left, sub.max_fits, sub.blur_fits, sub.plate_seen = None, None, 0, None, False
         return sub
 
     def shared(self, key, fn, *args):

@@ -41,7 +41,9 @@ class StereoDetector(NeuralDetector):
             self.start_budget(frame)
         cand = None
         for zoom in self.proposer.looks():
-            if cand is not None and not self.proposer.worth_second_look(cand):
+            # The second look resolves rings too small for the first; where the first already
+            # fitted one view's rings to the plate, resolution is not what failed.
+            if cand is not None and (frame.plate_seen or not self.proposer.worth_second_look(cand)):
                 return
             cand = frame.unclaimed(self.look(frame, zoom, cand))
             yield from self.from_candidates(frame, cand, zoom)
@@ -72,6 +74,11 @@ class StereoDetector(NeuralDetector):
             if m["transfer"]:
                 yield from self.completed(frame, found, s, zoom, gates[0])
             yield found
+            if not frame.plate_seen:  # the pair was refused: did a view's rings fit the plate?
+                frame.plate_seen = any(
+                    d is not None and bool(d.refined.all()) and bool(verify.plate_poses(d, cam, self.marker, verify.PLATE_TOL))
+                    for d, cam in zip(found, self.rig.cameras)
+                )
         if m["transfer"]:
             yield from self.transferred(frame, cand, zoom)
 
@@ -97,7 +104,9 @@ class StereoDetector(NeuralDetector):
         (``transfer_min_evidence``)."""
         cams, mk, b = self.rig.cameras, self.marker, 1 - a
         gate = self.conf["match"]["transfer_min_evidence"]
-        for pred, T_b in transfer(self.rig, a, verify.plate_poses(det_a, cams[a], mk, verify.PLATE_TOL), mk.points3d):
+        poses = verify.plate_poses(det_a, cams[a], mk, verify.PLATE_TOL)
+        frame.plate_seen |= bool(poses)
+        for pred, T_b in transfer(self.rig, a, poses, mk.points3d):
             # Cheap first: the other view must show ring evidence where the pose puts the
             # rings (an inconsistent pair, e.g. one view given twice, does not), before any
             # costly fit there.

@@ -59,3 +59,27 @@ def test_a_new_detector_is_one_class_and_one_registry_line(rig, monkeypatch):
 def test_an_unknown_detector_names_the_known_ones(rig):
     with pytest.raises(ValueError, match=r"detector must be one of \['neural', 'stereo', 'decoded', 'classical'\], got 'truth'"):
         mp.MarkerPose(rig, detector="truth")
+
+
+def test_no_second_look_where_a_view_already_fitted_the_plate(rig, monkeypatch):
+    """A pair no pose explains (the left view given twice: the rings miss each other's
+    epipolar lines), whose rings a view resolved and fitted to the plate at the first look:
+    the second look, for rings too small to resolve, is not taken (one look, not two); and
+    ``plate_seen`` is each child frame's own, a tool at a time."""
+    from markerpose.detectors.stereo import StereoDetector
+    from markerpose.frame import Frame
+
+    left = render_stereo(rig, look_at_pose([10, -5, 600], 20, 40, 15), seed=4).images[0]
+    looks, real = [], StereoDetector.look
+
+    def counted(self, frame, zoom, previous):
+        looks.append(zoom)
+        return real(self, frame, zoom, previous)
+
+    monkeypatch.setattr(StereoDetector, "look", counted)
+    tracker = mp.MarkerPose(rig)
+    assert tracker.estimate(left, left) is None and "epipolar" in tracker.why
+    assert looks == [1.0]
+    frame = Frame([left, left])
+    frame.plate_seen = True
+    assert frame.child().plate_seen is False
