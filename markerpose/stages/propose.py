@@ -69,6 +69,7 @@ NMS_RADIUS = 4  # non-maximum-suppression radius between candidates, px of the 3
 # marker too small to be matched at the first look is still among its best ones), of this
 # many px of its input each side (a large ring needs context beyond its own size).
 SECOND_LOOK_NEAR = 5
+SECOND_LOOK_TWO = 0.8  # ... and is taken where a view has two candidates this strong (see worth_second_look)
 SECOND_LOOK_WINDOW = 64
 
 
@@ -133,9 +134,13 @@ class NeuralProposer:
 
     def worth_second_look(self, cand: list) -> bool:
         """Whether the first look's candidates (per view, (N, 3) rows (x, y, score)) may hide a
-        marker the second look would find: some view has three scoring ``second_look_min`` or more."""
+        marker the second look would find: some view has three scoring ``second_look_min`` or
+        more, or two scoring :data:`SECOND_LOOK_TWO` (a marker whose third ring the first look
+        missed: a shadow across it, an occluder)."""
         least = float(self.conf["second_look_min"])
-        return any(int(np.count_nonzero(c[:, 2] >= least)) >= 3 for c in cand)
+        return any(
+            int(np.count_nonzero(c[:, 2] >= least)) >= 3 or int(np.count_nonzero(c[:, 2] >= max(least, SECOND_LOOK_TWO))) >= 2 for c in cand
+        )
 
     def candidates(
         self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None
@@ -184,6 +189,7 @@ __all__ = [
     "NMS_RADIUS",
     "RULES",
     "SECOND_LOOK_NEAR",
+    "SECOND_LOOK_TWO",
     "SECOND_LOOK_WINDOW",
     "NeuralProposer",
     "check_conf",

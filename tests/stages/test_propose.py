@@ -54,6 +54,8 @@ def test_the_second_look_is_skipped_where_no_view_has_three_strong_candidates(ri
     assert proposer.worth_second_look(proposer.candidates(Frame(list(far.images)).grays))
     weak = [np.array([[10.0, 10, 0.9], [50, 50, 0.25], [90, 90, 0.19]]), np.array([[10.0, 10, 0.9], [50, 50, 0.1]])]
     assert not proposer.worth_second_look(weak)
+    # Two strong rings in a view (the third one shadowed, say) are worth it too.
+    assert proposer.worth_second_look([np.array([[10.0, 10, 0.99], [50, 50, 0.85], [90, 90, 0.1]]), weak[1]])
     assert propose.NeuralProposer({**propose.default_conf, "second_look_min": 0.0}, mp.Marker(), "stereo").worth_second_look(weak)
     # Marker-free held-out pairs: most are decided after one look.
     tracker = mp.MarkerPose(rig)
