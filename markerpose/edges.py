@@ -1355,14 +1355,13 @@ def _fit_passes(
     found: list = [None] * K
     width = np.zeros(K)
     shared = np.zeros((K, 2, 2))
-    last = np.full(K, np.inf)  # each ellipse's move in the pass before
+    last = np.full(K, np.inf)  # each ellipse's move in the pass before (inf: no fit taken yet)
     # The least-median screen is for a spoilt sector (an occluder): after a pass whose fit
     # rejected (almost) no point (conf["rescreen_frac"]), the next pass's rays see the same
     # clean edge.
     screen = np.ones(K, bool)
     tol = c["refine_tol"]
-    sparse = c.get("first_pass_spacing", 0.0) if not c["refine_first_tol"] else 0.0
-    taken = np.zeros(K, np.int64)  # passes whose fit each ellipse took
+    sparse = c["first_pass_spacing"] if not c["refine_first_tol"] else 0.0
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
         if not len(a):
@@ -1397,12 +1396,11 @@ def _fit_passes(
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
             shared[k] = shg[i]
-            if not taken[k]:
+            if np.isinf(last[k]):  # the first fit this ellipse took
                 done = move[i] < c["refine_first_tol"]
             else:
-                done = move[i] < tol or (c.get("refine_predict", False) and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
+                done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
             last[k] = move[i]
-            taken[k] += 1
             if done:
                 active[k] = False
     return found, width, shared

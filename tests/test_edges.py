@@ -63,10 +63,9 @@ def test_fit_ellipses_is_exact_on_an_ellipse_and_refuses_degenerate_points():
     assert classical.fit_ellipse(line) is None
 
 
-@pytest.mark.parametrize("blur", [0.0, 20.0])
-def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
-    """Six rings of both views refined together equal each ring refined alone (same
-    neighbours), sharp and under motion blur; and they land on the true centres."""
+def _seeded_rings(blur: float):
+    """The six rings of a rendered pair (blurred along 30° by ``blur`` px), each seed about a
+    pixel off its ellipse, and the rendered outer centres per view."""
     rig, mk = mp.StereoRig.default(), mp.Marker()
     T = look_at_pose([10, -5, 520], 30, 40, 15)
     f = render_stereo(rig, T, imaging=Imaging(motion_blur=blur, motion_angle=30), seed=3)
@@ -79,6 +78,14 @@ def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
             rect = ((cx + rng.normal(0, 1), cy + rng.normal(0, 1)), (w * 1.03, h * 0.98), ang + 2)
             view.append(classical.Ring(np.array(rect[0]), rect, rect, 1.0, _outer_cq=rect_to_cq(rect)))
         rings.append(view)
+    return rig, mk, grays, rings, [v.outer_centers for v in f.views]
+
+
+@pytest.mark.parametrize("blur", [0.0, 20.0])
+def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
+    """Six rings of both views refined together equal each ring refined alone (same
+    neighbours), sharp and under motion blur; and they land on the true centres."""
+    rig, mk, grays, rings, truth = _seeded_rings(blur)
     batch = classical.refine_views(grays, rings, mk, cameras=list(rig.cameras))
     for v in range(2):
         noise = classical.noise_sigma(grays[v])
@@ -87,7 +94,7 @@ def test_a_batch_of_rings_gets_what_each_gets_alone(blur):
             assert alone.refined and batch[v][k].refined
             np.testing.assert_allclose(batch[v][k].center, alone.center, atol=1e-9)
         if blur == 0:
-            assert np.abs(np.array([r.center for r in batch[v]]) - f.views[v].outer_centers).max() < 0.05
+            assert np.abs(np.array([r.center for r in batch[v]]) - truth[v]).max() < 0.05
 
 
 def _profiles(seed: int):
@@ -323,24 +330,6 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
                 np.testing.assert_array_equal(got, want)
             else:  # numba's eig and numpy's may come from different LAPACK builds
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
-
-
-def _seeded_rings(blur: float, seed: int = 0):
-    """The six rings of a rendered pair (blurred along 30° by ``blur`` px), each seed about a
-    pixel off its ellipse, and the rendered outer centres per view."""
-    rig, mk = mp.StereoRig.default(), mp.Marker()
-    T = look_at_pose([10, -5, 520], 30, 40, 15)
-    f = render_stereo(rig, T, imaging=Imaging(motion_blur=blur, motion_angle=30), seed=3)
-    grays = [classical.to_gray(i) for i in f.images]
-    rng = np.random.default_rng(seed)
-    rings = []
-    for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T)):
-        view = []
-        for (cx, cy), (w, h), ang in ring_ellipses(cam, Tv, mk.points3d, mk.outer_radius):
-            rect = ((cx + rng.normal(0, 1), cy + rng.normal(0, 1)), (w * 1.03, h * 0.98), ang + 2)
-            view.append(classical.Ring(np.array(rect[0]), rect, rect, 1.0, _outer_cq=rect_to_cq(rect)))
-        rings.append(view)
-    return rig, mk, grays, rings, [v.outer_centers for v in f.views]
 
 
 def _passes(monkeypatch) -> list:

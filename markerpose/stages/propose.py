@@ -69,8 +69,9 @@ NMS_RADIUS = 4  # non-maximum-suppression radius between candidates, px of the 3
 # marker too small to be matched at the first look is still among its best ones), of this
 # many px of its input each side (a large ring needs context beyond its own size).
 SECOND_LOOK_NEAR = 5
-SECOND_LOOK_TWO = 0.8  # ... and is taken where a view has two candidates this strong (see worth_second_look)
 SECOND_LOOK_WINDOW = 64
+# A view with two candidates this strong is worth the second look too (worth_second_look).
+SECOND_LOOK_TWO = 0.8
 
 
 def network_weights(network: str) -> Path:
