@@ -121,6 +121,9 @@ default_conf: dict = {
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
     "rescreen_frac": 0.03,  # the next pass screens its points by least median again only after a
     #                         fit that rejected more than this fraction of them (negative: always)
+    "close_seed_screen": False,  # a seed known to be close (refine_first_tol > 0) screened from its
+    #                              first pass too (False: that pass fits every point, and a screened
+    #                              pass follows only where its fit rejected more than rescreen_frac)
     "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse
     "min_free_frac": 0.25,  # rays kept after dropping those near neighbours, else keep all
     "refine_inner": False,  # also refine the inner (hole) ellipse (always for "concentric")
@@ -613,7 +616,7 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker, c:
     if isinstance(marker, Marker):
         rho, w_out, w_in = (np.full(len(rings), w) for w in _edge_windows(marker))
     else:
-        windows = {id(mk): _edge_windows(mk) for mk in marker}
+        windows = {id(mk): _edge_windows(mk) for mk in {id(mk): mk for mk in marker}.values()}  # once per marker
         rho, w_out, w_in = np.array([windows[id(mk)] for mk in marker], np.float64).T
     view = np.asarray(view, np.intp)
     floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels

@@ -1359,7 +1359,11 @@ def _fit_passes(
     # The least-median screen is for a spoilt sector (an occluder): after a pass whose fit
     # rejected (almost) no point (conf["rescreen_frac"]), the next pass's rays see the same
     # clean edge.
-    screen = np.ones(K, bool)
+    # A seed known to be close (a tracker's prediction, refine_first_tol > 0) rarely meets
+    # one: its first fit goes without the screen, and only where that fit rejected points
+    # (a sector spoilt) does a screened pass follow.
+    close = c["refine_first_tol"] > 0 and not c["close_seed_screen"]
+    screen = np.full(K, not close)
     tol = c["refine_tol"]
     sparse = c["first_pass_spacing"] if not c["refine_first_tol"] else 0.0
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
@@ -1387,6 +1391,7 @@ def _fit_passes(
             okf &= wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)
         else:
             active[g[~okf]] = False
+        screened = screen[g]
         screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
         move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(_semi_axes(np.where(okf[:, None, None], Qf, Q[g])) - _semi_axes(Q[g])).max(1)
@@ -1397,7 +1402,7 @@ def _fit_passes(
             width[k] = wdg[i]
             shared[k] = shg[i]
             if np.isinf(last[k]):  # the first fit this ellipse took
-                done = move[i] < c["refine_first_tol"]
+                done = move[i] < c["refine_first_tol"] and (screened[i] or not screen[k])
             else:
                 done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
             last[k] = move[i]

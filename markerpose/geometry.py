@@ -344,13 +344,9 @@ def view_poses(camera, centers: np.ndarray, ellipses: list | None, model: np.nda
     n, rvecs, tvecs = cv2.solveP3P(model, xn, np.eye(3), None, flags=cv2.SOLVEPNP_P3P)
     if not n:
         return []
-    Ts = np.zeros((n, 4, 4))
-    Ts[:, 3, 3] = 1.0
-    for k in range(n):
-        Ts[k, :3, :3], Ts[k, :3, 3] = cv2.Rodrigues(rvecs[k])[0], tvecs[k].ravel()
-    # degenerate, or behind the camera
-    Ts = Ts[np.isfinite(Ts).all(axis=(1, 2)) & ((model @ Ts[:, 2, :3].T + Ts[:, 2, 3]) > 0).all(axis=0)]
-    if not len(Ts):
+    Ts = np.empty((n, 4, 4))
+    Ts = Ts[: _rotated_poses(np.reshape(rvecs, (n, 3)).astype(np.float64), np.reshape(tvecs, (n, 3)).astype(np.float64), model, Ts)]
+    if not len(Ts):  # degenerate, or behind the camera
         return []
     have = [k for k, e in enumerate(ellipses or []) if e is not None]
     misfit = np.zeros(len(Ts))
@@ -547,6 +543,39 @@ def _rigid_solve(measured, K1, d1, K2, d2, P1, P2, T_rl, model, centres2d, radiu
             u, v = distort_point(p[0] / p[2], p[1] / p[2], K, d)
             sq += (u - centers[view, i, 0]) ** 2 + (v - centers[view, i, 1]) ** 2
     return np.sqrt(sq / (2 * n))
+
+
+@compiled
+def _rotated_poses(rvecs, tvecs, model, Ts):  # pragma: no cover - compiled
+    """P3P's solutions (rotation vectors (n, 3), translations (n, 3)) as poses into ``Ts``,
+    those that are finite and put every ``model`` point in front of the camera first;
+    returns their number."""
+    count = 0
+    for k in range(rvecs.shape[0]):
+        rx, ry, rz = rvecs[k, 0], rvecs[k, 1], rvecs[k, 2]
+        th = np.sqrt(rx * rx + ry * ry + rz * rz)
+        R = np.eye(3)
+        if th > 0:
+            x, y, z = rx / th, ry / th, rz / th
+            c, s = np.cos(th), np.sin(th)
+            C = 1.0 - c
+            R[0, 0], R[0, 1], R[0, 2] = c + x * x * C, x * y * C - z * s, x * z * C + y * s
+            R[1, 0], R[1, 1], R[1, 2] = y * x * C + z * s, c + y * y * C, y * z * C - x * s
+            R[2, 0], R[2, 1], R[2, 2] = z * x * C - y * s, z * y * C + x * s, c + z * z * C
+        good = np.isfinite(th) and np.isfinite(tvecs[k, 0]) and np.isfinite(tvecs[k, 1]) and np.isfinite(tvecs[k, 2])
+        for i in range(model.shape[0]):
+            if not good:
+                break
+            good = R[2, 0] * model[i, 0] + R[2, 1] * model[i, 1] + R[2, 2] * model[i, 2] + tvecs[k, 2] > 0
+        if not good:
+            continue
+        Ts[count] = 0.0
+        Ts[count, :3, :3] = R
+        for r in range(3):
+            Ts[count, r, 3] = tvecs[k, r]
+        Ts[count, 3, 3] = 1.0
+        count += 1
+    return count
 
 
 @compiled

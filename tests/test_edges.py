@@ -379,3 +379,51 @@ def test_a_coarse_first_pass_is_discarded_on_blurred_edges(monkeypatch):
         for a, b in zip(plain[v], coarse[v]):
             assert a.refined == b.refined
             np.testing.assert_array_equal(a.center, b.center)
+
+
+def _screens(monkeypatch) -> list:
+    """Records, per call of edges.fit_robust, which ellipses it screened by least median."""
+    calls, real = [], edges.fit_robust
+
+    def recorded(P, mask, c, frame=None, weights=None, screen=None):
+        calls.append(np.ones(len(mask), bool) if screen is None else np.array(screen, bool))
+        return real(P, mask, c, frame, weights, screen)
+
+    monkeypatch.setattr(edges, "fit_robust", recorded)
+    return calls
+
+
+def test_a_close_seed_is_screened_only_where_its_first_fit_rejects_points(monkeypatch):
+    """Seeds known to be close (a tracker's prediction: refine_first_tol > 0) take their
+    first fit without the least-median screen: on clean rings one pass and the centres of
+    a screened fit; where an occluder spoils a sector of one ring, that ring alone gets a
+    screened pass after, and lands where a fit screened from the start does."""
+    rig, mk = mp.StereoRig.default(), mp.Marker()
+    T = look_at_pose([10, -5, 520], 30, 40, 15)
+    f = render_stereo(rig, T, imaging=Imaging(), seed=3)
+    grays = [classical.to_gray(i) for i in f.images]
+    rings = []
+    for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T)):
+        rects = ring_ellipses(cam, Tv, mk.points3d, mk.outer_radius)
+        rings.append([classical.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=rect_to_cq(r)) for r in rects])
+    close = {"refine_first_tol": 0.15}
+    calls = _screens(monkeypatch)
+    screened = classical.refine_views(grays, rings, mk, {**close, "close_seed_screen": True}, cameras=list(rig.cameras))
+    calls.clear()
+    plain = classical.refine_views(grays, rings, mk, close, cameras=list(rig.cameras))
+    assert len(calls) == 1 and not calls[0].any()  # one pass, no screen
+    for v in range(2):
+        a, b = np.array([r.center for r in screened[v]]), np.array([r.center for r in plain[v]])
+        assert np.abs(a - b).max() < 1e-3
+    # An occluder's straight edge across the outer edge of c0 in the left view.
+    (cx, cy), (w, h), _ = rings[0][0].outer
+    r = 0.5 * max(w, h)
+    spoilt = [g.copy() for g in grays]
+    spoilt[0][int(cy - 0.4 * r) : int(cy + 0.4 * r), int(cx + 0.8 * r) : int(cx + 1.4 * r)] = 20.0
+    calls.clear()
+    screened = classical.refine_views(spoilt, rings, mk, {**close, "close_seed_screen": True}, cameras=list(rig.cameras))
+    calls.clear()
+    plain = classical.refine_views(spoilt, rings, mk, close, cameras=list(rig.cameras))
+    assert not calls[0].any() and len(calls) >= 2 and calls[1].tolist() == [True]  # c0 of the left view alone, screened
+    assert np.linalg.norm(plain[0][0].center - screened[0][0].center) < 0.02
+    assert np.linalg.norm(plain[0][0].center - f.views[0].outer_centers[0]) < 0.1
