@@ -63,6 +63,8 @@ default_conf: dict = {
 }
 
 
+PLATE_SLACK_PX = 3.0  # beyond the motion's reach, the optics' blur and a block mean's half width, px
+
 _JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
 
 
@@ -226,8 +228,9 @@ class _Problem:
     disk's offset (2); then theta, log L, log sigma shared by all rings.
     """
 
-    def __init__(self, gray, cqs, rho, noise, box=1):
+    def __init__(self, gray, cqs, rho, noise, box=1, plate=None):
         self.cqs = [(np.asarray(c, float), np.asarray(Q, float)) for c, Q in cqs]
+        self.plate = None if plate is None else np.asarray(plate, np.float64).reshape(4, 3)
         self.rho, self.gray, self.box = rho, gray, int(box) | 1  # odd: centred on its pixel
         # A block mean's noise: white noise would be box times smaller, but neighbouring
         # pixels' noise is correlated in real images (demosaicing, compression), and a
@@ -272,6 +275,13 @@ class _Problem:
             r = np.sqrt(np.maximum(disc, 0))
             s1, s2 = (-B - r) / A, (-B + r) / A
             inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
+        if self.plate is not None:
+            # What lies beyond the plate is not the model's paper: a pixel counts only where
+            # the blur (along the motion, or any way by up to the longest length searched)
+            # cannot bring it in.
+            for a, b, c0 in self.plate:
+                along = 0.5 * motion[1] * abs(a * np.cos(motion[0]) + b * np.sin(motion[0])) if motion is not None else reach
+                inside &= a * xx + b * yy + c0 > along + PLATE_SLACK_PX
         yi, xi = yy[inside], xx[inside]
         self.x, self.y = xi.astype(np.float64), yi.astype(np.float64)
         self.stride = stride
@@ -424,7 +434,7 @@ def _robust_lm(prob, p, conf):
     return p, nfev, False
 
 
-def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
+def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     """Outer ellipses of motion-blurred rings by one image-model fit of all of them.
 
     Args:
@@ -434,6 +444,9 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         rho: inner/outer diameter ratio of the marker's rings.
         noise: the image's noise sigma, grey levels.
         conf: overrides of :data:`default_conf`.
+        plate: None, or the plate's sides in the image (4, 3): (a, b, c) with a x + b y + c
+            the distance inside the plate, px: pixels that the blur may reach from beyond
+            the plate are not used.
     Returns:
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
         ``sigma`` (px), ``center_covs`` ((k, 2, 2) the centres' covariances, px^2), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
@@ -447,7 +460,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None):
         c.update(conf)
     if c["grid_search"] not in ("axes", "full"):
         raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
-    prob = _Problem(gray, cqs, rho, noise, box=c["stride"])
+    prob = _Problem(gray, cqs, rho, noise, box=c["stride"], plate=plate)
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.

@@ -56,7 +56,7 @@ import numpy as np
 
 from . import edges
 from .camera import Camera
-from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd
+from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd, view_poses
 from .images import as_gray
 from .jit import compiled
 from .marker import Marker
@@ -124,6 +124,9 @@ default_conf: dict = {
     "close_seed_screen": False,  # a seed known to be close (refine_first_tol > 0) screened from its
     #                              first pass too (False: that pass fits every point, and a screened
     #                              pass follows only where its fit rejected more than rescreen_frac)
+    "plate_edge": True,  # drop the outer edges' rays, and the blurred-ring fit's pixels, that what
+    #                      lies beyond the plate may reach once blurred (the plate's outline from the
+    #                      marker's plate_margin, mapped by the ring centres)
     "min_valid_frac": 0.5,  # fewer valid edge points than this → keep the coarse ellipse
     "min_free_frac": 0.25,  # rays kept after dropping those near neighbours, else keep all
     "refine_inner": False,  # also refine the inner (hole) ellipse (always for "concentric")
@@ -194,6 +197,7 @@ class Ring:
     _outer_cq: tuple = field(default=None, repr=False)
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
+    _plate_crowded: bool = field(default=False, repr=False)  # the plate's edge reached too many of its rays to leave out
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
     _rejected: bool = field(default=False, repr=False)  # under heavy blur the edge fit is not trusted: the blurred-ring
     #                                                     fit disagreed with it, or was due and could not run
@@ -571,7 +575,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
     :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
     the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
     conf["center"] = "concentric", the two ellipses' concentric centre."""
-    outer_cq, outer_ideal, width, cov = outer
+    outer_cq, outer_ideal, width, cov, crowded = outer
     inner_ideal = None
     if inner is not None:
         inner_cq, inner_ideal = inner[:2]
@@ -601,16 +605,19 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
         _edge_width=width,
+        _plate_crowded=crowded,
         _center_cov=cov,
     )
 
 
-def _refine_batch(grays: list, view: list, rings: list, others: list, marker, c: dict, noises: list, cameras: list) -> list:
+def _refine_batch(
+    grays: list, view: list, rings: list, others: list, marker, c: dict, noises: list, cameras: list, plates: list | None = None
+) -> list:
     """:func:`refine_ring` of several rings at once (of one or more images; ring k is in
     ``grays[view[k]]``, seen by ``cameras[view[k]]``, its neighbours ``others[k]``, its
-    marker ``marker`` or ``marker[k]``): one batch of edge fits
-    (:func:`markerpose.edges.refine_edges`, each ring with its marker's windows) for all
-    outer edges, one for all inner ones."""
+    marker ``marker`` or ``marker[k]``, its plate's sides ``plates[k]`` or None): one batch
+    of edge fits (:func:`markerpose.edges.refine_edges`, each ring with its marker's windows)
+    for all outer edges, one for all inner ones."""
     if not rings:
         return []
     if isinstance(marker, Marker):
@@ -632,6 +639,7 @@ def _refine_batch(grays: list, view: list, rings: list, others: list, marker, c:
         floor,
         oth,
         cameras,
+        plates,
     )
     inner_cqs = _inner_starts(rings, outer, rho)
     inner = _refine_inner(grays, view, inner_cqs, w_in, c, floor, cameras)
@@ -713,12 +721,59 @@ def refine_views(
     noises = _noises(grays, noises)
     flat = [(v, k, r) for v, rs in enumerate(rings) for k, r in enumerate(rs) if r is not None]
     present = [[r for r in rs if r is not None] for rs in rings]
-    per = marker if isinstance(marker, Marker) else [marker[v] for v, _, _ in flat]
-    done = _refine_batch(grays, [v for v, _, _ in flat], [r for _, _, r in flat], [present[v] for v, _, _ in flat], per, c, noises, cameras)
+    markers = [marker] * len(rings) if isinstance(marker, Marker) else list(marker)
+    per = marker if isinstance(marker, Marker) else [markers[v] for v, _, _ in flat]
+    cams = cameras if cameras is not None else [None] * len(rings)
+    sides = [plate_sides(rs, mk, cam) if _plate_near(mk, c) else None for rs, mk, cam in zip(rings, markers, cams)]
+    done = _refine_batch(
+        grays,
+        [v for v, _, _ in flat],
+        [r for _, _, r in flat],
+        [present[v] for v, _, _ in flat],
+        per,
+        c,
+        noises,
+        cameras,
+        [sides[v] for v, _, _ in flat],
+    )
     out = [list(rs) for rs in rings]
     for (v, k, _), r in zip(flat, done):
         out[v][k] = r
     return out
+
+
+def plate_sides(rings: list, marker: Marker, camera: Camera | None = None) -> np.ndarray | None:
+    """The sides of the marker's plate in the image (:func:`markerpose.edges.plate_lines`:
+    (4, 3), distances positive inside, px) where ``rings`` are the marker's rings in ring
+    order: through the plate's pose in the view that best explains their centres and
+    ellipses (:func:`markerpose.geometry.view_poses`) with a camera, else the affine map
+    that takes the marker's ring centres to theirs (which perspective bends by pixels at
+    the plate's corners). None unless every ring is there."""
+    if len(rings) != len(marker.centers2d) or len(rings) != 3 or any(r is None for r in rings):
+        return None
+    P = np.array([r.center for r in rings], np.float64)
+    if not np.isfinite(P).all():
+        return None
+    if camera is not None:
+        poses = view_poses(camera, P, [r.outer for r in rings], marker.points3d, marker.outer_radius)
+        if not poses:
+            return None
+        T = poses[0][1]
+        corners = camera.project(marker.plate_corners3d @ T[:3, :3].T + T[:3, 3])
+    else:
+        A = layout_affine(P, marker.centers2d)
+        if abs(np.linalg.det(A)) < 1e-9:
+            return None
+        corners = (marker.plate_corners3d[:, :2] - marker.centers2d[0]) @ A.T + P[0]
+    return edges.plate_lines(corners)
+
+
+def _plate_near(marker: Marker, c: dict) -> bool:
+    """Whether the plate's edge can reach an outer edge's rays at all: its margin within
+    the rays' window plus the reach of the widest blur the edge fit keeps (blur_fit_width
+    of the ring's radius; wider edges go to the blurred-ring fit), with room for a tilt."""
+    _, w_out, _ = _edge_windows(marker)
+    return c["plate_edge"] and marker.margin < (w_out + 0.65 * c["blur_fit_width"] + 0.25) * marker.outer_radius
 
 
 def _center_covs(rings: list) -> np.ndarray:
@@ -761,7 +816,10 @@ def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
         return False
     minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
-    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < c["blur_fit_width"] * minor:
+    # Where the plate's blurred edge crowded an edge fit, half that blur is enough: the
+    # model leaves out the pixels the plate's edge reaches.
+    gate = c["blur_fit_width"] * (0.5 if any(r._plate_crowded for r in rings) else 1.0)
+    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < gate * minor:
         return False
     if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
         return False
@@ -770,7 +828,7 @@ def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     return True
 
 
-def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: float | None) -> dict | None:
+def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: float | None, camera: Camera | None = None) -> dict | None:
     """The blurred-ring model fit of ``rings`` (:func:`markerpose.blurfit.fit_blurred_rings`),
     started from their edge-fitted outer ellipses; None where it fails."""
     from . import blurfit
@@ -782,7 +840,8 @@ def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: 
     fit_conf = {"max_move": 2 * c["blur_fit_max_move"]}
     if not any(r.refined for r in rings):
         fit_conf["min_length"] = 10.0
-    return blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf)
+    plate = plate_sides(rings, marker, camera) if c["plate_edge"] else None
+    return blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf, plate)
 
 
 def refine_blurred(
@@ -792,6 +851,7 @@ def refine_blurred(
     conf: dict | None = None,
     noise: float | None = None,
     limits: BlurLimits | None = None,
+    camera: Camera | None = None,
 ) -> list:
     """The marker's edge-refined rings, fitted again together under a motion-blur model
     when their edges are wide (:mod:`markerpose.blurfit`; conf["blur_fit"]).
@@ -827,7 +887,7 @@ def refine_blurred(
         return _unrefined(rings)
     if limits.budget is not None and not limits.budget.take():
         return _unrefined(rings)
-    fit = _fit_blurred(gray, rings, marker, c, noise)
+    fit = _fit_blurred(gray, rings, marker, c, noise, camera)
     if fit is None:
         return rings
     # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
@@ -968,7 +1028,7 @@ def refine_triple(gray, rings, tri, cost, marker, subpixel, conf, noise, camera,
     chosen = [rings[k] for k in tri]
     if subpixel:
         chosen = refine_views([gray], [chosen], marker, c, [noise], [camera])[0]
-        chosen = refine_blurred(gray, chosen, marker, c, noise, limits)
+        chosen = refine_blurred(gray, chosen, marker, c, noise, limits, camera)
     centers = np.array([r.center for r in chosen], dtype=np.float64)
     return Detection(
         centers=centers,
@@ -1089,7 +1149,7 @@ def refine_points(
     found = np.array([r is not None for r in rings])
     if subpixel:
         rings = refine_views([gray], [rings], marker, c, [noise], [camera])[0]
-        rings = refine_blurred(gray, rings, marker, c, noise, limits)
+        rings = refine_blurred(gray, rings, marker, c, noise, limits, camera)
         rings = [None if r is not None and r._rejected else r for r in rings]  # not trusted (refine_blurred)
         found = np.array([r is not None for r in rings])
     centers = np.array([pts[i] if r is None else r.center for i, r in enumerate(rings)], np.float64)
@@ -1173,13 +1233,14 @@ def refine_ellipses_views(
             )
         views.append(rings)
     out = []
-    for gray, noise, rings, mk in zip(
+    for gray, noise, rings, mk, cam in zip(
         grays,
         noises,
         refine_views(grays, views, markers[0] if all(mk is markers[0] for mk in markers) else markers, c, noises, cameras),
         markers,
+        cameras if cameras is not None else [None] * len(grays),
     ):
-        rings = refine_blurred(gray, rings, mk, c, noise, limits)
+        rings = refine_blurred(gray, rings, mk, c, noise, limits, cam)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])

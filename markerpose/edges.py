@@ -572,6 +572,46 @@ def _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, min_free, ok, far, n_use
     has = np.zeros(K, np.bool_)
     for p in range(len(kk)):
         has[kk[p]] = True
+    _symmetric_drop(far, has, n, min_free, ok, n_use)
+
+
+@compiled
+def _plate_rays(xy, r, width, half, lines, plated, n, min_free, ok, far, keep, n_use, crowded):  # pragma: no cover - compiled
+    """Rays of the rings ``plated`` whose window the plate's blurred edge (its sides
+    ``lines[k]``, distances positive inside) may reach, and their opposite rays, out of
+    ``keep``: what lies beyond the plate bleeds in as a neighbour does. Where enough rays
+    stay with those ``far`` from the neighbours (``min_free`` of them), ``n_use`` counts
+    them; elsewhere ``keep`` is all True and ``crowded[k]`` is set (the plate reached too
+    many rays to leave out)."""
+    K, N = r.shape
+    for k in range(K):
+        if not plated[k]:
+            continue
+        for i in range(N):
+            reach = half[k] * r[k, i] + 0.65 * width[k] + 1.0
+            for j in range(4):
+                if not lines[k, j, 0] * xy[k, i, 0] + lines[k, j, 1] * xy[k, i, 1] + lines[k, j, 2] > reach:
+                    keep[k, i] = False
+    for k in range(K):
+        for i in range(N):
+            keep[k, i] = keep[k, i] and far[k, i]
+    both = keep.copy()
+    _symmetric_drop(both, plated, n, min_free, ok.copy(), n_use)
+    for k in range(K):
+        reached, kept = False, True
+        for i in range(N):
+            reached = reached or not keep[k, i]
+            kept = kept and both[k, i]
+            keep[k, i] = both[k, i] or not plated[k]
+        crowded[k] = plated[k] and reached and kept
+
+
+@compiled
+def _symmetric_drop(far, has, n, min_free, ok, n_use):  # pragma: no cover - compiled
+    """:func:`_neighbours`' last step: each dropped ray's opposite out of ``far`` too; for
+    the rings ``has`` where enough rays stay (``min_free`` of them), only those count
+    (``ok``, ``n_use``), elsewhere ``far`` is all True."""
+    K, N = far.shape
     row = np.empty(N, np.bool_)
     for k in range(K):
         # Drop the opposite rays too: the blurred edge is centrally symmetric about the
@@ -694,7 +734,16 @@ def _circular_smooth(v: np.ndarray, k: int) -> np.ndarray:
 
 
 def edge_points(
-    grays: list, view: np.ndarray, cen: np.ndarray, Q: np.ndarray, half, dark_inside: bool, c: dict, floor: np.ndarray, others: list
+    grays: list,
+    view: np.ndarray,
+    cen: np.ndarray,
+    Q: np.ndarray,
+    half,
+    dark_inside: bool,
+    c: dict,
+    floor: np.ndarray,
+    others: list,
+    plates: list | None = None,
 ):
     """Sub-pixel edge points along rays of K ellipses (x - cen)^T Q (x - cen) = 1.
 
@@ -718,11 +767,16 @@ def edge_points(
         others: per ellipse, a list of (centre, Q) outer ellipses of neighbouring rings:
             rays whose window ends within a blur width of them are dropped (their light
             bleeds into the profile).
+        plates: per ellipse, None or the plate's outline as four lines (4, 3): (a, b, c)
+            with a x + b y + c the distance inside the plate, px (:func:`plate_lines`):
+            rays whose window ends within a blur width of the plate's edge are dropped
+            too (what lies beyond the plate bleeds in as a neighbour does); None: none.
     Returns:
         (P (K, M, 2) edge points, valid first: mask (K, M), number of rays not dropped
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,), the covariance of the edges' shared shift
-        (K, 2, 2), :func:`_shared_shift`).
+        (K, 2, 2), :func:`_shared_shift`, whether the plate's edge crowds the ring (K,): it
+        reaches too many of the rays to leave out, so they stay in).
     """
     half = _per_ellipse(half, len(cen))
     L, a, b, n, S, m = _ray_counts(Q, half, c)
@@ -735,18 +789,25 @@ def edge_points(
     w1090, sane, width = np.empty((K, N)), np.empty((K, N), bool), np.empty(K)
     _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), w1090, sane, width)
     far, n_use = _free_rays(others, xy, r, width, half, n, c, ok)
+    # The plate's edge: its rays leave the levels and the fit, not the edges' width (the
+    # blur the gate to the blurred-ring fit reads).
+    keep, crowded = _clear_of_plate(plates, xy, r, width, half, n, c, ok, far, n_use)
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
     clean = sane & far & (w1090 < 1.2 * half[:, None] * r)
+    if keep is not None:
+        clean &= keep
     local = (v_in.copy(), v_out.copy())
     pen = (0.15 * np.sqrt(a * b)) ** 2
     planes = _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c, ok)
     e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
+    if keep is not None:
+        ok &= keep
     shared = _shared_shift(local, (v_in, v_out), xy, cen, pen, clean, planes, ok, width, c)
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
-    return P, mask, n_use, Wc, width, shared
+    return P, mask, n_use, Wc, width, shared, crowded
 
 
 def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, width, c: dict) -> np.ndarray:
@@ -863,6 +924,38 @@ def _free_rays(
         b_o = 1 / np.sqrt(_spd2(Qo, 0.5)[1][:, 1])
         _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
     return far, n_use
+
+
+def _clear_of_plate(plates: list | None, xy, r, width, half, n, c: dict, ok, far, n_use) -> tuple:
+    """((K, N) the rays to keep for the plate's edge, or None where no ring has its plate's
+    sides; (K,) the rings the plate's edge crowds: it reaches too many of their rays to
+    leave out) (:func:`_plate_rays`; ``n_use`` updated in place)."""
+    K, N = r.shape
+    crowded = np.zeros(K, bool)
+    if plates is None or all(p is None for p in plates):
+        return None, crowded
+    plated = np.array([p is not None for p in plates], bool)
+    lines = np.zeros((K, 4, 3))
+    for k in np.nonzero(plated)[0]:
+        lines[k] = plates[k]
+    keep = np.ones((K, N), bool)
+    _plate_rays(xy, r, width, half, lines, plated, n, float(c["min_free_frac"]), ok, far, keep, n_use, crowded)
+    return keep, crowded
+
+
+def plate_lines(corners: np.ndarray) -> np.ndarray:
+    """The four lines (4, 3) of a convex quadrilateral's sides, ``corners`` (4, 2) in order:
+    (a, b, c) with a x + b y + c the signed distance from the side, positive inside."""
+    P = np.asarray(corners, np.float64).reshape(4, 2)
+    mid = P.mean(0)
+    out = np.empty((4, 3))
+    for j in range(4):
+        d = P[(j + 1) % 4] - P[j]
+        nrm = np.array([-d[1], d[0]]) / max(np.hypot(d[0], d[1]), 1e-12)
+        if nrm @ (mid - P[j]) < 0:
+            nrm = -nrm
+        out[j] = nrm[0], nrm[1], -nrm @ P[j]
+    return out
 
 
 def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> np.ndarray:
@@ -1345,15 +1438,18 @@ def _fit_passes(
     c: dict,
     floor: np.ndarray,
     others: list,
+    plates: list | None = None,
 ) -> tuple:
     """The passes of edge sampling and robust fit of :func:`refine_edges`, each on the
     ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
     ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,),
-    the covariances of the edges' shared shift (K, 2, 2))."""
+    the covariances of the edges' shared shift (K, 2, 2), whether the plate's edge crowded
+    the last fit (K,): :func:`edge_points`)."""
     K = len(cen)
     active = np.ones(K, bool)
     found: list = [None] * K
     width = np.zeros(K)
+    crowded = np.zeros(K, bool)
     shared = np.zeros((K, 2, 2))
     last = np.full(K, np.inf)  # each ellipse's move in the pass before (inf: no fit taken yet)
     # The least-median screen is for a spoilt sector (an occluder): after a pass whose fit
@@ -1372,7 +1468,18 @@ def _fit_passes(
             break
         coarse = it == 0 and sparse > 0  # an ellipse the coarse pass fails gets a full one
         cp = {**c, "edge_spacing": sparse} if coarse else c
-        P, M, n_use, W, wd, sh = edge_points(grays, view[a], cen[a], Q[a], half[a], dark_inside, cp, floor[a], [others[k] for k in a])
+        P, M, n_use, W, wd, sh, cr = edge_points(
+            grays,
+            view[a],
+            cen[a],
+            Q[a],
+            half[a],
+            dark_inside,
+            cp,
+            floor[a],
+            [others[k] for k in a],
+            None if plates is None else [plates[k] for k in a],
+        )
         need = np.maximum(6, c["min_valid_frac"] * n_use)
         go = M.sum(1) >= need
         if not coarse:
@@ -1382,7 +1489,7 @@ def _fit_passes(
                 continue
             break
         g = a[go]
-        Pg, Wg, wdg, shg = P[go], W[go], wd[go], sh[go]
+        Pg, Wg, wdg, shg, crg = P[go], W[go], wd[go], sh[go], cr[go]
         cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg, screen[g])
         nk, nm = keep.sum(1), M[go].sum(1)
         okf = fitted & (nk >= need[go])
@@ -1400,6 +1507,7 @@ def _fit_passes(
             cen[k], Q[k] = cf[i], Qf[i]
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
+            crowded[k] = crg[i]
             shared[k] = shg[i]
             if np.isinf(last[k]):  # the first fit this ellipse took
                 done = move[i] < c["refine_first_tol"] and (screened[i] or not screen[k])
@@ -1408,7 +1516,7 @@ def _fit_passes(
             last[k] = move[i]
             if done:
                 active[k] = False
-    return found, width, shared
+    return found, width, shared, crowded
 
 
 def center_covariances(fits: list) -> np.ndarray:
@@ -1518,9 +1626,11 @@ def refine_edges(
     floor: np.ndarray,
     others: list,
     cameras: list | None = None,
+    plates: list | None = None,
 ) -> list:
     """Iterated edge sampling + robust fit of K ellipses (see :func:`edge_points` for the
-    arguments: ``half`` one for all or (K,); ``cameras[view[k]]`` undistorts ellipse k's points, or None).
+    arguments: ``half`` one for all or (K,); ``cameras[view[k]]`` undistorts ellipse k's points, or None;
+    ``plates`` per ellipse its plate's sides or None).
 
     Iterates each ellipse until it moves less than c["refine_tol"] px (at least two passes,
     unless the first moved it less than c["refine_first_tol"]): under heavy blur the plateau
@@ -1528,12 +1638,13 @@ def refine_edges(
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px, the centre's covariance (2, 2) in the px of the fit the centre comes from:
-    ideal where there is one, :func:`center_covariances`) or None when too few edge points
+    ideal where there is one, :func:`center_covariances`, whether the plate's edge reached
+    too many of its rays to leave out: the fit took them) or None when too few edge points
     are found.
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
-    found, width, shared = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others)
+    found, width, shared, crowded = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others, plates)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1546,7 +1657,7 @@ def refine_edges(
     fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2], shared[k]) if k in ideal else (*found[k], cen[k], Q[k], shared[k]) for k in ks]
     covs = center_covariances(fits)
     for i, k in enumerate(ks):
-        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i])
+        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i], bool(crowded[k]))
     return out
 
 
@@ -1610,6 +1721,9 @@ def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
         b2.copy(),
         b2.copy(),
         n.copy(),
+    )
+    _plate_rays(
+        xy, f2, np.ones(K), np.full(K, 0.5), np.zeros((K, 4, 3)), np.ones(K, bool), n, 0.25, b2, b2, b2.copy(), n.copy(), np.ones(K, bool)
     )
     _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
     masked_median(f2, b2)
