@@ -427,3 +427,50 @@ def test_a_close_seed_is_screened_only_where_its_first_fit_rejects_points(monkey
     assert not calls[0].any() and len(calls) >= 2 and calls[1].tolist() == [True]  # c0 of the left view alone, screened
     assert np.linalg.norm(plain[0][0].center - screened[0][0].center) < 0.02
     assert np.linalg.norm(plain[0][0].center - f.views[0].outer_centers[0]) < 0.1
+
+
+def test_plate_lines_measure_the_distance_inside_a_quadrilateral():
+    corners = np.array([[10.0, 20.0], [110.0, 20.0], [110.0, 80.0], [10.0, 80.0]])
+    for order in (corners, corners[::-1]):  # either way round
+        L = edges.plate_lines(order)
+        d = np.array([[60.0, 50.0], [12.0, 50.0], [60.0, 90.0]]) @ L[:, :2].T + L[:, 2]
+        assert d.min(axis=1) == pytest.approx([30.0, 2.0, -10.0])
+
+
+def test_the_plate_sides_follow_the_rings_pose():
+    """Through the pose of the rings' centres and ellipses, the sides pass within 2 px of
+    the projected plate corners (the ellipses' centres are not their circles' projected
+    centres: a pixel at the far corner), tilted or not; the affine map of the centres alone
+    is that close only in a frontal view."""
+    rig, mk = mp.StereoRig.default(), mp.Marker(margin=3.0)
+    for T, tol_affine in ((look_at_pose([0.0, 0.0, 560.0]), 0.5), (look_at_pose([30.0, -20.0, 450.0], 45, 30, 20), None)):
+        rects = ring_ellipses(rig.left, T, mk.points3d, mk.outer_radius)
+        rings = [classical.Ring(np.array(r[0]), r, r, 1.0, _outer_cq=rect_to_cq(r)) for r in rects]
+        corners = rig.left.project(mk.plate_corners3d @ T[:3, :3].T + T[:3, 3])
+        for camera, tol in ((rig.left, 2.0), (None, tol_affine)):
+            if tol is None:
+                continue
+            L = classical.plate_sides(rings, mk, camera)
+            d = corners @ L[:, :2].T + L[:, 2]  # each corner lies on its two sides
+            assert max(abs(d[i, i]) for i in range(4)) < tol and max(abs(d[i, i - 1]) for i in range(4)) < tol
+    assert classical.plate_sides(rings[:2], mk) is None and classical.plate_sides([rings[0], None, rings[2]], mk) is None
+
+
+@pytest.mark.parametrize("margin", [3.0, 2.0])
+def test_a_tight_plate_on_a_dark_ground_does_not_pull_the_blurred_rings(margin):
+    """A plate cut 2-3 mm beyond the rings on a dark ground, blurred 19-21 px along c0 -> c1:
+    what lies beyond the plate reaches into the rings' outer edges. Taken in, it pulls c0
+    and c1 apart by tenths of a pixel; with the plate's edge left out (the rays it reaches,
+    or where it reaches too many, the blurred-ring fit) every centre stays within 0.05 px."""
+    rig, mk = mp.StereoRig.default(), mp.Marker(margin=margin)
+    T = look_at_pose([0.0, 0.0, 560.0])
+    ground = tuple(np.full(c.image_size[::-1], 0.05, np.float32) for c in rig.cameras)
+    ells = [ring_ellipses(cam, Tv, mk.points3d, mk.outer_radius) for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T))]
+    for L in (19.0, 21.0):
+        f = render_stereo(rig, T, mk, Imaging(alpha=0.7, motion_blur=L, motion_angle=0.0), ground, seed=5)
+        worst = {}
+        for plate_edge in (False, True):
+            out = classical.refine_ellipses_views(f.images, ells, mk, {"plate_edge": plate_edge}, list(rig.cameras))
+            assert all(o[1].all() for o in out)
+            worst[plate_edge] = max(np.abs(o[0] - v.outer_centers).max() for o, v in zip(out, f.views))
+        assert worst[False] > 0.15 and worst[True] < 0.05

@@ -141,7 +141,7 @@ def cmd_eval_pipeline(args):
 def cmd_eval_blur_distance(args):
     from ..experiments import blurdistance
 
-    conf = {"pairs": args.pairs, "path_poses": args.path_poses}
+    conf = {"pairs": args.pairs, "path_poses": args.path_poses, "tight_margin": args.tight_margin}
     if args.lengths:
         conf["lengths"] = tuple(args.lengths)
     if args.configs:
@@ -241,6 +241,12 @@ def _register_pipeline(esub) -> None:
         default=20,
         help="also a robot path of this many poses 10 mm apart along c0 -> c1 at 560 mm, blurred in both views along the "
         "left view's travel (0: none; default 20)",
+    )
+    eb.add_argument(
+        "--tight-margin",
+        type=float,
+        default=3.0,
+        help="also the path with the plate this many mm beyond the rings' outer edges, on a dark ground (0: not; default 3)",
     )
     eb.add_argument(
         "--configs", nargs="*", help="configuration names: presets or ablations, markerpose.experiments.configs (default: default paper)"

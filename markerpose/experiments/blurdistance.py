@@ -18,6 +18,12 @@ convergence). From 22 px of blur on at 560 mm, the blurred rings c0 and c1 reach
 each other (their outer edges are 5 mm apart). It reports c0-c1, c0-c2 and the
 displacement between consecutive poses.
 
+A third part repeats the path with the plate cut tight around the rings
+(``tight_margin`` mm beyond their outer edges) on a dark ground, the trackers given that
+plate: what lies beyond the plate, blurred, reaches into the rings' edges as a
+neighbouring ring's blur does, and an edge fit that took it in would be biased along the
+motion (the plate's edges on both sides of c0 -> c1 pull c0 and c1 apart or together).
+
 The blur is the renderer's: a line kernel in each image (:class:`~markerpose.synth.Imaging`),
 the model the blurred-ring fit assumes. Real motion adds what that model leaves out
 (rolling shutter, a motion that turns or speeds up within the exposure, the camera's
@@ -53,6 +59,8 @@ default_conf = {
     "path_poses": 20,  # the robot path: poses (0: none) ...
     "path_step": 10.0,  # ... this far apart along c0 -> c1, mm ...
     "path_distance": 560.0,  # ... at this distance from the left camera, facing it, mm
+    "tight_margin": 3.0,  # the path again with the plate this tight around the rings, mm (0: not) ...
+    "tight_background": 0.05,  # ... on a dark ground (reflectance; the paper's is 0.85)
 }
 
 
@@ -62,6 +70,11 @@ def check_conf(conf: dict) -> dict:
         raise ValueError(f"pairs must be >= 1, got {conf['pairs']!r}")
     if int(conf["path_poses"]) < 0 or int(conf["path_poses"]) == 1:
         raise ValueError(f"path_poses must be 0 (no path) or at least 2, got {conf['path_poses']!r}")
+    if not (np.isfinite(conf["tight_margin"]) and conf["tight_margin"] >= 0 and 0 <= conf["tight_background"] <= 1):
+        raise ValueError(
+            f"tight_margin must be >= 0 mm and tight_background a reflectance in [0, 1], got {conf['tight_margin']!r}, "
+            f"{conf['tight_background']!r}"
+        )
     if not (np.isfinite(conf["path_step"]) and conf["path_step"] > 0 and np.isfinite(conf["path_distance"]) and conf["path_distance"] > 0):
         raise ValueError(f"path_step and path_distance must be > 0 mm, got {conf['path_step']!r} and {conf['path_distance']!r}")
     lengths = list(dict.fromkeys(float(v) for v in conf["lengths"]))  # each once, in order
@@ -121,21 +134,27 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
     if out_dir is not None:  # before the work: a path that cannot be a folder fails now
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-    trackers = {name: build(name, rig, marker) for name in names}
     lengths = [float(v) for v in c["lengths"]]
     poses, path = _poses(c), path_poses(c)
+    # The path on a tight plate: the trackers know the plate they track (its tool file's margin).
+    tight = Marker(margin=float(c["tight_margin"])) if c["tight_margin"] and path else None
+    parts = [("poses", poses, marker, None), ("path", path, marker, None)]
+    if tight is not None:
+        ground = tuple(np.full(cam.image_size[::-1], c["tight_background"], np.float32) for cam in rig.cameras)
+        parts.append(("tight", path, tight, ground))
+    trackers = {id(mk): {name: build(name, rig, mk) for name in names} for mk in {id(m): m for _, _, m, _ in parts}.values()}
     # Per configuration and length, per pose: (c0-c1 error, c0-c2 error, translation) or None.
-    found: dict = {part: {name: {L: [] for L in lengths} for name in names} for part in ("poses", "path")}
-    with tqdm(total=(len(poses) + len(path)) * len(lengths), desc="blur-distance", unit="pair", disable=not progress) as bar:
-        for part, Ts in (("poses", poses), ("path", path)):
+    found: dict = {part: {name: {L: [] for L in lengths} for name in names} for part, *_ in parts}
+    with tqdm(total=sum(len(Ts) for _, Ts, _, _ in parts) * len(lengths), desc="blur-distance", unit="pair", disable=not progress) as bar:
+        for part, Ts, mk, ground in parts:
             for n, T in enumerate(Ts):
-                angles = along_c0_c1(rig, marker, T) if part == "poses" else [along_travel(rig, T)] * 2
+                angles = along_c0_c1(rig, mk, T) if part == "poses" else [along_travel(rig, T)] * 2
                 for L in lengths:
                     imaging = tuple(Imaging(alpha=c["alpha"], motion_blur=L, motion_angle=a) for a in angles)
-                    seed = c["seed"] + 1 + n + (10_000 if part == "path" else 0)
-                    frame = render_stereo(rig, T, marker, imaging, seed=seed)
-                    for name, tr in trackers.items():
-                        found[part][name][L].append(_measured(tr.estimate(*frame.images), marker))
+                    seed = c["seed"] + 1 + n + (10_000 if part != "poses" else 0)
+                    frame = render_stereo(rig, T, mk, imaging, ground, seed=seed)
+                    for name, tr in trackers[id(mk)].items():
+                        found[part][name][L].append(_measured(tr.estimate(*frame.images), mk))
                     bar.update()
     true = float(np.linalg.norm(marker.points3d[1] - marker.points3d[0]))
     res = {
@@ -145,6 +164,7 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
         "summary": {name: [_summary(L, _column(found["poses"][name][L], 0)) for L in lengths] for name in names},
         "summary_c0_c2": {name: [_summary(L, _column(found["poses"][name][L], 1)) for L in lengths] for name in names},
         "path": {name: [_path_summary(L, found["path"][name][L], path) for L in lengths] for name in names} if path else {},
+        "tight": {name: [_path_summary(L, found["tight"][name][L], path) for L in lengths] for name in names} if tight else {},
         "errors": {name: {str(L): _column(v, 0) for L, v in e.items()} for name, e in found["poses"].items()},
         "errors_c0_c2": {name: {str(L): _column(v, 1) for L, v in e.items()} for name, e in found["poses"].items()},
         "path_errors": {
@@ -254,13 +274,21 @@ def report(res: dict) -> str:
         for n in names:
             cells += _cells(res["summary"][n][k]) + _cells(res["summary_c0_c2"][n][k])[2:]
         lines.append(f"| {L:g} | " + " | ".join(cells) + " |")
-    if res.get("path"):
+    for part in ("path", "tight"):
+        if not res.get(part):
+            continue
+        what = (
+            f"**The robot path**: {c['path_poses']} poses {c['path_step']:g} mm apart along c0 -> c1 at {c['path_distance']:g} mm, "
+            "facing the left camera, each pair blurred in both views along the left image's direction of the travel."
+            if part == "path"
+            else f"**The robot path on a tight plate**: the same poses and blur, the plate {c['tight_margin']:g} mm beyond the rings' "
+            f"outer edges on a dark ground (reflectance {c['tight_background']:g}), and the trackers given that plate."
+        )
         lines += [
             "",
-            (
-                f"**The robot path**: {c['path_poses']} poses {c['path_step']:g} mm apart along c0 -> c1 at {c['path_distance']:g} mm, "
-                "facing the left camera, each pair blurred in both views along the left image's direction of the travel. "
-                "c0-c1 and c0-c2: mean ± sd and the largest size of the error, and the share of the c0-c1 errors with their "
+            what
+            + (
+                " c0-c1 and c0-c2: mean ± sd and the largest size of the error, and the share of the c0-c1 errors with their "
                 "mean's sign; displacement: the largest error of the distance between consecutive poses (mm)."
             ),
             "",
@@ -269,7 +297,7 @@ def report(res: dict) -> str:
         for k, L in enumerate(c["lengths"]):
             cells = []
             for n in names:
-                row = res["path"][n][k]
+                row = res[part][n][k]
                 a, b, d = _cells(row["c0_c1"], False), _cells(row["c0_c2"], False), row["displacement"]
                 same = "—" if row["same_sign_c0_c1"] is None else f"{100 * row['same_sign_c0_c1']:.0f} %"
                 cells += [a[0], a[1], a[2], same, b[1], b[2], "—" if d["max_abs_mm"] is None else f"{d['max_abs_mm']:.4f}"]
@@ -288,6 +316,8 @@ def plot(res: dict, path: Path) -> Path:
     parts = [("random poses, blur along c0 -> c1 in each view", res["summary"], None)]
     if res.get("path"):
         parts.append(("robot path, blur along the left view's travel in both", None, res["path"]))
+    if res.get("tight"):
+        parts.append((f"the same path, a {res['conf']['tight_margin']:g} mm plate on a dark ground", None, res["tight"]))
     fig, axes = plt.subplots(1, len(parts), figsize=(6.5 * len(parts), 4), squeeze=False, sharey=True)
     for ax, (title, summary, path_rows) in zip(axes[0], parts):
         for i, n in enumerate(res["summary"]):
