@@ -197,7 +197,7 @@ class Ring:
     _outer_cq: tuple = field(default=None, repr=False)
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
-    _plate_crowded: bool = field(default=False, repr=False)  # the plate's edge reached too many of its rays to leave out
+    _plate_reached: bool = field(default=False, repr=False)  # the plate's blurred edge reached its edge fit's rays
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
     _rejected: bool = field(default=False, repr=False)  # under heavy blur the edge fit is not trusted: the blurred-ring
     #                                                     fit disagreed with it, or was due and could not run
@@ -575,7 +575,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
     :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
     the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
     conf["center"] = "concentric", the two ellipses' concentric centre."""
-    outer_cq, outer_ideal, width, cov, crowded = outer
+    outer_cq, outer_ideal, width, cov, plate_reached = outer
     inner_ideal = None
     if inner is not None:
         inner_cq, inner_ideal = inner[:2]
@@ -605,7 +605,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
         _edge_width=width,
-        _plate_crowded=crowded,
+        _plate_reached=plate_reached,
         _center_cov=cov,
     )
 
@@ -771,7 +771,9 @@ def plate_sides(rings: list, marker: Marker, camera: Camera | None = None) -> np
 def _plate_near(marker: Marker, c: dict) -> bool:
     """Whether the plate's edge can reach an outer edge's rays at all: its margin within
     the rays' window plus the reach of the widest blur the edge fit keeps (blur_fit_width
-    of the ring's radius; wider edges go to the blurred-ring fit), with room for a tilt."""
+    of the ring's radius; wider edges go to the blurred-ring fit), with room for a tilt.
+    The blurred-ring fit leaves out the plate's reach only then too: from a wider margin
+    the plate's edge stays at the edge of its pixels, where its robust weights take it."""
     _, w_out, _ = _edge_windows(marker)
     return c["plate_edge"] and marker.margin < (w_out + 0.65 * c["blur_fit_width"] + 0.25) * marker.outer_radius
 
@@ -816,9 +818,10 @@ def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
         return False
     minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
-    # Where the plate's blurred edge crowded an edge fit, half that blur is enough: the
-    # model leaves out the pixels the plate's edge reaches.
-    gate = c["blur_fit_width"] * (0.5 if any(r._plate_crowded for r in rings) else 1.0)
+    # Where the plate's blurred edge reached an edge fit's rays, half that blur is enough:
+    # the edge fit has lost (or kept) the rays along the motion there, and the model leaves
+    # out the pixels the plate's edge reaches.
+    gate = c["blur_fit_width"] * (0.5 if any(r._plate_reached for r in rings) else 1.0)
     if any(r.refined for r in rings) and max(r._edge_width for r in rings) < gate * minor:
         return False
     if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
@@ -840,7 +843,7 @@ def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: 
     fit_conf = {"max_move": 2 * c["blur_fit_max_move"]}
     if not any(r.refined for r in rings):
         fit_conf["min_length"] = 10.0
-    plate = plate_sides(rings, marker, camera) if c["plate_edge"] else None
+    plate = plate_sides(rings, marker, camera) if _plate_near(marker, c) else None
     return blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf, plate)
 
 

@@ -576,13 +576,13 @@ def _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, min_free, ok, far, n_use
 
 
 @compiled
-def _plate_rays(xy, r, width, half, lines, plated, n, min_free, ok, far, keep, n_use, crowded):  # pragma: no cover - compiled
+def _plate_rays(xy, r, width, half, lines, plated, n, min_free, ok, far, keep, n_use, reached):  # pragma: no cover - compiled
     """Rays of the rings ``plated`` whose window the plate's blurred edge (its sides
     ``lines[k]``, distances positive inside) may reach, and their opposite rays, out of
     ``keep``: what lies beyond the plate bleeds in as a neighbour does. Where enough rays
     stay with those ``far`` from the neighbours (``min_free`` of them), ``n_use`` counts
-    them; elsewhere ``keep`` is all True and ``crowded[k]`` is set (the plate reached too
-    many rays to leave out)."""
+    them; elsewhere ``keep`` is all True. ``reached[k]``: the plate's edge reached some of
+    ring k's rays (left out or, too many to leave out, kept)."""
     K, N = r.shape
     for k in range(K):
         if not plated[k]:
@@ -598,12 +598,11 @@ def _plate_rays(xy, r, width, half, lines, plated, n, min_free, ok, far, keep, n
     both = keep.copy()
     _symmetric_drop(both, plated, n, min_free, ok.copy(), n_use)
     for k in range(K):
-        reached, kept = False, True
+        hit = False
         for i in range(N):
-            reached = reached or not keep[k, i]
-            kept = kept and both[k, i]
+            hit = hit or not keep[k, i]
             keep[k, i] = both[k, i] or not plated[k]
-        crowded[k] = plated[k] and reached and kept
+        reached[k] = plated[k] and hit
 
 
 @compiled
@@ -775,8 +774,8 @@ def edge_points(
         (P (K, M, 2) edge points, valid first: mask (K, M), number of rays not dropped
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,), the covariance of the edges' shared shift
-        (K, 2, 2), :func:`_shared_shift`, whether the plate's edge crowds the ring (K,): it
-        reaches too many of the rays to leave out, so they stay in).
+        (K, 2, 2), :func:`_shared_shift`, whether the plate's blurred edge reached the
+        ring's rays (K,): left out, or kept where too many to leave out).
     """
     half = _per_ellipse(half, len(cen))
     L, a, b, n, S, m = _ray_counts(Q, half, c)
@@ -791,7 +790,7 @@ def edge_points(
     far, n_use = _free_rays(others, xy, r, width, half, n, c, ok)
     # The plate's edge: its rays leave the levels and the fit, not the edges' width (the
     # blur the gate to the blurred-ring fit reads).
-    keep, crowded = _clear_of_plate(plates, xy, r, width, half, n, c, ok, far, n_use)
+    keep, reached = _clear_of_plate(plates, xy, r, width, half, n, c, ok, far, n_use)
 
     # Plateau levels: planes fitted on the clean rays (transition well inside the window).
     clean = sane & far & (w1090 < 1.2 * half[:, None] * r)
@@ -807,7 +806,7 @@ def edge_points(
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
-    return P, mask, n_use, Wc, width, shared, crowded
+    return P, mask, n_use, Wc, width, shared, reached
 
 
 def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, width, c: dict) -> np.ndarray:
@@ -928,19 +927,19 @@ def _free_rays(
 
 def _clear_of_plate(plates: list | None, xy, r, width, half, n, c: dict, ok, far, n_use) -> tuple:
     """((K, N) the rays to keep for the plate's edge, or None where no ring has its plate's
-    sides; (K,) the rings the plate's edge crowds: it reaches too many of their rays to
-    leave out) (:func:`_plate_rays`; ``n_use`` updated in place)."""
+    sides; (K,) the rings whose rays the plate's edge reached) (:func:`_plate_rays`;
+    ``n_use`` updated in place)."""
     K, N = r.shape
-    crowded = np.zeros(K, bool)
+    reached = np.zeros(K, bool)
     if plates is None or all(p is None for p in plates):
-        return None, crowded
+        return None, reached
     plated = np.array([p is not None for p in plates], bool)
     lines = np.zeros((K, 4, 3))
     for k in np.nonzero(plated)[0]:
         lines[k] = plates[k]
     keep = np.ones((K, N), bool)
-    _plate_rays(xy, r, width, half, lines, plated, n, float(c["min_free_frac"]), ok, far, keep, n_use, crowded)
-    return keep, crowded
+    _plate_rays(xy, r, width, half, lines, plated, n, float(c["min_free_frac"]), ok, far, keep, n_use, reached)
+    return keep, reached
 
 
 def plate_lines(corners: np.ndarray) -> np.ndarray:
@@ -1443,13 +1442,13 @@ def _fit_passes(
     """The passes of edge sampling and robust fit of :func:`refine_edges`, each on the
     ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
     ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,),
-    the covariances of the edges' shared shift (K, 2, 2), whether the plate's edge crowded
-    the last fit (K,): :func:`edge_points`)."""
+    the covariances of the edges' shared shift (K, 2, 2), whether the plate's edge reached
+    the last fit's rays (K,): :func:`edge_points`)."""
     K = len(cen)
     active = np.ones(K, bool)
     found: list = [None] * K
     width = np.zeros(K)
-    crowded = np.zeros(K, bool)
+    reached = np.zeros(K, bool)
     shared = np.zeros((K, 2, 2))
     last = np.full(K, np.inf)  # each ellipse's move in the pass before (inf: no fit taken yet)
     # The least-median screen is for a spoilt sector (an occluder): after a pass whose fit
@@ -1507,7 +1506,7 @@ def _fit_passes(
             cen[k], Q[k] = cf[i], Qf[i]
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
             width[k] = wdg[i]
-            crowded[k] = crg[i]
+            reached[k] = crg[i]
             shared[k] = shg[i]
             if np.isinf(last[k]):  # the first fit this ellipse took
                 done = move[i] < c["refine_first_tol"] and (screened[i] or not screen[k])
@@ -1516,7 +1515,7 @@ def _fit_passes(
             last[k] = move[i]
             if done:
                 active[k] = False
-    return found, width, shared, crowded
+    return found, width, shared, reached
 
 
 def center_covariances(fits: list) -> np.ndarray:
@@ -1644,7 +1643,7 @@ def refine_edges(
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
-    found, width, shared, crowded = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others, plates)
+    found, width, shared, reached = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others, plates)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1657,7 +1656,7 @@ def refine_edges(
     fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2], shared[k]) if k in ideal else (*found[k], cen[k], Q[k], shared[k]) for k in ks]
     covs = center_covariances(fits)
     for i, k in enumerate(ks):
-        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i], bool(crowded[k]))
+        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i], bool(reached[k]))
     return out
 
 

@@ -460,17 +460,22 @@ def test_the_plate_sides_follow_the_rings_pose():
 def test_a_tight_plate_on_a_dark_ground_does_not_pull_the_blurred_rings(margin):
     """A plate cut 2-3 mm beyond the rings on a dark ground, blurred 19-21 px along c0 -> c1:
     what lies beyond the plate reaches into the rings' outer edges. Taken in, it pulls c0
-    and c1 apart by tenths of a pixel; with the plate's edge left out (the rays it reaches,
-    or where it reaches too many, the blurred-ring fit) every centre stays within 0.05 px."""
+    and c1 apart by a third of a pixel or more; with the plate's edge left out (its rays,
+    and the blurred-ring fit, which takes over there, its pixels) the distance c0-c1 in
+    each view is within 0.05 px and every centre within 0.1 px."""
     rig, mk = mp.StereoRig.default(), mp.Marker(margin=margin)
     T = look_at_pose([0.0, 0.0, 560.0])
     ground = tuple(np.full(c.image_size[::-1], 0.05, np.float32) for c in rig.cameras)
     ells = [ring_ellipses(cam, Tv, mk.points3d, mk.outer_radius) for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T))]
     for L in (19.0, 21.0):
         f = render_stereo(rig, T, mk, Imaging(alpha=0.7, motion_blur=L, motion_angle=0.0), ground, seed=5)
-        worst = {}
+        d01, worst = {}, {}
         for plate_edge in (False, True):
             out = classical.refine_ellipses_views(f.images, ells, mk, {"plate_edge": plate_edge}, list(rig.cameras))
             assert all(o[1].all() for o in out)
+            d01[plate_edge] = max(
+                abs(np.linalg.norm(o[0][1] - o[0][0]) - np.linalg.norm(v.outer_centers[1] - v.outer_centers[0]))
+                for o, v in zip(out, f.views)
+            )
             worst[plate_edge] = max(np.abs(o[0] - v.outer_centers).max() for o, v in zip(out, f.views))
-        assert worst[False] > 0.15 and worst[True] < 0.05
+        assert d01[False] > 0.25 and d01[True] < 0.05 and worst[True] < 0.1

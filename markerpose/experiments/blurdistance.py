@@ -167,8 +167,12 @@ def main(conf: dict | None = None, out_dir: str | Path | None = None, progress: 
         "tight": {name: [_path_summary(L, found["tight"][name][L], path) for L in lengths] for name in names} if tight else {},
         "errors": {name: {str(L): _column(v, 0) for L, v in e.items()} for name, e in found["poses"].items()},
         "errors_c0_c2": {name: {str(L): _column(v, 1) for L, v in e.items()} for name, e in found["poses"].items()},
-        "path_errors": {
-            name: {str(L): [None if m is None else [m[0], m[1]] for m in v] for L, v in e.items()} for name, e in found["path"].items()
+        **{
+            f"{part}_errors": {
+                name: {str(L): [None if m is None else [m[0], m[1]] for m in v] for L, v in e.items()} for name, e in found[part].items()
+            }
+            for part in ("path", "tight")
+            if part in found
         },
     }
     if out is not None:
