@@ -45,6 +45,7 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         "default with EllipSegNet's masks in the transfer's fits where the layout's seeds do not fit (the former default)",
     ),
     "default-no-blur-fit": ({"refine": {"blur_fit": False}}, "default without the blurred-ring fit"),
+    "default-no-plate-edge": ({"refine": {"plate_edge": False}}, "default whose fits take in what the plate's blurred edge reaches"),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (
         {"propose": {"network": "lite", "input": "paper"}},

@@ -45,6 +45,8 @@ default_conf = {
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
+    "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
+    #                      plates tight around the rings: classical.plate_sides)
 }
 METHODS = ("ellipsegnet", "classical", "none")
 RULES = {
@@ -57,6 +59,7 @@ RULES = {
     "subpixel": flag(),
     "blur_fit": flag(),
     "max_blur_fits": number(0, integer=True),
+    "plate_edge": flag(),
 }
 
 
@@ -74,7 +77,7 @@ class Refiner:
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
-        self.classical = {"blur_fit": bool(conf["blur_fit"])}  # settings of the classical fits
+        self.classical = {"blur_fit": bool(conf["blur_fit"]), "plate_edge": bool(conf["plate_edge"])}  # settings of the classical fits
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         steps = [edges.warm_up, camera.warm_up, geometry.warm_up, classical.warm_up]
         if conf["blur_fit"]:
