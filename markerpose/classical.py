@@ -48,6 +48,7 @@ All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -570,20 +571,45 @@ def _refine_inner(grays: list, view: np.ndarray, inner_cqs: list, w_in: np.ndarr
     return inner
 
 
-def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camera: Camera | None, c: dict) -> Ring:
+_LOCAL_MAP_STEP = 0.5  # px: the ideal-to-image map's Jacobian at a centre, by differences over this step
+_LOCAL_MAP = np.array([[0.0, 0.0], [_LOCAL_MAP_STEP, 0.0], [0.0, _LOCAL_MAP_STEP]])
+
+
+def _image_centres(outer: list, view: np.ndarray, cameras: list | None) -> dict:
+    """Ring k -> (its outer ideal-pixel centre in the image's pixels, the lens's local map
+    there (2, 2)) for the rings fitted in ideal pixels: one distortion call per camera."""
+    out: dict = {}
+    if cameras is None:
+        return out
+    for g in sorted({int(v) for v in view}):
+        ks = [k for k, f in enumerate(outer) if f is not None and f[1] is not None and view[k] == g and cameras[g] is not None]
+        if not ks:
+            continue
+        pts = np.concatenate([outer[k][1][0] + _LOCAL_MAP for k in ks])
+        mapped = _ideal_to_pixels(cameras[g], pts).reshape(-1, 3, 2)
+        for k, m in zip(ks, mapped):
+            out[k] = (m[0], (m[1:] - m[0]).T / _LOCAL_MAP_STEP)
+    return out
+
+
+def _refined_ring(
+    ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camera: Camera | None, c: dict, mapped: tuple | None = None
+) -> Ring:
     """``ring`` with its edge fits: ``outer`` and ``inner`` (or None) as
     :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
     the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
-    conf["center"] = "concentric", the two ellipses' concentric centre."""
+    conf["center"] = "concentric", the two ellipses' concentric centre. ``mapped``: the
+    outer ideal centre in the image's pixels and the lens's local map there, where
+    :func:`_image_centres` made them already."""
     outer_cq, outer_ideal, width, cov, plate_reached = outer
     inner_ideal = None
     if inner is not None:
         inner_cq, inner_ideal = inner[:2]
     use_ideal = camera is not None and outer_ideal is not None
     if use_ideal:  # the centre and, through the lens's local map, its covariance in the image's pixels
-        h = 0.5
-        mapped = _ideal_to_pixels(camera, outer_ideal[0] + np.array([[0.0, 0.0], [h, 0.0], [0.0, h]]))
-        center, J = mapped[0], (mapped[1:] - mapped[0]).T / h
+        if mapped is None:
+            mapped = _image_centres([outer], np.zeros(1, np.intp), [camera])[0]
+        center, J = mapped
         cov = J @ cov @ J.T
     else:
         center = outer_cq[0].copy()
@@ -644,12 +670,13 @@ def _refine_batch(
     inner_cqs = _inner_starts(rings, outer, rho)
     inner = _refine_inner(grays, view, inner_cqs, w_in, c, floor, cameras)
     result = []
+    centres = _image_centres(outer, view, cameras)
     for k, ring in enumerate(rings):
         if outer[k] is None:
             result.append(ring)
             continue
         camera = None if cameras is None else cameras[view[k]]
-        result.append(_refined_ring(ring, outer[k], inner_cqs[k], inner[k], camera, c))
+        result.append(_refined_ring(ring, outer[k], inner_cqs[k], inner[k], camera, c, centres.get(k)))
     return result
 
 
@@ -811,13 +838,20 @@ def _unrefined(rings: list) -> list:
     return [replace(r, refined=False, _rejected=True) for r in rings]
 
 
+def _minor_semi_axis(Q: np.ndarray) -> float:
+    """The minor semi-axis of the ellipse (x - c)^T Q (x - c) = 1: one over the square root
+    of Q's larger eigenvalue (closed form: this runs for every ring of every pair)."""
+    (a, b), (_, d) = np.asarray(Q, np.float64).tolist()
+    return 1.0 / math.sqrt(0.5 * (a + d) + math.hypot(0.5 * (a - d), b))
+
+
 def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     """Whether :func:`refine_blurred` fits ``rings``: the fit is on, every ring has an
     ellipse, the edges are wide (or no ring was edge-refined, where conf allows that) and,
     for three rings, their sizes fit their spacing."""
     if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
         return False
-    minor = min(1 / np.sqrt(np.linalg.eigvalsh(r._outer_cq[1])[1]) for r in rings)
+    minor = min(_minor_semi_axis(r._outer_cq[1]) for r in rings)
     # Where the plate's blurred edge reached an edge fit's rays, half that blur is enough:
     # the edge fit has lost (or kept) the rays along the motion there, and the model leaves
     # out the pixels the plate's edge reaches.
@@ -1231,9 +1265,8 @@ def refine_ellipses_views(
                 continue
             (cx, cy), (w, h), ang = rect
             inner = ((cx, cy), (w * rho, h * rho), ang)
-            rings.append(
-                Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=rect_to_cq(rect), _inner_cq=rect_to_cq(inner))
-            )
+            cq = rect_to_cq(rect)  # the hole's is the same ellipse scaled by rho
+            rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=cq, _inner_cq=(cq[0], cq[1] / rho**2)))
         views.append(rings)
     out = []
     for gray, noise, rings, mk, cam in zip(
