@@ -447,7 +447,8 @@ def test_two_cameras_are_grabbed_as_a_pair(monkeypatch):
 
 def test_ctrl_c_while_starting_is_an_interruption(folders, tmp_path):
     """SIGINT while the command line starts (its imports, the compiled loops, the networks):
-    'interrupted' and exit 130, never a traceback."""
+    'interrupted' and exit 130, never a traceback. On a fast machine the last delay can land
+    in the tracking already: a run stopped there says so on stdout, with 130 too."""
     import signal
     import subprocess
     import sys
@@ -462,7 +463,7 @@ def test_ctrl_c_while_starting_is_an_interruption(folders, tmp_path):
         out, err = p.communicate(timeout=60)
         assert "Traceback" not in err, (delay, err)
         assert p.returncode in (0, 130), (delay, p.returncode, err)  # 0: it had finished
-        assert p.returncode == 0 or "interrupted" in err
+        assert p.returncode == 0 or "interrupted" in err or out.startswith("stopped: ")
 
 
 def test_a_ctrl_c_while_a_library_loads_is_held_then_raised():
