@@ -48,6 +48,7 @@ All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -526,6 +527,7 @@ def _ideal_to_pixels(camera: Camera, p: np.ndarray) -> np.ndarray:
     return camera.distort(np.column_stack([x, y]))
 
 
+@functools.lru_cache(maxsize=64)
 def _edge_windows(marker: Marker) -> tuple[float, float, float]:
     """(rho, outer half-window, inner half-window) of the edge fits, in units of the
     ellipse: up to the middle of the black band on one side and to the middle of the gap
@@ -592,23 +594,19 @@ def _image_centres(outer: list, view: np.ndarray, cameras: list | None) -> dict:
     return out
 
 
-def _refined_ring(
-    ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camera: Camera | None, c: dict, mapped: tuple | None = None
-) -> Ring:
+def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camera: Camera | None, mapped: tuple | None, c: dict) -> Ring:
     """``ring`` with its edge fits: ``outer`` and ``inner`` (or None) as
     :func:`markerpose.edges.refine_edges` gives them, ``inner_cq`` the inner fit's start;
     the centre the outer ellipse's (in ideal pixels where there is a camera) or, with
     conf["center"] = "concentric", the two ellipses' concentric centre. ``mapped``: the
-    outer ideal centre in the image's pixels and the lens's local map there, where
-    :func:`_image_centres` made them already."""
+    outer ideal centre in the image's pixels and the lens's local map there
+    (:func:`_image_centres`), None where the ring was not fitted in ideal pixels."""
     outer_cq, outer_ideal, width, cov, plate_reached = outer
     inner_ideal = None
     if inner is not None:
         inner_cq, inner_ideal = inner[:2]
-    use_ideal = camera is not None and outer_ideal is not None
+    use_ideal = mapped is not None
     if use_ideal:  # the centre and, through the lens's local map, its covariance in the image's pixels
-        if mapped is None:
-            mapped = _image_centres([outer], np.zeros(1, np.intp), [camera])[0]
         center, J = mapped
         cov = J @ cov @ J.T
     else:
@@ -649,8 +647,7 @@ def _refine_batch(
     if isinstance(marker, Marker):
         rho, w_out, w_in = (np.full(len(rings), w) for w in _edge_windows(marker))
     else:
-        windows = {id(mk): _edge_windows(mk) for mk in {id(mk): mk for mk in marker}.values()}  # once per marker
-        rho, w_out, w_in = np.array([windows[id(mk)] for mk in marker], np.float64).T
+        rho, w_out, w_in = np.array([_edge_windows(mk) for mk in marker], np.float64).T
     view = np.asarray(view, np.intp)
     floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
     oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
@@ -676,7 +673,7 @@ def _refine_batch(
             result.append(ring)
             continue
         camera = None if cameras is None else cameras[view[k]]
-        result.append(_refined_ring(ring, outer[k], inner_cqs[k], inner[k], camera, c, centres.get(k)))
+        result.append(_refined_ring(ring, outer[k], inner_cqs[k], inner[k], camera, centres.get(k), c))
     return result
 
 
@@ -776,7 +773,7 @@ def plate_sides(rings: list, marker: Marker, camera: Camera | None = None) -> np
     ellipses (:func:`markerpose.geometry.view_poses`) with a camera, else the affine map
     that takes the marker's ring centres to theirs (which perspective bends by pixels at
     the plate's corners). None unless every ring is there."""
-    if len(rings) != len(marker.centers2d) or len(rings) != 3 or any(r is None for r in rings):
+    if len(rings) != 3 or any(r is None for r in rings):
         return None
     P = np.array([r.center for r in rings], np.float64)
     if not np.isfinite(P).all():

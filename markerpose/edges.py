@@ -1637,8 +1637,8 @@ def refine_edges(
 
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px, the centre's covariance (2, 2) in the px of the fit the centre comes from:
-    ideal where there is one, :func:`center_covariances`, whether the plate's edge reached
-    too many of its rays to leave out: the fit took them) or None when too few edge points
+    ideal where there is one, :func:`center_covariances`, whether the plate's blurred edge
+    reached its rays: :func:`edge_points`) or None when too few edge points
     are found.
     """
     K = len(cen)
