@@ -12,6 +12,7 @@ views (:mod:`markerpose.stages.match`). Pure numpy/OpenCV: no torch here.
 from __future__ import annotations
 
 import functools
+import math
 
 import cv2
 import numpy as np
@@ -139,10 +140,60 @@ def _refine(scores: np.ndarray, cand: np.ndarray) -> np.ndarray:
     return out
 
 
+def _sparse_peaks(det_logits: np.ndarray, threshold: float, k: int, radius: int) -> list[np.ndarray]:
+    """:func:`peaks` without the whole score map. A cell's scores are at most exp(its best
+    centre logit - its "no centre" logit), so only the cells where that bound reaches
+    ``threshold`` can hold a candidate (a few dozen of a view's thousand). The softmax
+    runs on those and their neighbour cells (the windows of the maxima and the peaks' 3x3
+    centroids reach into them), in the same order of operations as :func:`score_maps`,
+    into a map that is zero elsewhere: every value a candidate is compared with or
+    weighted by is the same to the bit, the values under ``threshold`` it leaves out never
+    win a comparison, and so the rows are :func:`peaks`' own."""
+    logits = np.asarray(det_logits, np.float32)
+    b, _, hc, wc = logits.shape
+    # The bound in float32 against the threshold's log, with a margin for its own rounding.
+    live = (logits[:, :-1].max(axis=1) - logits[:, -1]) >= np.float32(math.log(threshold) - 1e-3)
+    near = np.stack([cv2.dilate(v, _square(3)) for v in live.view(np.uint8)]).astype(bool)
+    bi, yi, xi = np.nonzero(near)
+    p = np.ascontiguousarray(logits[bi, :, yi, xi].T)  # (65, N): reduced along axis 0, as score_maps does
+    p -= p.max(axis=0, keepdims=True)
+    np.exp(p, out=p)
+    p /= p.sum(axis=0, keepdims=True)
+    cells = p[:-1].T  # (N, 64): channel dy * CELL + dx
+    pad = max(int(radius), 1)
+    H, W = hc * CELL + 2 * pad, wc * CELL + 2 * pad
+    dy, dx = np.divmod(np.arange(CELL * CELL), CELL)
+    rows, cols = yi[:, None] * CELL + dy + pad, xi[:, None] * CELL + dx + pad  # (N, 64) in the padded maps
+    maps = np.zeros((b, H, W), np.float32)
+    maps.reshape(-1)[(bi[:, None] * H + rows) * W + cols] = cells
+    d = np.arange(-radius, radius + 1)
+    r2 = radius**2
+    out = []
+    for j in range(b):
+        above = (cells >= threshold) & (bi == j)[:, None]
+        ys, xs, s = rows[above], cols[above], cells[above]
+        order = np.argsort(ys * W + xs)  # the map's row-major order, as nms's nonzero gives them
+        ys, xs, s = ys[order], xs[order], s[order]
+        window = maps[j][ys[:, None, None] + d[None, :, None], xs[:, None, None] + d[None, None, :]]
+        top = s >= window.reshape(len(s), -1).max(axis=1) if len(s) else np.zeros(0, bool)
+        ys, xs, s = ys[top] - pad, xs[top] - pad, s[top]
+        best = np.argsort(-s)
+        kept: list[tuple[float, float, float]] = []
+        for x0, y0, s0 in zip(xs[best].tolist(), ys[best].tolist(), s[best].tolist()):
+            if all((x0 - x) ** 2 + (y0 - y) ** 2 > r2 for x, y, _ in kept):  # plateaus: drop maxima near a better one
+                kept.append((float(x0), float(y0), s0))
+            if len(kept) == k:
+                break
+        out.append(_refine(maps[j, pad:-pad, pad:-pad], np.array(kept, np.float64).reshape(-1, 3)))
+    return out
+
+
 def peaks(det_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4) -> list[np.ndarray]:
     """The location part of :func:`candidates` for a batch of images' detector logits
     (B, 65, Hc, Wc): per image, (N, 3) rows (x, y, score), best first, N <= k."""
-    return [_refine(s, nms(s, nms_radius, threshold, k)) for s in score_maps(det_logits)]
+    if threshold <= 0:
+        return [_refine(s, nms(s, nms_radius, threshold, k)) for s in score_maps(det_logits)]
+    return _sparse_peaks(det_logits, threshold, k, nms_radius)
 
 
 def candidates(det_logits: np.ndarray, id_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4):

@@ -26,8 +26,9 @@ import numpy as np
 from .decode import CELL, ID_MODES, decode, peaks
 from .decode import default_conf as decode_defaults
 from .evidence import ring_evidence
+from .jit import compiled
 from .marker import Marker
-from .nets import load_network
+from .nets import detector_only_path, load_network
 
 INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
 PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
@@ -92,7 +93,35 @@ def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]
         (image (H, W) float32 in [0, 1] at ``size``, scale (2,) = full / input, per axis).
     """
     w, h = size
+    if gray.dtype == np.uint8 and gray.shape == (4 * h, 4 * w) and gray.flags.c_contiguous:
+        small = np.empty((h, w), np.float32)
+        _quarter(gray, _UNIT, small)
+        return small, input_scale(gray.shape, size)
     return _unit(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)), input_scale(gray.shape, size)
+
+
+@compiled
+def _quarter(gray, table, out):  # pragma: no cover - compiled
+    """out[y, x] = table[mean of gray's 4x4 block (y, x), rounded half to even] (uint8 gray):
+    OpenCV's area resize by exactly 4 (it rounds these means half to even), in one pass
+    with the table lookup and without the uint8 image between (the default first look at
+    1280x1024: 320x256)."""
+    h, w = out.shape
+    cols = np.empty(w * 4, np.int32)
+    for y in range(h):
+        r0, r1, r2, r3 = gray[4 * y], gray[4 * y + 1], gray[4 * y + 2], gray[4 * y + 3]
+        for X in range(w * 4):  # the block rows' column sums: contiguous, vectorised
+            cols[X] = np.int32(r0[X]) + np.int32(r1[X]) + np.int32(r2[X]) + np.int32(r3[X])
+        for x in range(w):
+            s = cols[4 * x] + cols[4 * x + 1] + cols[4 * x + 2] + cols[4 * x + 3]
+            q, r = s >> 4, s & 15
+            q += (r > 8) | ((r == 8) & (q & 1))
+            out[y, x] = table[q]
+
+
+def warm_up() -> None:
+    """Compile this module's loop (or load it from numba's cache) before a stream's first frame."""
+    to_input(np.zeros((32, 32), np.uint8), (8, 8))
 
 
 def input_scale(shape: tuple, size=INPUT_SIZE) -> np.ndarray:
@@ -217,6 +246,7 @@ class KeypointNet:
         )
         if "width" not in meta:
             raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
+        self.locator = self._locator(meta, threads, backend)
         # Decoding thresholds: the defaults, those tuned for this ID mode and operating
         # point when the weights were exported (keyed by tuned_key), then the caller's.
         self.tuned = meta.get("decode", {})
@@ -229,6 +259,16 @@ class KeypointNet:
         # exact 4x4 area resize there, cheaper, with rings as round as in the renders
         # stage 1 is trained on).
         self.isotropic = False
+
+    def _locator(self, meta: dict, threads: int | None, backend: str):
+        """The runner of these weights' detector-head-only copy (:func:`markerpose.nets.detector_only`)
+        where one lies beside an ``.onnx`` file with the same metadata, else None (the
+        candidates then come from the whole network: the same values, a little later)."""
+        det = detector_only_path(self.path)
+        if self.path.suffix != ".onnx" or not det.is_file():
+            return None
+        runner, det_meta, _ = load_network(det, "keypoints", None, threads, backend=backend)
+        return runner if det_meta == {**meta, "detector_only": True} else None
 
     def look_size(self, zoom: float, shape: tuple) -> tuple[int, int]:
         """The input's (width, height) for an image of ``shape`` (H, W) at the look ``zoom``:
@@ -262,6 +302,12 @@ class KeypointNet:
         det, ids = self.runner(np.asarray(batch, np.float32)[:, None])
         return det, ids
 
+    def det_logits(self, batch: np.ndarray) -> np.ndarray:
+        """(B, H, W) float32 inputs → the detector head's (B, 65, Hc, Wc) logits alone."""
+        if self.locator is None:
+            return self.logits(batch)[0]
+        return self.locator(np.asarray(batch, np.float32)[:, None])[0]
+
     @staticmethod
     def _kept(image: np.ndarray, size: tuple, kept: list | None) -> tuple | None:
         """(input, scale) of ``image`` at ``size`` if in ``kept``, else None."""
@@ -291,14 +337,18 @@ class KeypointNet:
             return found[0][y0 : y0 + size, x0 : x0 + size]
         return to_input_window(image, shape, x0, y0, size, size)
 
-    def _forward(self, images: list[np.ndarray], zoom: float = 1.0, kept: list | None = None):
-        """Full-resolution gray images → (det logits, ID logits, per-image scales back, inputs),
-        looked at ``zoom`` times the paper's input size."""
+    def _forward(self, images: list[np.ndarray], zoom: float = 1.0, kept: list | None = None, ids: bool = True):
+        """Full-resolution gray images → (det logits, ID logits (None unless ``ids``), per-image
+        scales back, inputs), looked at ``zoom`` times the paper's input size."""
         inputs, scales = zip(*(self._input(g, zoom, kept) for g in images))
+
+        def run(batch):
+            return self.logits(batch) if ids else (self.det_logits(batch), None)
+
         if len({x.shape for x in inputs}) == 1:
-            return (*self.logits(np.stack(inputs)), scales, inputs)
-        outs = [self.logits(x[None]) for x in inputs]  # views of different sizes: one pass each
-        return [o[0][0] for o in outs], [o[1][0] for o in outs], scales, inputs
+            return (*run(np.stack(inputs)), scales, inputs)
+        outs = [run(x[None]) for x in inputs]  # views of different sizes: one pass each
+        return [o[0][0] for o in outs], [None if o[1] is None else o[1][0] for o in outs], scales, inputs
 
     def candidates(
         self,
@@ -326,7 +376,7 @@ class KeypointNet:
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
             return self._candidates_near(images, threshold, k, zoom, r, near, window, kept)
-        det, _, scales, _ = self._forward(images, zoom, kept)
+        det, _, scales, _ = self._forward(images, zoom, kept, ids=False)
         out = []
         found = peaks(det, threshold, k, r) if isinstance(det, np.ndarray) else [peaks(d[None], threshold, k, r)[0] for d in det]
         for cand, s in zip(found, scales):
@@ -351,7 +401,7 @@ class KeypointNet:
         shapes = sorted({c.shape for c in crops})
         for shape in shapes:  # one batch per window size (one size unless an image is small)
             idx = [n for n, c in enumerate(crops) if c.shape == shape]
-            det, _ = self.logits(np.stack([crops[n] for n in idx]))
+            det = self.det_logits(np.stack([crops[n] for n in idx]))
             for n, cand in zip(idx, peaks(det, threshold, k, r)):
                 j, x0, y0 = where[n]
                 cand[:, :2] += (x0, y0)
@@ -397,6 +447,7 @@ class KeypointNet:
 
 __all__ = [
     "INPUT_SIZE",
+    "warm_up",
     "KeypointNet",
     "build_network",
     "check_second_look",

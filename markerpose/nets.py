@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import zipfile
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -144,24 +146,54 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
             import onnxruntime as ort
     except ImportError as exc:
         raise ValueError(f"{path}: ONNX weights need onnxruntime (pip install onnxruntime)") from exc
-    opts = ort.SessionOptions()
-    if threads:
-        opts.intra_op_num_threads = int(threads)
-    opts.inter_op_num_threads = 1
-    # Idle worker threads would otherwise spin after each run, taking the CPU from the
-    # rest of the pipeline (and from other sessions, e.g. the other network).
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    try:
-        session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    except Exception as exc:  # ORT raises its own exception types for unreadable models
-        raise _unreadable(path, exc) from exc
-    meta = _checked_meta(path, kind, session.get_modelmeta().custom_metadata_map.get(META_KEY))
-    name = session.get_inputs()[0].name
+
+    def session(n: int | None):
+        opts = ort.SessionOptions()
+        if n:
+            opts.intra_op_num_threads = int(n)
+        opts.inter_op_num_threads = 1
+        # Idle worker threads would otherwise spin after each run, taking the CPU from the
+        # rest of the pipeline (and from other sessions, e.g. the other network).
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        try:
+            return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        except Exception as exc:  # ORT raises its own exception types for unreadable models
+            raise _unreadable(path, exc) from exc
+
+    whole = session(threads)
+    meta = _checked_meta(path, kind, whole.get_modelmeta().custom_metadata_map.get(META_KEY))
+    name = whole.get_inputs()[0].name
+    cores = int(threads or os.cpu_count() or 1)
+    if cores < 2:
+        return Runner(lambda x: tuple(whole.run(None, {name: x})), "onnxruntime"), meta
+    # A batch (the two views, a look's windows) runs as two halves at once, each on half the
+    # threads: the small layers of these networks leave threads idle at every operator's
+    # barrier when one run spreads over all of them.
+    halves = (session(cores // 2), session(cores - cores // 2))
+    worker = _Worker()
 
     def run(x):
-        return tuple(session.run(None, {name: x}))
+        if len(x) < 2:
+            return tuple(whole.run(None, {name: x}))
+        k = len(x) // 2
+        later = worker.submit(halves[1].run, None, {name: x[k:]})
+        first = halves[0].run(None, {name: x[:k]})
+        return tuple(np.concatenate(pair) for pair in zip(first, later.result()))
 
     return Runner(run, "onnxruntime"), meta
+
+
+class _Worker:
+    """One thread that runs the second half of a batch. It is started afresh in a process
+    forked from the one that started it (a forked child has none of its parent's threads)."""
+
+    def __init__(self):
+        self._pool, self._pid = None, None
+
+    def submit(self, fn, *args):
+        if self._pid != os.getpid():
+            self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose-net"), os.getpid()
+        return self._pool.submit(fn, *args)
 
 
 BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run
@@ -301,6 +333,46 @@ def export_onnx(net, path: str | Path, example_shape: tuple, kind: str, meta: di
     return path
 
 
+def detector_only_path(path: str | Path) -> Path:
+    """Where the detector-head-only copy of stage-1 weights ``path`` lies (:func:`detector_only`)."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}-det.onnx")
+
+
+def detector_only(src: str | Path, dest: str | Path | None = None) -> Path:
+    """A copy of an ``.onnx`` stage-1 network that computes only its detector head's output
+    ("det"; the ID head's layers left out), with the same metadata plus ``detector_only``.
+    Stage 1's candidates need no ID head; ONNX Runtime runs every layer of a graph whatever
+    outputs are asked for. ``dest`` defaults to :func:`detector_only_path`. Needs ``onnx``."""
+    import tempfile
+
+    import onnx
+    from onnx.utils import extract_model
+
+    src = Path(src)
+    meta = _checked_meta(src, "keypoints", _raw_meta(src))
+    dest = Path(dest) if dest is not None else detector_only_path(src)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "det.onnx"
+        model = onnx.load(str(src))
+        extract_model(str(src), str(out), [model.graph.input[0].name], ["det"])
+        det = onnx.load(str(out))
+    for m in list(det.metadata_props):
+        det.metadata_props.remove(m)
+    entry = det.metadata_props.add()
+    entry.key, entry.value = META_KEY, json.dumps({**meta, "detector_only": True})
+    onnx.save(det, str(dest))
+    return dest
+
+
+def _raw_meta(src: Path) -> str:
+    """The markerpose metadata text of an ``.onnx`` file ("" when absent). Needs ``onnx``."""
+    import onnx
+
+    model = onnx.load(str(src), load_external_data=False)
+    return next((m.value for m in model.metadata_props if m.key == META_KEY), "")
+
+
 def quantizable_meta(src: str | Path, kind: str | None = None) -> dict:
     """The markerpose metadata of an ``.onnx`` network that :func:`quantize_onnx` can
     quantize (of network ``kind`` when given), or ``ValueError`` saying why not. Needs
@@ -421,6 +493,8 @@ __all__ = [
     "FORMAT",
     "Runner",
     "default_weights",
+    "detector_only",
+    "detector_only_path",
     "export_onnx",
     "fuse_batchnorm",
     "have_backend",

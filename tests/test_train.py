@@ -152,6 +152,9 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     x = np.random.default_rng(0).random((2, 240, 320), np.float32)
     for a, b in zip(net.logits(x), onnx_net.logits(x)):
         np.testing.assert_allclose(a, b, atol=1e-4)
+    # ... and its detector-only copy, which stage 1's candidates run.
+    assert onnx_net.locator is not None
+    np.testing.assert_array_equal(onnx_net.det_logits(x), onnx_net.logits(x)[0])
 
 
 def test_training_window_keeps_the_marker_and_shifts_its_points():

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import classical, settings
+from .. import classical, jit, keypoints, settings
 from ..keypoints import KeypointNet
 from ..marker import Marker
 from ..nets import default_weights, int8_weights
@@ -114,6 +114,7 @@ class NeuralProposer:
                 )
         elif weights is None:
             weights = network_weights(conf["network"])
+        jit.warm_up(keypoints.warm_up)  # compiled now, not at a stream's first frame
         self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
         self.net.isotropic = conf["input"] == "isotropic"
 

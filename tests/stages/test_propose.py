@@ -4,6 +4,9 @@ import numpy as np
 import pytest
 
 import markerpose as mp
+from markerpose import decode as dec
+from markerpose import keypoints as kp
+from markerpose.ellipses import PATCH
 from markerpose.frame import Frame
 from markerpose.nets import default_weights
 from markerpose.stages import propose
@@ -64,3 +67,112 @@ def test_the_second_look_is_skipped_where_no_view_has_three_strong_candidates(ri
         assert tracker.estimate(*f.images) is None
         looks.append(proposer.worth_second_look(proposer.candidates(Frame(list(f.images)).grays)))
     assert sum(looks) <= 3, looks
+
+
+def _whole_map_peaks(det, threshold, k, radius):
+    """decode.peaks the long way: every cell's softmax, the whole map dilated."""
+    return [dec._refine(s, dec.nms(s, radius, threshold, k)) for s in dec.score_maps(det)]
+
+
+@pytest.mark.parametrize("threshold", [1e-4, 0.01, 0.3])
+def test_peaks_from_the_live_cells_alone_are_the_whole_maps_to_the_bit(threshold):
+    """decode.peaks runs the softmax only on the cells whose bound reaches the threshold
+    (and their neighbours): the same rows, bit for bit, as the whole score map gives, with
+    peaks on cell borders, in the map's corners, on plateaus and in noise."""
+    rng = np.random.default_rng(7)
+    det = rng.normal(0, 1.5, (4, 65, 12, 16)).astype(np.float32)
+    det[:, 64] += rng.uniform(0, 6, (4, 12, 16)).astype(np.float32)  # a "no centre" logit of every strength
+    det[0, 7, 3, 4] = det[0, 56, 3, 5] = 8.0  # two peaks either side of a cell border
+    det[1, 0, 0, 0] = det[1, 63, 11, 15] = 9.0  # the map's corners
+    det[2, 10, 5, 5] = det[2, 12, 5, 5] = 7.5  # a plateau: equal scores 2 px apart
+    det[3] = rng.normal(0, 3, (65, 12, 16))  # noise: many weak maxima
+    found = dec.peaks(det, threshold, 16, 4)
+    for got, want in zip(found, _whole_map_peaks(det, threshold, 16, 4)):
+        assert got.shape == want.shape
+        np.testing.assert_array_equal(got, want)
+    assert sum(len(f) for f in found) > 4
+
+
+@needs_nets
+def test_the_shipped_network_finds_the_same_candidates_either_way():
+    """On rendered views (sharp, blurred, marker-free) the candidates from the live cells
+    equal those from the whole score maps."""
+    from markerpose.stages.propose import network_weights
+
+    net = kp.KeypointNet(network_weights("mid"), stereo=True)
+    rig = mp.StereoRig.default()
+    views = []
+    for seed, blur in enumerate((0.0, 25.0)):
+        views += render_stereo(
+            rig, look_at_pose([10, -20, 500 + 150 * seed], 35, 20, 60), imaging=Imaging(motion_blur=blur), seed=seed
+        ).images
+    views.append(np.full((1024, 1280), 90, np.uint8))
+    det = net.det_logits(np.stack([kp.to_input(v, (320, 256))[0] for v in views]))
+    for got, want in zip(dec.peaks(det, 0.01, 16, 4), _whole_map_peaks(det, 0.01, 16, 4)):
+        np.testing.assert_array_equal(got, want)
+
+
+def test_the_input_four_times_smaller_is_opencvs_area_resize():
+    """The compiled 4x4 block means (stage 1's default input at 1280x1024) equal OpenCV's
+    area resize to the bit, ties (a block's mean at half a grey level) included; other
+    sizes and a strided image take OpenCV's resize itself."""
+    import cv2
+
+    rng = np.random.default_rng(3)
+    for shape, size in [((1024, 1280), (320, 256)), ((64, 96), (24, 16)), ((1024, 1280), (320, 240)), ((1024, 1280), (640, 512))]:
+        gray = rng.integers(0, 256, shape, dtype=np.uint8)
+        gray[:8, :8] = np.tile([[0, 1], [1, 0]], (4, 4))  # a block whose mean is exactly 0.5: rounds to 0 (even)
+        gray[8:12, :4] = 1
+        gray[8:10, :4] = 2  # mean 1.5: rounds to 2
+        want = cv2.resize(gray, size, interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+        got, scale = kp.to_input(gray, size)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_allclose(scale, [shape[1] / size[0], shape[0] / size[1]])
+    wide = rng.integers(0, 256, (1024, 2560), dtype=np.uint8)
+    np.testing.assert_array_equal(kp.to_input(wide[:, ::2], (320, 256))[0], kp.to_input(np.ascontiguousarray(wide[:, ::2]), (320, 256))[0])
+
+
+@needs_nets
+def test_the_detector_only_copy_gives_the_whole_networks_det_logits(tmp_path):
+    """The shipped stage-1 networks' detector-only copies give the whole network's
+    detector logits exactly; a copy that does not match its weights' metadata is not used."""
+    import shutil
+
+    from markerpose.nets import WEIGHTS_DIR, detector_only_path
+
+    x = np.random.default_rng(0).random((3, 256, 320), dtype=np.float32)
+    for name in ("keypoints-mid", "keypoints", "keypoints-lite"):
+        net = kp.KeypointNet(WEIGHTS_DIR / f"{name}.onnx")
+        assert net.locator is not None, name
+        np.testing.assert_array_equal(net.det_logits(x), net.logits(x)[0])
+    shutil.copy(WEIGHTS_DIR / "keypoints-mid.onnx", tmp_path / "mine.onnx")
+    shutil.copy(WEIGHTS_DIR / "keypoints-lite-det.onnx", detector_only_path(tmp_path / "mine.onnx"))  # another network's copy
+    mine = kp.KeypointNet(tmp_path / "mine.onnx")
+    assert mine.locator is None
+    np.testing.assert_array_equal(mine.det_logits(x), mine.logits(x)[0])
+
+
+_FORKED = {}
+
+
+def _run_forked(x):
+    return _FORKED["runner"](x)[0]
+
+
+@needs_nets
+def test_a_batch_split_over_two_sessions_is_the_batch_run_whole():
+    """ONNX Runtime runs a batch as two halves at once: the outputs are those of each input
+    alone, also in a process forked after the halves' thread started."""
+    import multiprocessing
+
+    from markerpose.nets import WEIGHTS_DIR, load_network
+
+    runner = load_network(WEIGHTS_DIR / "ellipses.onnx", "ellipses", None, threads=2)[0]
+    x = np.random.default_rng(1).random((5, 1, PATCH, PATCH), dtype=np.float32)
+    whole = runner(x)[0]
+    one = np.concatenate([runner(x[i : i + 1])[0] for i in range(5)])
+    np.testing.assert_allclose(whole, one, atol=1e-5)
+    _FORKED["runner"] = runner  # the child inherits it by the fork, not by pickling
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        forked = pool.apply(_run_forked, (x,))
+    np.testing.assert_allclose(forked, whole, atol=1e-5)
