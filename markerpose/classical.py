@@ -1225,7 +1225,7 @@ def refine_ellipses_views(
     cameras: list | None = None,
     noises: list | None = None,
     detail: bool = False,
-    limits: BlurLimits | None = None,
+    limits: BlurLimits | list | None = None,
     markers: list | None = None,
 ) -> list:
     """:func:`refine_ellipses` of several views (e.g. both of a stereo pair), their edge
@@ -1239,7 +1239,8 @@ def refine_ellipses_views(
         cameras: per view, a Camera or None.
         noises: per view, the image's noise sigma if known (else :func:`noise_sigma`).
         detail: also return each view's motion blur and its centres' covariances.
-        limits: what may stop the blurred-ring fits (:class:`BlurLimits`; None: nothing).
+        limits: what may stop the blurred-ring fits (:class:`BlurLimits`, or per view one;
+            None: nothing).
     Returns:
         per view, (centers, refined, ellipses) as :func:`refine_ellipses` returns them;
         with ``detail`` (centers, refined, ellipses, blur, covariances): ``blur`` is the motion blur
@@ -1266,14 +1267,16 @@ def refine_ellipses_views(
             rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=cq, _inner_cq=(cq[0], cq[1] / rho**2)))
         views.append(rings)
     out = []
-    for gray, noise, rings, mk, cam in zip(
+    per_view = limits if isinstance(limits, list) else [limits] * len(grays)
+    for gray, noise, rings, mk, cam, lim in zip(
         grays,
         noises,
         refine_views(grays, views, markers[0] if all(mk is markers[0] for mk in markers) else markers, c, noises, cameras),
         markers,
         cameras if cameras is not None else [None] * len(grays),
+        per_view,
     ):
-        rings = refine_blurred(gray, rings, mk, c, noise, limits, cam)
+        rings = refine_blurred(gray, rings, mk, c, noise, lim, cam)
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])

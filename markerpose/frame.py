@@ -78,6 +78,25 @@ class Frame:
         kept = self._memo.pop(("prefit", name), None)
         return kept[1] if kept is not None and kept[0] is predicted else None
 
+    def prelay(self, name: str, points: list, found: list, blur_fits: int) -> None:
+        """Keep the tool ``name``'s first cold hypothesis, ``points`` (per view (centres (3, 2),
+        score)), refined from its layout (``found``, per view a Detection or None) in one
+        batch with other tools' and having run ``blur_fits`` blurred-ring fits (see
+        :meth:`prelaid`)."""
+        self._memo[("prelay", name)] = (points, found, blur_fits)
+
+    def prelaid(self, name: str, points: list) -> tuple[list, int] | None:
+        """(found, blur fits run) that :meth:`prelay` kept for the tool ``name``, if of the same
+        ``points`` (once), else None: a tool whose candidates another tool's rings thinned
+        makes other hypotheses."""
+        kept = self._memo.pop(("prelay", name), None)
+        if kept is None or len(kept[0]) != len(points):
+            return None
+        same = all(
+            (a is None) == (b is None) and (a is None or (np.array_equal(a[0], b[0]) and a[1] == b[1])) for a, b in zip(kept[0], points)
+        )
+        return (kept[1], kept[2]) if same else None
+
     def claim(self, name: str, rings: list) -> None:
         """The rings of the tool ``name``, found in this call: per view, its outer
         ellipses ((cx, cy), (major, minor), angle). Another tool's rings must lie off them."""

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import detectors, presets
+from . import classical, detectors, presets
 from .camera import StereoRig
 from .frame import Frame
 from .geometry import ring_ellipses
@@ -343,7 +343,8 @@ class MarkerPose:
         tools; each tool's triples are matched by its own 3D shape, and the rings of a
         tool found are not another's. ``whys`` says why each missing tool was not found."""
         with self._call(gray_pair(left, right, self.rig)) as frame:
-            return self._each(frame, lambda tool, sub: self._fits_rig(sub, tool.cold(sub)), list(self.tools.values()))
+            tools = list(self.tools.values())
+            return self._each(frame, lambda tool, sub: self._fits_rig(sub, tool.cold(sub)), tools, self._cold_together)
 
     def track_all(self, left, right, times=None) -> dict[str, Estimate]:
         """Each tool's pose in the next pair of a video stream: ``{name: Estimate}`` of the
@@ -357,7 +358,10 @@ class MarkerPose:
             expected = {t.name: t.tracker.expected(frame) for t in tools if t.tracker.history}
             self._fit_together(frame, expected)
             found = self._each(
-                frame, lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET), times=times), tools
+                frame,
+                lambda tool, sub: tool.tracker.next(sub, tool, expected.get(tool.name, track.UNSET), times=times),
+                tools,
+                None if expected else self._cold_together,  # every tool cold: their first hypotheses together
             )
         return {name: self._checked(est, self.tools[name], times) for name, est in found.items()}
 
@@ -411,11 +415,30 @@ class MarkerPose:
         for (name, rings), fit in zip(items, found):
             frame.prefit(name, rings, fit)
 
-    def _each(self, frame: Frame, step, tools: list) -> dict[str, Estimate]:
-        """``step(tool, frame)`` of each tool in its own child frame; those found claim their rings."""
+    def _cold_together(self, frame: Frame, tools: list, subs: list) -> None:
+        """The first cold hypotheses of the ``tools`` (each in its child frame of ``subs``),
+        refined in one batch (:meth:`~markerpose.stages.refine.Refiner.layouts_of`) and kept
+        in each child for its own detection: a tool's first hypothesis is refined from its
+        rings' layout whatever the tools before it found, unless their rings were among its
+        candidates (:meth:`~markerpose.frame.Frame.prelaid`)."""
+        firsts = [(tool, sub, getattr(tool.detector, "first", lambda f: None)(sub)) for tool, sub in zip(tools, subs)]
+        firsts = [(tool, sub, f) for tool, sub, f in firsts if f is not None]
+        if len(firsts) < 2:
+            return
+        budgets = [classical.FitBudget(sub.blur_fits.left) for _, sub, _ in firsts]  # charged to each tool when it takes its fit
+        items = [(tool.marker, points, classical.BlurLimits(b, gate)) for (tool, _, (points, gate)), b in zip(firsts, budgets)]
+        found = frame.timed("refine", self.refiner.layouts_of, frame, frame.grays, list(self.rig.cameras), items)
+        for (tool, sub, (points, _)), fit, b in zip(firsts, found, budgets):
+            sub.prelay(tool.name, points, fit, sub.blur_fits.left - b.left)
+
+    def _each(self, frame: Frame, step, tools: list, prepare=None) -> dict[str, Estimate]:
+        """``step(tool, frame)`` of each tool in its own child frame (``prepare(frame, tools,
+        children)`` first); those found claim their rings."""
         found, self.whys = {}, {}
-        for k, tool in enumerate(tools):
-            sub = frame.child()
+        subs = [frame.child() for _ in tools]
+        if prepare is not None and len(tools) > 1:
+            prepare(frame, tools, subs)
+        for k, (tool, sub) in enumerate(zip(tools, subs)):
             est = step(tool, sub)
             if est is None:
                 self.whys[tool.name] = sub.why or "not found"

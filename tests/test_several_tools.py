@@ -48,10 +48,57 @@ def test_estimate_all_finds_each_tool_at_its_pose(several, scene, tools):
 
 def test_one_stage1_look_serves_every_tool(rig, tools, scene, monkeypatch):
     calls = []
-    logits = KeypointNet.logits
-    monkeypatch.setattr(KeypointNet, "logits", lambda self, batch: (calls.append(len(batch)), logits(self, batch))[1])
+    for name in ("logits", "det_logits"):  # the whole network, its detector head alone
+        run = getattr(KeypointNet, name)
+        monkeypatch.setattr(KeypointNet, name, lambda self, batch, run=run: (calls.append(len(batch)), run(self, batch))[1])
     assert len(mp.MarkerPose(rig, markers=tools).estimate_all(*scene.images)) == 3
     assert calls == [2]  # one look, both views in one batch, for the three tools
+
+
+def test_the_tools_first_cold_hypotheses_are_refined_in_one_batch(rig, tools, scene, monkeypatch):
+    """estimate_all refines every tool's first hypothesis in one edge-fit batch, and gives
+    the poses, to the bit, that each tool refined alone gives; also where one tool hides
+    part of another (whose first hypothesis then differs from the batch's), and with a
+    tool's blurred-ring fits (charged to that tool's budget once)."""
+    from markerpose import classical
+    from markerpose.pipeline import MarkerPose
+
+    hidden = render_tools(rig, [(tools[0], POSES[0]), (tools[1], look_at_pose(np.array([-75.0, 45, 640]), 20, 30, 10))], seed=12)
+    blurred = render_tools(rig, list(zip(tools, POSES)), Imaging(alpha=0.7, motion_blur=22.0, motion_angle=30.0), seed=13)
+    scenes = (scene, hidden, blurred)
+    batched = mp.MarkerPose(rig, markers=tools)
+    calls = []
+    fit = classical.refine_ellipses_views
+    monkeypatch.setattr(classical, "refine_ellipses_views", lambda *a, **k: (calls.append(len(a[0])), fit(*a, **k))[1])
+    with_batch = [batched.estimate_all(*f.images) for f in scenes]
+    assert calls[0] == 6  # the three tools' first hypotheses, both views, in the first call
+    monkeypatch.setattr(MarkerPose, "_cold_together", lambda self, frame, tools, subs: None)
+    alone = mp.MarkerPose(rig, markers=tools)
+    for got, f in zip(with_batch, scenes):
+        want = alone.estimate_all(*f.images)
+        assert list(got) == list(want)
+        for name in got:
+            np.testing.assert_array_equal(got[name].T, want[name].T)
+            assert [d.blur_px for d in got[name].detections] == [d.blur_px for d in want[name].detections]
+    assert len(with_batch[0]) == len(with_batch[2]) == 3 and len(with_batch[1]) >= 1
+    assert max(d.blur_px for e in with_batch[2].values() for d in e.detections) > 5
+
+
+def test_a_batched_hypothesis_serves_only_the_same_points():
+    """What the batch refined for a tool is taken once, and only for the very hypothesis
+    (the same centres and score in each view): a tool whose candidates another tool's
+    rings thinned refines its own."""
+    from markerpose.frame import Frame
+
+    pts = [(np.arange(6.0).reshape(3, 2), 0.9), (np.arange(6.0).reshape(3, 2) + 1, 0.9)]
+    frame = Frame([np.zeros((8, 8), np.uint8)] * 2)
+    frame.prelay("a", pts, ["left", "right"], 2)
+    assert frame.prelaid("b", pts) is None
+    assert frame.prelaid("a", [pts[0], (pts[1][0] + 0.5, 0.9)]) is None  # another hypothesis: and the kept one is gone
+    assert frame.prelaid("a", pts) is None
+    frame.prelay("a", pts, ["left", "right"], 2)
+    assert frame.prelaid("a", [(p.copy(), s) for p, s in pts]) == (["left", "right"], 2)
+    assert frame.prelaid("a", pts) is None  # once
 
 
 def test_tools_share_the_networks(several):

@@ -54,13 +54,49 @@ class StereoDetector(NeuralDetector):
         key = ("look", zoom, None if previous is None else tuple(self.proposer.near_key(p) for p in previous))
         return frame.shared(key, frame.timed, "propose", self.proposer.candidates, frame.grays, zoom, previous, frame.looked)
 
+    def first(self, frame: Frame) -> tuple | None:
+        """What :meth:`pairs` refines first, for refining it in one batch with other tools'
+        (:meth:`markerpose.stages.refine.Refiner.layouts_of`): (per view (centres (3, 2),
+        score), the blurred-ring fits' limits), with the frame's budget started; None where
+        the first look matches no triple, or this refine stage does not start from the
+        layout's ellipses."""
+        if not (self.refiner.edge_refit and self.refiner.conf["layout_seed"]):
+            return None
+        if frame.fits_left is None:
+            self.start_budget(frame)
+        triples = self.triples(frame, frame.unclaimed(self.look(frame, 1.0, None)))
+        if not triples:
+            return None
+        pl, pr, s = triples[0]
+        return [(pl, s), (pr, s)], self.gates(frame, 1.0)[0]
+
+    def triples(self, frame: Frame, cand: list) -> list:
+        """The candidates' triples that match across the views by the marker's 3D shape
+        (:func:`~markerpose.stages.match.stereo_triples`), once per call for the same
+        candidate arrays."""
+        m = self.conf["match"]
+
+        def matched():
+            found = frame.timed(
+                "match",
+                stereo_triples,
+                self.rig,
+                cand[0],
+                cand[1],
+                self.marker.points3d,
+                m["epipolar_tol"],
+                m["shape_tol"],
+                m["max_triples"],
+            )
+            return cand, found  # the arrays kept with their triples: their ids are not reused while the call lasts
+
+        return frame.shared(("triples", self.marker.name, id(cand[0]), id(cand[1])), matched)[1]
+
     def from_candidates(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
         """Stage 1's candidates of both views (from the look ``zoom``) matched by the
         marker's 3D shape, each triple refined in turn, then the transfer fallback."""
         m = self.conf["match"]
-        triples = frame.timed(
-            "match", stereo_triples, self.rig, cand[0], cand[1], self.marker.points3d, m["epipolar_tol"], m["shape_tol"], m["max_triples"]
-        )
+        triples = self.triples(frame, cand)
         if not triples:
             frame.failed(
                 f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "

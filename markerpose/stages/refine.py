@@ -136,12 +136,14 @@ class Refiner:
             out.append(Detection(centers=centers, ellipses=ellipses, score=score, refined=ok, blur_px=blur, center_cov=cov))
         return out
 
-    def layout_ellipses(self, points: np.ndarray) -> list | None:
-        """The rings' outer ellipses (RotatedRects) that three ring centres (3, 2) imply: the
-        affine map of the marker's layout onto them takes each ring's circle to an ellipse
-        (perspective across the plate is small); None for a degenerate triple."""
-        A = layout_affine(np.asarray(points, np.float64), self.marker.centers2d)
-        M = A @ A.T * self.marker.outer_radius**2  # the ellipse x = p + A r u, |u| = 1
+    def layout_ellipses(self, points: np.ndarray, marker: Marker | None = None) -> list | None:
+        """The rings' outer ellipses (RotatedRects) that three ring centres (3, 2) of
+        ``marker`` (None: this stage's) imply: the affine map of the marker's layout onto
+        them takes each ring's circle to an ellipse (perspective across the plate is small);
+        None for a degenerate triple."""
+        marker = self.marker if marker is None else marker
+        A = layout_affine(np.asarray(points, np.float64), marker.centers2d)
+        M = A @ A.T * marker.outer_radius**2  # the ellipse x = p + A r u, |u| = 1
         if not (np.all(np.isfinite(M)) and np.linalg.det(M) > 1e-9):
             return None
         Q = np.linalg.inv(M)
@@ -164,23 +166,52 @@ class Refiner:
     def _from_layout(self, frame: Frame, grays: list, cameras: list, points: list, seen: list, limits, out: list) -> None:
         """Into ``out``, per view of ``seen``, the Detection whose three rings' edges fit
         from the layout's ellipses (both views in one batch); no blur fit on seeds that
-        found no ring (the masks' ellipses get their turn)."""
-        seeds = {k: self.layout_ellipses(points[k][0]) for k in seen}
-        views = [k for k in seen if seeds[k] is not None]
-        if views:
-            fits = classical.refine_ellipses_views(
-                [grays[k] for k in views],
-                [seeds[k] for k in views],
-                self.marker,
-                {**self.classical, "blur_fit_unrefined": False},
-                [cameras[k] for k in views],
-                frame.noises([grays[k] for k in views]),
-                detail=True,
-                limits=limits,
-            )
-            for k, (centers, ok, ellipses, blur, cov) in zip(views, fits):
-                if ok.all():
-                    out[k] = Detection(centers=centers, ellipses=ellipses, score=points[k][1], refined=ok, blur_px=blur, center_cov=cov)
+        found no ring (the masks' ellipses get their turn). Where this hypothesis was
+        refined already, in one batch with other tools' (:meth:`layouts_of`), that is
+        taken instead, its blurred-ring fits charged to ``limits``' budget."""
+        kept = frame.prelaid(self.marker.name, points) if len(seen) == len(points) else None
+        if kept is not None:
+            out[:], fits = kept
+            if limits.budget is not None:
+                limits.budget.left -= fits
+            return
+        self._layouts(frame, grays, cameras, [(self.marker, points, limits, seen, out)])
+
+    def layouts_of(self, frame: Frame, grays: list, cameras: list, items: list) -> list:
+        """:meth:`_from_layout` of several tools' hypotheses in the same views, in one batch:
+        ``items`` are (marker, per view (centres (3, 2), score), the blurred-ring fits'
+        :class:`~markerpose.classical.BlurLimits`); per item, per view a Detection or None."""
+        outs = [[None] * len(grays) for _ in items]
+        self._layouts(frame, grays, cameras, [(mk, pts, lim, range(len(grays)), o) for (mk, pts, lim), o in zip(items, outs)])
+        return outs
+
+    def _layouts(self, frame: Frame, grays: list, cameras: list, jobs: list) -> None:
+        """The edge fits of ``jobs`` (marker, per view (centres, score), BlurLimits, the views
+        to fit, out) from their layouts' ellipses, in one batch: into each job's ``out``, per
+        view to fit, the Detection where all three rings refined."""
+        batch = []  # (job, view, seeds)
+        for job in jobs:
+            mk, points, _, seen, _ = job
+            for k in seen:
+                seeds = self.layout_ellipses(points[k][0], mk)
+                if seeds is not None:
+                    batch.append((job, k, seeds))
+        if not batch:
+            return
+        fits = classical.refine_ellipses_views(
+            [grays[k] for _, k, _ in batch],
+            [seeds for _, _, seeds in batch],
+            self.marker,
+            {**self.classical, "blur_fit_unrefined": False},
+            [cameras[k] for _, k, _ in batch],
+            frame.noises([grays[k] for _, k, _ in batch]),
+            detail=True,
+            limits=[job[2] for job, _, _ in batch],
+            markers=None if all(job[0] is self.marker for job in jobs) else [job[0] for job, _, _ in batch],
+        )
+        for (job, k, _), (centers, ok, ellipses, blur, cov) in zip(batch, fits):
+            if ok.all():
+                job[4][k] = Detection(centers=centers, ellipses=ellipses, score=job[1][k][1], refined=ok, blur_px=blur, center_cov=cov)
 
     def _from_masks(self, frame: Frame, grays: list, cameras: list, points: list, seen: list, limits, out: list) -> None:
         """Into ``out``, per view of ``seen``, the Detection from EllipSegNet's masks (all
