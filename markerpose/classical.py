@@ -63,6 +63,7 @@ from .images import as_gray
 from .jit import compiled
 from .marker import Marker
 from .results import Detection
+from .threads import Worker, cores
 
 default_conf: dict = {
     # --- binarisation -----------------------------------------------------------------
@@ -911,6 +912,41 @@ def refine_blurred(
     Returns the rings: refitted, unchanged, or unrefined where the two fits disagree.
     """
     c = _merge_conf(conf)
+    kept = _blur_kept(gray, rings, marker, c, limits)
+    if kept is not None:
+        return kept
+    return _blur_outcome(rings, _fit_blurred(gray, rings, marker, c, noise, camera), c)
+
+
+def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noises: list, limits: list, cameras: list) -> list:
+    """:func:`refine_blurred` of each view's rings (``views``, with per view its marker,
+    noise, :class:`BlurLimits` and camera), the fits that are due two at a time on two
+    cores: they run mostly in compiled code and BLAS, outside Python's lock. Whether each
+    view's fit runs (its gate, the budget) is decided first, in the views' order."""
+    kept = [_blur_kept(g, r, mk, c, lim) for g, r, mk, lim in zip(grays, views, markers, limits)]
+    due = [k for k, r in enumerate(kept) if r is None]
+
+    def fit(k):
+        return _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k])
+
+    fits = {}
+    while due:
+        if len(due) >= 2 and cores() >= 2:
+            a, b = due[:2]
+            fits[a], fits[b] = _WORKER.both(functools.partial(fit, a), functools.partial(fit, b))
+            due = due[2:]
+        else:
+            fits[due[0]] = fit(due[0])
+            due = due[1:]
+    return [r if r is not None else _blur_outcome(views[k], fits[k], c) for k, r in enumerate(kept)]
+
+
+_WORKER = Worker()  # the second of two blurred-ring fits at once
+
+
+def _blur_kept(gray: np.ndarray, rings: list, marker: Marker, c: dict, limits: BlurLimits | None) -> list | None:
+    """None where the blurred-ring fit of ``rings`` is to run; else the rings as they stay:
+    unchanged where the fit is not due, unrefined where it is due but may not run."""
     if not _blur_fit_due(rings, marker, c):
         return rings
     # Wide edges the model may not check (the ring-evidence gate refuses them, or the
@@ -921,7 +957,12 @@ def refine_blurred(
         return _unrefined(rings)
     if limits.budget is not None and not limits.budget.take():
         return _unrefined(rings)
-    fit = _fit_blurred(gray, rings, marker, c, noise, camera)
+    return None
+
+
+def _blur_outcome(rings: list, fit: dict | None, c: dict) -> list:
+    """``rings`` after their blurred-ring fit ``fit`` (None: it failed): refitted, unchanged,
+    or unrefined where the two fits disagree."""
     if fit is None:
         return rings
     # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
@@ -1267,16 +1308,10 @@ def refine_ellipses_views(
             rings.append(Ring(np.array([cx, cy], np.float64), tuple(rect), inner, 1.0, _outer_cq=cq, _inner_cq=(cq[0], cq[1] / rho**2)))
         views.append(rings)
     out = []
+    cameras = cameras if cameras is not None else [None] * len(grays)
+    fitted = refine_views(grays, views, markers[0] if all(mk is markers[0] for mk in markers) else markers, c, noises, cameras)
     per_view = limits if isinstance(limits, list) else [limits] * len(grays)
-    for gray, noise, rings, mk, cam, lim in zip(
-        grays,
-        noises,
-        refine_views(grays, views, markers[0] if all(mk is markers[0] for mk in markers) else markers, c, noises, cameras),
-        markers,
-        cameras if cameras is not None else [None] * len(grays),
-        per_view,
-    ):
-        rings = refine_blurred(gray, rings, mk, c, noise, lim, cam)
+    for rings in refine_blurred_views(grays, fitted, markers, c, noises, per_view, cameras):
         centers = np.array([[np.nan, np.nan] if r is None else r.center for r in rings], np.float64).reshape(-1, 2)
         ok = np.array([r is not None and r.refined for r in rings], bool)
         found = (centers, ok, [None if r is None else r.outer for r in rings])

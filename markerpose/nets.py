@@ -11,15 +11,14 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
 import zipfile
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from .signals import held_interrupt
+from .threads import Worker, cores
 
 WEIGHTS_DIR = Path(__file__).parent / "weights"
 META_KEY = "markerpose"  # the ONNX metadata entry holding the file's non-weight contents
@@ -163,14 +162,14 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
     whole = session(threads)
     meta = _checked_meta(path, kind, whole.get_modelmeta().custom_metadata_map.get(META_KEY))
     name = whole.get_inputs()[0].name
-    cores = int(threads or os.cpu_count() or 1)
-    if cores < 2:
+    n = int(threads or cores())
+    if n < 2:
         return Runner(lambda x: tuple(whole.run(None, {name: x})), "onnxruntime"), meta
     # A batch (the two views, a look's windows) runs as two halves at once, each on half the
     # threads: the small layers of these networks leave threads idle at every operator's
     # barrier when one run spreads over all of them.
-    halves = (session(cores // 2), session(cores - cores // 2))
-    worker = _Worker()
+    halves = (session(n // 2), session(n - n // 2))
+    worker = Worker()
 
     def run(x):
         if len(x) < 2:
@@ -181,19 +180,6 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
         return tuple(np.concatenate(pair) for pair in zip(first, later.result()))
 
     return Runner(run, "onnxruntime"), meta
-
-
-class _Worker:
-    """One thread that runs the second half of a batch. It is started afresh in a process
-    forked from the one that started it (a forked child has none of its parent's threads)."""
-
-    def __init__(self):
-        self._pool, self._pid = None, None
-
-    def submit(self, fn, *args):
-        if self._pid != os.getpid():
-            self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose-net"), os.getpid()
-        return self._pool.submit(fn, *args)
 
 
 BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run

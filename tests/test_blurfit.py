@@ -283,6 +283,25 @@ def test_wide_edges_the_blur_fit_may_not_check_refine_no_ring(blurred_view):
     assert ok.all() and budget.left == 0
 
 
+def test_the_views_blur_fits_side_by_side_give_each_views_own(blurred_view):
+    """refine_ellipses_views runs two views' blurred-ring fits at once: each view's rings
+    are, to the bit, what its fit alone gives; the budget goes to the views in their
+    order (one fit left: the first view's rings refine, the second's are not trusted)."""
+    rig, img, truth = blurred_view
+    rects = _truth_rects(truth)
+    flipped = np.ascontiguousarray(img[:, ::-1])
+    rects_flipped = [((1279 - c[0], c[1]), axes, -ang) for c, axes, ang in rects]
+    views = C.refine_ellipses_views([img, flipped], [rects, rects_flipped], detail=True)
+    for got, (im, r) in zip(views, ((img, rects), (flipped, rects_flipped))):
+        alone = C.refine_ellipses_views([im], [r], detail=True)[0]
+        assert got[1].all() and got[3] > 20
+        for a, b in zip(got[:2] + got[3:4], alone[:2] + alone[3:4]):
+            np.testing.assert_array_equal(a, b)
+    budget = C.FitBudget(1)
+    views = C.refine_ellipses_views([img, flipped], [rects, rects_flipped], limits=C.BlurLimits(budget=budget))
+    assert views[0][1].all() and not views[1][1].any() and budget.left == 0
+
+
 @pytest.mark.skipif(not default_weights("keypoints").is_file(), reason="no shipped weights")
 def test_a_detection_without_blur_fits_left_gives_no_pose_under_heavy_blur():
     # The same 25 px-blurred pair: found with the default budget of blurred-ring fits;

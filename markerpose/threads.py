@@ -1,0 +1,40 @@
+"""A second thread for work that runs outside Python's lock: the networks' runs, the
+compiled fits. Two calls at once use both cores of a two-core machine, where one call
+spread over both (ONNX Runtime's operators, BLAS) leaves them idle at every barrier."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+
+class Worker:
+    """One thread that runs a second call beside the caller's. It is started afresh in a
+    process forked from the one that started it (a forked child has none of its parent's
+    threads)."""
+
+    def __init__(self):
+        self._pool, self._pid = None, None
+
+    def submit(self, fn: Callable, *args):
+        """``fn(*args)`` on the worker thread: a future."""
+        if self._pid != os.getpid():
+            self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose"), os.getpid()
+        return self._pool.submit(fn, *args)
+
+    def both(self, first: Callable, second: Callable) -> tuple:
+        """(first(), second()), ``second`` on the worker thread while ``first`` runs here."""
+        later = self.submit(second)
+        return first(), later.result()
+
+
+def cores() -> int:
+    """The cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on every platform
+        return os.cpu_count() or 1
+
+
+__all__ = ["Worker", "cores"]
