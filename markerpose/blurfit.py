@@ -93,39 +93,35 @@ def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
     copy of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` =
     (the form's, L's, sigma's) divide the form's derivatives and multiply L's and
     sigma's (a reparametrisation)."""
+    _add_disks(x, y, [(c, Q, sign, cols, scales)], theta, L, sigma, jac, val, J)
+
+
+def _add_disks(x, y, disks, theta, L, sigma, jac, val, J):
+    """:func:`_add_disk` of each of ``disks`` = (c, Q, sign, cols, scales), in their order, in
+    one compiled call."""
     u0, u1 = math.cos(theta), math.sin(theta)
     L, sigma = max(float(L), 0.05), float(sigma)
-    q00, q01, q11 = float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1])
-    det = q00 * q11 - q01 * q01
-    # Only points within the blurred ellipse's bounding box (its half-widths: the inverse
-    # form's diagonal, square-rooted) can be non-zero.
-    ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma
-    ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma
-    _disk_kernel(
-        x,
-        y,
-        float(c[0]),
-        float(c[1]),
-        q00,
-        q01,
-        q11,
-        u0,
-        u1,
-        L,
-        sigma,
-        ext0,
-        ext1,
-        float(sign),
-        bool(jac),
-        val,
-        J,
-        int(cols[0]),
-        int(cols[1]),
-        int(cols[2]),
-        float(scales[0]),
-        float(scales[1]),
-        float(scales[2]),
-    )
+    rows = np.empty((len(disks), 14))
+    for n, (c, Q, sign, cols, scales) in enumerate(disks):
+        q00, q01, q11 = float(Q[0, 0]), float(Q[0, 1]), float(Q[1, 1])
+        det = q00 * q11 - q01 * q01
+        # Only points within the blurred ellipse's bounding box (its half-widths: the inverse
+        # form's diagonal, square-rooted) can be non-zero.
+        ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma
+        ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma
+        rows[n] = (c[0], c[1], q00, q01, q11, ext0, ext1, sign, cols[0], cols[1], cols[2], scales[0], scales[1], scales[2])
+    _disks_kernel(x, y, rows, u0, u1, L, sigma, bool(jac), val, J)
+
+
+@compiled
+def _disks_kernel(x, y, rows, u0, u1, L, sigma, jac, val, J):  # pragma: no cover - compiled
+    """:func:`_disk_kernel` of each disk's row of :func:`_add_disks`, in order."""
+    for n in range(rows.shape[0]):
+        r = rows[n]
+        _disk_kernel(
+            x, y, r[0], r[1], r[2], r[3], r[4], u0, u1, L, sigma, r[5], r[6], r[7], jac, val, J,
+            int(r[8]), int(r[9]), int(r[10]), r[11], r[12], r[13],
+        )  # fmt: skip
 
 
 @compiled
@@ -332,25 +328,13 @@ class _Problem:
         J = np.zeros((N, 7 * k + 3) if jac else (1, 7 * k + 3))
         # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
         # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
+        disks = []
         for j, (c, Q, d) in enumerate(rings):
             if not (Q[0, 0] > 0 and Q[0, 0] * Q[1, 1] - Q[0, 1] * Q[1, 0] > 0):
                 raise ValueError("ellipse form not positive definite")
-            _add_disk(self.x, self.y, c, Q, theta, L, sigma, 1.0, jac, R, J, (7 * j, -1, 7 * k), (self.scale**2, L, sigma))
-            _add_disk(
-                self.x,
-                self.y,
-                c + d,
-                Q / self.rho**2,
-                theta,
-                L,
-                sigma,
-                -1.0,
-                jac,
-                R,
-                J,
-                (7 * j, 7 * j + 5, 7 * k),
-                (self.rho**2 * self.scale**2, L, sigma),
-            )
+            disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
+            disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
+        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J)
         if not jac:
             return R, None
         self._kept = (p.copy(), R, J)
@@ -367,23 +351,122 @@ class _Problem:
         collapse to B^T (M^T W M)^-1 B with B = M^T W Jm, and M^T W r = 0 at the levels'
         weighted fit, so g = Jm^T W r."""
         R, J = self.model(p, jac or keep)
-        xs, ys = self.xs, self.ys
-        M = np.column_stack([np.ones_like(xs), xs, ys, R, R * xs, R * ys])
-        Mw = M * self.w[:, None]  # the levels are a weighted fit (robust weights)
-        MtM = Mw.T @ M + 1e-9 * np.eye(6)
-        beta = np.linalg.solve(MtM, Mw.T @ self.v)
-        res = (M @ beta - self.v) / self.noise
         if not jac:
-            return res, beta, None
-        wgt = (beta[3] + beta[4] * xs + beta[5] * ys) / self.noise
-        ww = self.w * wgt
-        B = Mw.T @ (J * wgt[:, None])
-        H = J.T @ (J * (ww * wgt)[:, None]) - B.T @ np.linalg.solve(MtM, B)
-        g = J.T @ (ww * res)
-        return res, beta, (H, g)
+            J = _NO_J
+        res, beta = np.empty(len(R)), np.empty(6)
+        H, g = np.empty((J.shape[1], J.shape[1])), np.empty(J.shape[1])
+        # The levels are a weighted fit (robust weights); one compiled pass each for them,
+        # the residuals and the normal equations.
+        if not _levels_and_normals(R, J, self.xs, self.ys, self.v, self.w, self.noise, bool(jac), res, beta, H, g):
+            raise np.linalg.LinAlgError("the levels' normal equations are singular")
+        return res, beta, ((H, g) if jac else None)
 
     def residual(self, p, keep=False):
         return self.evaluate(p, keep=keep)[0]
+
+
+_NO_J = np.zeros((1, 1))  # the derivatives' place where none are asked for
+
+
+@compiled
+def _levels_and_normals(R, J, xs, ys, v, w, noise, jac, res, beta, H, g):  # pragma: no cover - compiled
+    """:meth:`_Problem.evaluate`'s algebra: the levels' weighted least squares (the six
+    columns M = [1, x, y, R, R x, R y], weights w; a 1e-9 ridge), the residuals (M beta -
+    v) / noise into ``res`` and beta into ``beta``; with ``jac`` the normal equations into
+    ``H`` and ``g``. False where the levels' matrix is not positive definite."""
+    N = len(R)
+    A = np.zeros((6, 6))
+    b = np.zeros(6)
+    m = np.empty(6)
+    for i in range(N):
+        m[0], m[1], m[2], m[3], m[4], m[5] = 1.0, xs[i], ys[i], R[i], R[i] * xs[i], R[i] * ys[i]
+        wi = w[i]
+        for a in range(6):
+            wa = wi * m[a]
+            b[a] += wa * v[i]
+            for c in range(a + 1):
+                A[a, c] += wa * m[c]
+    for a in range(6):
+        A[a, a] += 1e-9
+        for c in range(a):
+            A[c, a] = A[a, c]
+    Lc = np.zeros((6, 6))
+    if not _cholesky(A, Lc):
+        return False
+    beta[:] = b
+    _cholesky_solve(Lc, beta)
+    for i in range(N):
+        res[i] = (beta[0] + beta[1] * xs[i] + beta[2] * ys[i] + R[i] * (beta[3] + beta[4] * xs[i] + beta[5] * ys[i]) - v[i]) / noise
+    if not jac:
+        return True
+    # H = J^T W' J - B^T A^-1 B with W' = w wgt^2, B = M^T (w wgt J), wgt the rings' contrast
+    # at the pixel in noise sigmas; g = J^T (w wgt res) (variable projection, Kaufman).
+    P = J.shape[1]
+    H[:] = 0.0
+    g[:] = 0.0
+    B = np.zeros((6, P))
+    for i in range(N):
+        wgt = (beta[3] + beta[4] * xs[i] + beta[5] * ys[i]) / noise
+        ww = w[i] * wgt
+        m[0], m[1], m[2], m[3], m[4], m[5] = 1.0, xs[i], ys[i], R[i], R[i] * xs[i], R[i] * ys[i]
+        for a in range(P):
+            ja = J[i, a]
+            if ja == 0.0:
+                continue
+            g[a] += ww * res[i] * ja
+            t = ww * wgt * ja
+            for c in range(a + 1):
+                H[a, c] += t * J[i, c]
+            t = ww * ja
+            for r in range(6):
+                B[r, a] += m[r] * t
+    X = B.copy()
+    for a in range(P):
+        col = X[:, a].copy()
+        _cholesky_solve(Lc, col)
+        X[:, a] = col
+    for a in range(P):
+        for c in range(a + 1):
+            s = 0.0
+            for r in range(6):
+                s += B[r, a] * X[r, c]
+            H[a, c] -= s
+            H[c, a] = H[a, c]
+    return True
+
+
+@compiled
+def _cholesky(A, L):  # pragma: no cover - compiled
+    """L lower-triangular with L L^T = A (n x n); False where A is not positive definite."""
+    n = A.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            if i == j:
+                if not s > 0:
+                    return False
+                L[i, i] = np.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    return True
+
+
+@compiled
+def _cholesky_solve(L, x):  # pragma: no cover - compiled
+    """x <- A^-1 x for A = L L^T, in place."""
+    n = L.shape[0]
+    for i in range(n):
+        s = x[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
 
 
 def _robust_lm(prob, p, conf):
@@ -586,4 +669,9 @@ def warm_up() -> None:
     if not _WARM:
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8, jac=True)
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8)
+        z = np.zeros(8)
+        for J in (np.zeros((8, 3)), _NO_J):
+            _levels_and_normals(
+                z, J, z, z, z, z + 1, 1.0, J is not _NO_J, np.empty(8), np.empty(6), np.empty((J.shape[1],) * 2), np.empty(J.shape[1])
+            )
         _WARM = True
