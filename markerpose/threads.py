@@ -5,6 +5,7 @@ spread over both (ONNX Runtime's operators, BLAS) leaves them idle at every barr
 from __future__ import annotations
 
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -20,13 +21,23 @@ class Worker:
     def submit(self, fn: Callable, *args):
         """``fn(*args)`` on the worker thread: a future."""
         if self._pid != os.getpid():
-            self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose"), os.getpid()
+            self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose", initializer=_mark_worker), os.getpid()
         return self._pool.submit(fn, *args)
 
     def both(self, first: Callable, second: Callable) -> tuple:
-        """(first(), second()), ``second`` on the worker thread while ``first`` runs here."""
+        """(first(), second()), ``second`` on the worker thread while ``first`` runs here; both
+        here, in turn, when called from a worker thread (which would otherwise wait on itself)."""
+        if getattr(_HERE, "worker", False):
+            return first(), second()
         later = self.submit(second)
         return first(), later.result()
+
+
+_HERE = threading.local()
+
+
+def _mark_worker() -> None:
+    _HERE.worker = True
 
 
 def cores() -> int:

@@ -176,3 +176,13 @@ def test_a_batch_split_over_two_sessions_is_the_batch_run_whole():
     with multiprocessing.get_context("fork").Pool(1) as pool:
         forked = pool.apply(_run_forked, (x,))
     np.testing.assert_allclose(forked, whole, atol=1e-5)
+
+
+def test_a_worker_asked_from_its_own_thread_runs_both_in_turn():
+    """Worker.both from the worker's own thread (a fit that itself asks for two at once)
+    runs both there rather than wait on itself."""
+    from markerpose.threads import Worker
+
+    worker = Worker()
+    inner = worker.submit(lambda: worker.both(lambda: 1, lambda: 2)).result(timeout=10)
+    assert inner == (1, 2) and worker.both(lambda: "a", lambda: "b") == ("a", "b")
