@@ -154,9 +154,8 @@ class Frame:
         if known is not None:
             self._noise.update((id(g), (g, float(n))) for g, n in zip(grays, known))
             return [float(n) for n in known]
-        for g in grays:
-            if id(g) not in self._noise:  # the memo holds the image, so its id is not reused within the call
-                self._noise[id(g)] = (g, classical.noise_sigma(g))
+        new = list({id(g): g for g in grays if id(g) not in self._noise}.values())  # the memo holds the image: its id is not reused
+        self._noise.update((id(g), (g, n)) for g, n in zip(new, classical.noise_sigmas(new)))
         return [self._noise[id(g)][1] for g in grays]
 
     def finish(self) -> dict[str, float]:

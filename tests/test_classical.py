@@ -144,6 +144,9 @@ def test_noise_sigma_estimate():
     cv2.circle(img, (250, 200), 80, 30.0, -1)  # edges are a minority: the median ignores them
     img += rng.normal(0, 2.0, img.shape).astype(np.float32)
     assert C.noise_sigma(img) == pytest.approx(2.0, rel=0.1)
+    # Several images' estimates, two at a time: each image's own, in order.
+    imgs = [np.clip(img + rng.normal(0, s, img.shape), 0, 255).astype(np.uint8) for s in (1.0, 3.0, 5.0)]
+    assert C.noise_sigmas(imgs) == [C.noise_sigma(g) for g in imgs] and C.noise_sigmas([]) == []
 
 
 # --- single view: the affine fixture ------------------------------------------------------------
