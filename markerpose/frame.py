@@ -115,7 +115,11 @@ class Frame:
         """Per view, the (N, 3) candidates off every claimed ring (all of them while none is)."""
         if not any(self.claimed):
             return cand
-        return [c[[self.claimant(v, p[:2]) is None for p in c]] if len(c) else c for v, c in enumerate(cand)]
+        return [c[keep] if len(c) else c for c, keep in zip(cand, self.unclaimed_masks(cand))]
+
+    def unclaimed_masks(self, cand: list) -> list:
+        """Per view, which of the (N, 3) candidates lie off every claimed ring (N,)."""
+        return [np.array([self.claimant(v, p[:2]) is None for p in c], bool).reshape(len(c)) for v, c in enumerate(cand)]
 
     def failed(self, reason: str) -> None:
         """Remember why a hypothesis failed, if it is the first reason of this call."""

@@ -21,7 +21,7 @@ from ..geometry import ring_diameter, ring_ellipses
 from ..keypoints import look_size
 from ..results import Detection
 from ..stages import match, verify
-from ..stages.match import stereo_triples, transfer, transfer_sources
+from ..stages.match import matched_triples, stereo_triples, transfer, transfer_sources
 from .base import NeuralDetector
 
 MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
@@ -45,8 +45,9 @@ class StereoDetector(NeuralDetector):
             # fitted one view's rings to the plate, resolution is not what failed.
             if cand is not None and (frame.plate_seen or not self.proposer.worth_second_look(cand)):
                 return
-            cand = frame.unclaimed(self.look(frame, zoom, cand))
-            yield from self.from_candidates(frame, cand, zoom)
+            look = self.look(frame, zoom, cand)
+            cand = frame.unclaimed(look)
+            yield from self.from_candidates(frame, cand, zoom, look)
 
     def look(self, frame: Frame, zoom: float, previous: list | None) -> list:
         """Stage 1's candidates of the look ``zoom`` (:meth:`~markerpose.stages.propose.NeuralProposer.candidates`),
@@ -64,39 +65,41 @@ class StereoDetector(NeuralDetector):
             return None
         if frame.fits_left is None:
             self.start_budget(frame)
-        triples = self.triples(frame, frame.unclaimed(self.look(frame, 1.0, None)))
+        look = self.look(frame, 1.0, None)
+        triples = self.triples(frame, frame.unclaimed(look), look)
         if not triples:
             return None
         pl, pr, s = triples[0]
         return [(pl, s), (pr, s)], self.gates(frame, 1.0)[0]
 
-    def triples(self, frame: Frame, cand: list) -> list:
-        """The candidates' triples that match across the views by the marker's 3D shape
-        (:func:`~markerpose.stages.match.stereo_triples`), once per call for the same
-        candidate arrays."""
+    def triples(self, frame: Frame, cand: list, look: list | None = None) -> list:
+        """The candidates' triples that match across the views by the marker's 3D shape,
+        best first (:func:`~markerpose.stages.match.stereo_triples`). ``cand`` is ``look`` (a
+        look's candidates, per view) without the candidates other tools' rings claimed:
+        the triples are the look's, matched once per call, without those holding a claimed
+        candidate (:func:`~markerpose.stages.match.matched_triples`)."""
         m = self.conf["match"]
+        look = cand if look is None else look
 
         def matched():
             found = frame.timed(
-                "match",
-                stereo_triples,
-                self.rig,
-                cand[0],
-                cand[1],
-                self.marker.points3d,
-                m["epipolar_tol"],
-                m["shape_tol"],
-                m["max_triples"],
+                "match", matched_triples, self.rig, look[0], look[1], self.marker.points3d, m["epipolar_tol"], m["shape_tol"]
             )
-            return cand, found  # the arrays kept with their triples: their ids are not reused while the call lasts
+            return look, found  # the arrays kept with their triples: their ids are not reused while the call lasts
 
-        return frame.shared(("triples", self.marker.name, id(cand[0]), id(cand[1])), matched)[1]
+        pl, pr, score, il, ir = frame.shared(("triples", self.marker.name, id(look[0]), id(look[1])), matched)[1]
+        if cand is not look:
+            keep_l, keep_r = frame.unclaimed_masks(look)
+            ok = keep_l[il].all(1) & keep_r[ir].all(1) if len(score) else np.zeros(0, bool)
+            pl, pr, score = pl[ok], pr[ok], score[ok]
+        return [(pl[n], pr[n], float(score[n])) for n in range(min(len(score), m["max_triples"]))]
 
-    def from_candidates(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
-        """Stage 1's candidates of both views (from the look ``zoom``) matched by the
-        marker's 3D shape, each triple refined in turn, then the transfer fallback."""
+    def from_candidates(self, frame: Frame, cand: list, zoom: float, look: list | None = None) -> Iterator[list[Detection]]:
+        """Stage 1's candidates of both views (from the look ``zoom``; ``cand`` those of
+        ``look`` that no other tool claimed) matched by the marker's 3D shape, each triple
+        refined in turn, then the transfer fallback."""
         m = self.conf["match"]
-        triples = self.triples(frame, cand)
+        triples = self.triples(frame, cand, look)
         if not triples:
             frame.failed(
                 f"no triple of stage-1 candidates ({len(cand[0])} left, {len(cand[1])} right) "

@@ -117,12 +117,26 @@ def stereo_triples(
         c0, c1, c2 and best first. The score is the geometric mean of the six candidates'
         scores times (1 - the largest relative distance error / ``shape_tol``).
     """
+    pl, pr, score, _, _ = matched_triples(rig, cand_left, cand_right, model, epipolar_tol, shape_tol)
+    return [(pl[n], pr[n], float(score[n])) for n in range(min(len(score), max_triples))]
+
+
+def matched_triples(
+    rig: StereoRig, cand_left: np.ndarray, cand_right: np.ndarray, model: np.ndarray, epipolar_tol: float = 12.0, shape_tol: float = 0.15
+) -> tuple:
+    """Every triple :func:`stereo_triples` finds, best first (the same order), with the
+    candidates it is made of: (left points (M, 3, 2), right points (M, 3, 2), scores (M,),
+    left candidates' indices (M, 3), right candidates' indices (M, 3)). A triple's score
+    depends on its own six candidates alone, and the order of two triples on their scores
+    and candidates' order alone: the triples of a subset of the candidates are those of
+    all the candidates that the subset holds, in the same order."""
     cl, cr = np.asarray(cand_left, np.float64).reshape(-1, 3), np.asarray(cand_right, np.float64).reshape(-1, 3)
+    none = (np.zeros((0, 3, 2)), np.zeros((0, 3, 2)), np.zeros(0), np.zeros((0, 3), int), np.zeros((0, 3), int))
     if len(cl) < 3 or len(cr) < 3:
-        return []
+        return none
     I, J = np.nonzero(epipolar_distance(rig, cl[:, :2], cr[:, :2]) <= epipolar_tol)
     if len(I) < 3:
-        return []
+        return none
     X = triangulate(rig, cl[I, :2], cr[J, :2])
     front = (X[:, 2] > 0) & (rig.to_right(X)[:, 2] > 0)
     I, J, X = I[front], J[front], X[front]
@@ -135,7 +149,7 @@ def stereo_triples(
     A, B = np.nonzero(err[0] <= shape_tol)
     n, C = np.nonzero((err[1][A] <= shape_tol) & (err[2][B] <= shape_tol))
     if not len(n):
-        return []
+        return none
     T = np.column_stack([A[n], B[n], C])
     distinct = (
         (I[T[:, 0]] != I[T[:, 1]])
@@ -151,8 +165,8 @@ def stereo_triples(
     T, pl, pr = T[front], pl[front], pr[front]
     e = np.maximum(np.maximum(err[0][T[:, 0], T[:, 1]], err[1][T[:, 0], T[:, 2]]), err[2][T[:, 1], T[:, 2]])
     score = np.exp(logs[T].mean(1)) * (1 - e / shape_tol)
-    order = np.argsort(-score, kind="stable")[:max_triples]
-    return [(pl[n], pr[n], float(score[n])) for n in order]
+    order = np.argsort(-score, kind="stable")
+    return pl[order], pr[order], score[order], I[T][order], J[T][order]
 
 
 def layout_orders(cand: np.ndarray, layout: np.ndarray, min_ratio: float = 0.35, top: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -283,6 +297,7 @@ __all__ = [
     "best_per_set",
     "default_conf",
     "layout_orders",
+    "matched_triples",
     "pair_triples",
     "side_lengths",
     "stereo_triples",

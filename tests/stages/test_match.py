@@ -6,7 +6,7 @@ import pytest
 import markerpose as mp
 from markerpose.classical import refine_points
 from markerpose.geometry import ring_ellipses, rotation_angle, signed_areas, view_poses
-from markerpose.stages.match import side_lengths, stereo_triples, transfer, view_triples
+from markerpose.stages.match import matched_triples, side_lengths, stereo_triples, transfer, view_triples
 from markerpose.synth import look_at_pose
 
 
@@ -47,6 +47,37 @@ def test_finds_the_marker_among_decoys_in_id_order(rig, seed):
     assert np.abs(pl - true[0]).max() < 5 and np.abs(pr - true[1]).max() < 5  # right points, c0 c1 c2
     assert 0 < score <= 0.3
     assert all(f[2] <= score for f in found)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_subsets_triples_are_the_full_sets_that_it_holds(rig, seed):
+    """The triples of a subset of the candidates (another tool's rings taken out) are, in
+    the same order and to the bit, those of all the candidates that use none of the
+    removed ones: what each tool's detection takes from one matching per call."""
+    rng = np.random.default_rng(seed)
+    m = mp.Marker()
+    views = [[], []]
+    for _ in range(3):  # three markers of one layout and decoys: many triples, ties of order
+        T = look_at_pose([rng.uniform(-80, 80), rng.uniform(-60, 60), rng.uniform(450, 700)], rng.uniform(0, 40), rng.uniform(0, 360), 0)
+        for v, p in enumerate(_project(rig, T, m.points3d)):
+            views[v].append(p + rng.normal(0, 0.5, p.shape))
+    decoys = rig.project(np.array([0, 0, 560.0]) + rng.uniform(-90, 90, (6, 3)))
+    left, right = (np.vstack(views[v] + [decoys[v]]) for v in (0, 1))
+    cl, cr = _cands(left, rng.uniform(0.2, 0.9, len(left))), _cands(right, rng.uniform(0.2, 0.9, len(right)))
+    pl, pr, score, il, ir = matched_triples(rig, cl, cr, m.points3d)
+    assert len(score) >= 3 and np.all(np.diff(score) <= 0)
+    np.testing.assert_array_equal(pl, cl[il, :2])
+    for removed in (rng.choice(len(cl), 3, replace=False), np.arange(3), np.arange(len(cl) - 2)):
+        keep_l = np.ones(len(cl), bool)
+        keep_l[removed] = False
+        keep_r = rng.random(len(cr)) > 0.2
+        want = stereo_triples(rig, cl[keep_l], cr[keep_r], m.points3d, max_triples=99)
+        ok = keep_l[il].all(1) & keep_r[ir].all(1)
+        assert len(want) == ok.sum()
+        for (a, b, sc), x, y, z in zip(want, pl[ok], pr[ok], score[ok]):
+            np.testing.assert_array_equal(a, x)
+            np.testing.assert_array_equal(b, y)
+            assert sc == z
 
 
 def test_rejects_wrong_shape_and_mirror_image(rig):
