@@ -118,7 +118,7 @@ def test_layout_seeds_fit_the_edges_without_the_masks(rig, monkeypatch):
     for a, b in zip(est.detections, masks_first.detections):
         assert np.abs(a.centers - b.centers).max() < 0.01  # px: the same edges, converged
     monkeypatch.undo()
-    monkeypatch.setattr(tr.refiner, "layout_ellipses", lambda pts: [((p[0] + 30, p[1]), (20.0, 20.0), 0.0) for p in pts])
+    monkeypatch.setattr(tr.refiner, "layout_ellipses", lambda pts, marker=None: [((p[0] + 30, p[1]), (20.0, 20.0), 0.0) for p in pts])
     est = tr.estimate(*f.images)  # seeds 30 px off: the edge fit fails, the masks' seeds fit
     assert est is not None and np.linalg.norm(est.t - f.T_left_marker[:3, 3]) < 0.05
 
