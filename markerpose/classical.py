@@ -120,10 +120,6 @@ default_conf: dict = {
     #                             or more off, which coarse rays move as far), px; 0: edge_spacing
     "first_pass_max_width": 0.2,  # ... its fit discarded where the edges are wider (10-90 %) than
     #                               this fraction of the minor semi-axis (blur: every ray counts)
-    "blur_fit_passes": 4,  # full passes at most for an outer edge wider than 1.1 blur_fit_width
-    #                        of its minor semi-axis and than edges.BLURRED_MIN_PX (motion blur),
-    #                        where the blurred-ring fit refits the ring and only starts from the
-    #                        edge fit (0: no limit)
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
     "rescreen_frac": 0.03,  # the next pass screens its points by least median again only after a

@@ -1427,9 +1427,6 @@ def _spd2_rows(Q, inverse, out, eig):  # pragma: no cover - compiled
         out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = r00, r01, r01, r11
 
 
-BLURRED_MIN_PX = 5.0  # 10-90 % edge width from which a wide edge is a motion's, not a small ring's optics, px
-
-
 def _fit_passes(
     grays: list,
     view: np.ndarray,
@@ -1464,12 +1461,6 @@ def _fit_passes(
     screen = np.full(K, not close)
     tol = c["refine_tol"]
     sparse = c["first_pass_spacing"] if not c["refine_first_tol"] else 0.0
-    # Outer edges this wide (and motion-wide, not a small ring's optics) are refitted by the
-    # blurred-ring model, which only starts from their fit: the passes, slow to settle on
-    # smeared edges, stop after a few.
-    cap = int(c.get("blur_fit_passes", 0)) if dark_inside and c.get("blur_fit", False) else 0
-    blurred = 1.1 * c.get("blur_fit_width", np.inf)
-    passes = np.zeros(K, int)
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
         if not len(a):
@@ -1521,8 +1512,6 @@ def _fit_passes(
                 done = move[i] < c["refine_first_tol"] and (screened[i] or not screen[k])
             else:
                 done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
-            passes[k] += not coarse
-            done = done or bool(cap and passes[k] >= cap and wdg[i] >= max(blurred * _semi_axes(Qf[i : i + 1]).min(), BLURRED_MIN_PX))
             last[k] = move[i]
             if done:
                 active[k] = False

@@ -283,30 +283,6 @@ def test_wide_edges_the_blur_fit_may_not_check_refine_no_ring(blurred_view):
     assert ok.all() and budget.left == 0
 
 
-def test_edges_the_blur_fit_refits_take_a_few_passes(blurred_view, monkeypatch):
-    """Outer edges wider than the blurred-ring fit's gate (and than a motion's few pixels)
-    stop after blur_fit_passes full passes (the model fit refits them, only starting from
-    there): fewer passes, and centres within a few hundredths of a pixel of the fit started
-    from converged edges."""
-    from markerpose import edges
-
-    rig, img, truth = blurred_view
-    rects = _truth_rects(truth)
-    passes = []
-    real = edges.edge_points
-    monkeypatch.setattr(edges, "edge_points", lambda *a, **k: (passes.append(a[5]), real(*a, **k))[1])
-    runs = {}
-    for cap in (2, 0):
-        passes.clear()
-        runs[cap] = (C.refine_ellipses_views([img], [rects], conf={"blur_fit_passes": cap}, detail=True)[0], passes.count(True))
-    (capped, n_capped), (full, n_full) = runs[2], runs[0]
-    assert capped[1].all() and capped[3] > 20 and n_capped <= 3 < n_full
-    assert np.abs(capped[0] - full[0]).max() < 0.05
-    passes.clear()
-    C.refine_ellipses_views([img], [rects], conf={"blur_fit": False}, detail=True)
-    assert passes.count(True) > 4  # no blurred-ring fit: the edge fit is the result, and converges
-
-
 def test_the_views_blur_fits_side_by_side_give_each_views_own(blurred_view):
     """refine_ellipses_views runs two views' blurred-ring fits at once: each view's rings
     are, to the bit, what its fit alone gives; the budget goes to the views in their
