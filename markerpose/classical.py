@@ -63,7 +63,7 @@ from .images import as_gray
 from .jit import compiled
 from .marker import Marker
 from .results import Detection
-from .threads import Worker, cores
+from .threads import Worker
 
 default_conf: dict = {
     # --- binarisation -----------------------------------------------------------------
@@ -725,13 +725,7 @@ def _noises(grays: list, noises: list | None) -> list:
 def noise_sigmas(grays: list) -> list[float]:
     """:func:`noise_sigma` of each image, two at a time on two cores (its pass over the image
     runs compiled, outside Python's lock)."""
-    out = []
-    for k in range(0, len(grays), 2):
-        if k + 1 < len(grays) and cores() >= 2:
-            out += _WORKER.both(functools.partial(noise_sigma, grays[k]), functools.partial(noise_sigma, grays[k + 1]))
-        else:
-            out.append(noise_sigma(grays[k]))
-    return out
+    return _WORKER.map(noise_sigma, grays)
 
 
 def refine_views(
@@ -943,15 +937,7 @@ def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noise
     def fit(k):
         return _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k])
 
-    fits = {}
-    while due:
-        if len(due) >= 2 and cores() >= 2:
-            a, b = due[:2]
-            fits[a], fits[b] = _WORKER.both(functools.partial(fit, a), functools.partial(fit, b))
-            due = due[2:]
-        else:
-            fits[due[0]] = fit(due[0])
-            due = due[1:]
+    fits = dict(zip(due, _WORKER.map(fit, due)))
     return [r if r is not None else _blur_outcome(views[k], fits[k], c) for k, r in enumerate(kept)]
 
 

@@ -109,7 +109,12 @@ def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray
     scores = np.asarray(scores, np.float32)  # compare like with like: dilate works in float32
     dil = cv2.dilate(scores, _square(size))
     ys, xs = np.nonzero((scores >= dil) & (scores >= threshold))
-    s = scores[ys, xs]
+    return _best_apart(xs, ys, scores[ys, xs], radius, k)
+
+
+def _best_apart(xs: np.ndarray, ys: np.ndarray, s: np.ndarray, radius: int, k: int) -> np.ndarray:
+    """Local maxima (x, y, score), in the map's row-major order, best first without those
+    within ``radius`` of a better one (a plateau's twins): (N, 3), N <= k."""
     order = np.argsort(-s)
     kept: list[tuple[float, float, float]] = []
     r2 = radius**2
@@ -167,7 +172,6 @@ def _sparse_peaks(det_logits: np.ndarray, threshold: float, k: int, radius: int)
     maps = np.zeros((b, H, W), np.float32)
     maps.reshape(-1)[(bi[:, None] * H + rows) * W + cols] = cells
     d = np.arange(-radius, radius + 1)
-    r2 = radius**2
     out = []
     for j in range(b):
         above = (cells >= threshold) & (bi == j)[:, None]
@@ -176,15 +180,7 @@ def _sparse_peaks(det_logits: np.ndarray, threshold: float, k: int, radius: int)
         ys, xs, s = ys[order], xs[order], s[order]
         window = maps[j][ys[:, None, None] + d[None, :, None], xs[:, None, None] + d[None, None, :]]
         top = s >= window.reshape(len(s), -1).max(axis=1) if len(s) else np.zeros(0, bool)
-        ys, xs, s = ys[top] - pad, xs[top] - pad, s[top]
-        best = np.argsort(-s)
-        kept: list[tuple[float, float, float]] = []
-        for x0, y0, s0 in zip(xs[best].tolist(), ys[best].tolist(), s[best].tolist()):
-            if all((x0 - x) ** 2 + (y0 - y) ** 2 > r2 for x, y, _ in kept):  # plateaus: drop maxima near a better one
-                kept.append((float(x0), float(y0), s0))
-            if len(kept) == k:
-                break
-        out.append(_refine(maps[j, pad:-pad, pad:-pad], np.array(kept, np.float64).reshape(-1, 3)))
+        out.append(_refine(maps[j, pad:-pad, pad:-pad], _best_apart(xs[top] - pad, ys[top] - pad, s[top], radius, k)))
     return out
 
 

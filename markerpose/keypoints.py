@@ -17,7 +17,6 @@ needs torch; the decoding is numpy.
 
 from __future__ import annotations
 
-import functools
 import math
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from .evidence import ring_evidence
 from .jit import compiled
 from .marker import Marker
 from .nets import detector_only_path, load_network
-from .threads import Worker, cores
+from .threads import Worker
 
 INPUT_SIZE = (320, 240)  # (width, height) the paper resizes every image to
 PAPER_WIDTHS = (64, 64, 64, 64, 128, 128, 128, 128)
@@ -343,12 +342,8 @@ class KeypointNet:
     def _forward(self, images: list[np.ndarray], zoom: float = 1.0, kept: list | None = None, ids: bool = True):
         """Full-resolution gray images → (det logits, ID logits (None unless ``ids``), per-image
         scales back, inputs), looked at ``zoom`` times the paper's input size."""
-        if len(images) == 2 and cores() >= 2:  # the two views' inputs at once (compiled, outside Python's lock)
-            inputs, scales = zip(
-                *_WORKER.both(functools.partial(self._input, images[0], zoom, kept), functools.partial(self._input, images[1], zoom, kept))
-            )
-        else:
-            inputs, scales = zip(*(self._input(g, zoom, kept) for g in images))
+        # The views' inputs two at a time (their resize runs compiled, outside Python's lock).
+        inputs, scales = zip(*_WORKER.map(lambda g: self._input(g, zoom, kept), images))
 
         def run(batch):
             return self.logits(batch) if ids else (self.det_logits(batch), None)
@@ -455,7 +450,6 @@ class KeypointNet:
 
 __all__ = [
     "INPUT_SIZE",
-    "warm_up",
     "KeypointNet",
     "build_network",
     "check_second_look",
@@ -467,4 +461,5 @@ __all__ = [
     "to_input",
     "to_input_window",
     "tuned_key",
+    "warm_up",
 ]

@@ -175,9 +175,8 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
         if len(x) < 2:
             return tuple(whole.run(None, {name: x}))
         k = len(x) // 2
-        later = worker.submit(halves[1].run, None, {name: x[k:]})
-        first = halves[0].run(None, {name: x[:k]})
-        return tuple(np.concatenate(pair) for pair in zip(first, later.result()))
+        first, second = worker.both(lambda: halves[0].run(None, {name: x[:k]}), lambda: halves[1].run(None, {name: x[k:]}))
+        return tuple(np.concatenate(pair) for pair in zip(first, second))
 
     return Runner(run, "onnxruntime"), meta
 
@@ -336,11 +335,11 @@ def detector_only(src: str | Path, dest: str | Path | None = None) -> Path:
     from onnx.utils import extract_model
 
     src = Path(src)
-    meta = _checked_meta(src, "keypoints", _raw_meta(src))
+    model = onnx.load(str(src))
+    meta = _checked_meta(src, "keypoints", _meta_text(model))
     dest = Path(dest) if dest is not None else detector_only_path(src)
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "det.onnx"
-        model = onnx.load(str(src))
         extract_model(str(src), str(out), [model.graph.input[0].name], ["det"])
         det = onnx.load(str(out))
     for m in list(det.metadata_props):
@@ -351,12 +350,9 @@ def detector_only(src: str | Path, dest: str | Path | None = None) -> Path:
     return dest
 
 
-def _raw_meta(src: Path) -> str:
-    """The markerpose metadata text of an ``.onnx`` file ("" when absent). Needs ``onnx``."""
-    import onnx
-
-    model = onnx.load(str(src), load_external_data=False)
-    return next((m.value for m in model.metadata_props if m.key == META_KEY), "")
+def _meta_text(model) -> str | None:
+    """A loaded ONNX model's markerpose metadata text (None when absent)."""
+    return next((m.value for m in model.metadata_props if m.key == META_KEY), None)
 
 
 def quantizable_meta(src: str | Path, kind: str | None = None) -> dict:
@@ -373,7 +369,7 @@ def quantizable_meta(src: str | Path, kind: str | None = None) -> dict:
         model = onnx.load(str(src), load_external_data=False)
     except (DecodeError, ValueError, OSError) as exc:
         raise ValueError(f"{src} is not a readable ONNX model") from exc
-    raw = next((m.value for m in model.metadata_props if m.key == META_KEY), None)
+    raw = _meta_text(model)
     if kind:
         meta = _checked_meta(src, kind, raw)
     else:

@@ -421,7 +421,7 @@ class MarkerPose:
         in each child for its own detection: a tool's first hypothesis is refined from its
         rings' layout whatever the tools before it found, unless their rings were among its
         candidates (:meth:`~markerpose.frame.Frame.prelaid`)."""
-        firsts = [(tool, sub, getattr(tool.detector, "first", lambda f: None)(sub)) for tool, sub in zip(tools, subs)]
+        firsts = [(tool, sub, tool.detector.first(sub)) for tool, sub in zip(tools, subs)]
         firsts = [(tool, sub, f) for tool, sub, f in firsts if f is not None]
         if len(firsts) < 2:
             return

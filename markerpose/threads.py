@@ -4,6 +4,7 @@ spread over both (ONNX Runtime's operators, BLAS) leaves them idle at every barr
 
 from __future__ import annotations
 
+import functools
 import os
 import threading
 from collections.abc import Callable
@@ -31,6 +32,17 @@ class Worker:
             return first(), second()
         later = self.submit(second)
         return first(), later.result()
+
+    def map(self, fn: Callable, items: list) -> list:
+        """``[fn(item) for item in items]``, two at a time (:meth:`both`) where this process
+        has two cores or more."""
+        out: list = []
+        for k in range(0, len(items), 2):
+            if k + 1 < len(items) and cores() >= 2:
+                out += self.both(functools.partial(fn, items[k]), functools.partial(fn, items[k + 1]))
+            else:
+                out.append(fn(items[k]))
+        return out
 
 
 _HERE = threading.local()

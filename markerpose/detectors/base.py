@@ -55,6 +55,12 @@ class Detector:
         ``T_pred``): none unless the detector can look there for less."""
         yield from ()
 
+    def first(self, frame: Frame) -> tuple | None:
+        """What :meth:`pairs` refines first, for refining it in one batch with other tools'
+        (:meth:`markerpose.stages.refine.Refiner.layouts_of`): none unless the detector
+        starts from a hypothesis it can name before refining."""
+        return None
+
     def view(self, frame: Frame, view: int) -> Detection | None:
         """The marker in one view (``frame.grays[0]``, taken by camera ``view``), or None."""
         raise NotImplementedError
