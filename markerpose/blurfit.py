@@ -22,6 +22,12 @@ pixel in the motion direction the ellipse occupies a chord [s1, s2] (a quadratic
 roots), and the blurred value is the chord's overlap with [-L/2, L/2] over L, smoothed
 by sigma in closed form. Across the motion, sigma is applied by a three-point
 Gauss-Hermite rule.
+
+The fit samples the image sparsely, each sample the mean of the pixel block around it, so
+that every pixel's noise counts at a fraction of the model's cost. Its last iterations
+model each sample as what it is, the block's mean (a 2 x 2-point rule over the block,
+:func:`block_offset`); the model of the block's centre alone, with its Gaussian widened,
+misfits sharp edges by what depends on where the samples fall on them.
 """
 
 from __future__ import annotations
@@ -52,6 +58,12 @@ default_conf: dict = {
     "max_pixels": 20_000,  # ... or a sparser grid where that would give more pixels: the
     #                        marker's rings give fewer even at the nearest working distance,
     #                        a large ring-like decoy many more (seconds of fitting)
+    "block_fit": True,  # ... fitted by a model of the blocks' means (block_offset), started
+    #                     where a fit of the model at the blocks' centres settled (False:
+    #                     that fit alone, its result then depends on its start by up to
+    #                     tenths of a pixel at sharp edges) ...
+    "block_start_tol": 0.01,  # ... which stops at this centre step, px, or ...
+    "block_start_ftol": 1e-3,  # ... this relative cost change
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
     "xtol": 1e-4,  # convergence: relative parameter change ...
     "ftol": 1e-4,  # ... or relative cost change ...
@@ -68,10 +80,11 @@ PLATE_SLACK_PX = 3.0  # beyond the motion's reach, the optics' blur and a block 
 _JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
 
 
-def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
+def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, box=1):
     """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
     ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
-    a three-point rule across), at the points (x, y).
+    a three-point rule across), at the points (x, y); with an odd ``box`` > 1, its mean
+    over the ``box`` x ``box`` pixels centred on each point (:func:`block_offset`).
 
     Returns the values (N,), and with ``jac`` also their derivatives: a dict with ``c``
     (N, 2), ``Q`` (N, 3) for (Q11, Q12, Q22), ``theta``, ``L`` and ``sigma`` (N,).
@@ -81,24 +94,34 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False):
     x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
     val = np.zeros(len(x))
     J = np.zeros((len(x), 8) if jac else (1, 8))
-    _add_disk(x, y, c, Q, theta, L, sigma, 1.0, jac, val, J, (0, -1, 5), (1.0, 1.0, 1.0))
+    _add_disks(x, y, [(c, Q, 1.0, (0, -1, 5), (1.0, 1.0, 1.0))], theta, L, sigma, jac, val, J, block_offset(box))
     if not jac:
         return val
     return val, {k: J[:, col] for k, col in _JCOLS.items()}
 
 
-def _add_disk(x, y, c, Q, theta, L, sigma, sign, jac, val, J, cols, scales):
-    """Add ``sign`` times :func:`blurred_disk` at (x, y) to ``val`` and, with ``jac``, its
-    derivatives to ``J``'s columns ``cols`` = (centre and form (5 from there), a second
-    copy of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` =
-    (the form's, L's, sigma's) divide the form's derivatives and multiply L's and
-    sigma's (a reparametrisation)."""
-    _add_disks(x, y, [(c, Q, sign, cols, scales)], theta, L, sigma, jac, val, J)
+def block_offset(box: int) -> float:
+    """The offset h of the 2 x 2-point rule (+-h, +-h) for the mean of a function over a block
+    of ``box`` x ``box`` pixels (odd) centred on a point: h^2 = r (r + 1) / 3, r = box // 2,
+    the variance of a pixel's offset along each axis within the block (0 for one pixel).
+
+    A block's mean is the image convolved with that discrete box. Modelled as the point
+    model alone (its Gaussian widened to take the box in), the box's flat profile is
+    misfitted at sharp edges, by what depends on where the sparse samples fall on them:
+    fits of the same rings from starts a pixel apart settled up to tenths of a pixel apart
+    and the far and blurred held-out poses' errors doubled in their tails."""
+    r = int(box) // 2
+    return math.sqrt(r * (r + 1) / 3.0)
 
 
-def _add_disks(x, y, disks, theta, L, sigma, jac, val, J):
-    """:func:`_add_disk` of each of ``disks`` = (c, Q, sign, cols, scales), in their order, in
-    one compiled call."""
+def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0):
+    """Add each of ``disks`` = (c, Q, sign, cols, scales), in their order, in one compiled
+    call: ``sign`` times :func:`blurred_disk` at (x, y), or with ``h`` > 0 its mean over the
+    four points (x +- h, y +- h) (:func:`block_offset`), to ``val`` and, with ``jac``, its
+    derivatives to ``J``'s columns ``cols`` = (centre and form (5 from there), a second copy
+    of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` = (the form's,
+    L's, sigma's) divide the form's derivatives and multiply L's and sigma's (a
+    reparametrisation)."""
     u0, u1 = math.cos(theta), math.sin(theta)
     L, sigma = max(float(L), 0.05), float(sigma)
     rows = np.empty((len(disks), 14))
@@ -107,28 +130,29 @@ def _add_disks(x, y, disks, theta, L, sigma, jac, val, J):
         det = q00 * q11 - q01 * q01
         # Only points within the blurred ellipse's bounding box (its half-widths: the inverse
         # form's diagonal, square-rooted) can be non-zero.
-        ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma
-        ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma
+        ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma + h
+        ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma + h
         rows[n] = (c[0], c[1], q00, q01, q11, ext0, ext1, sign, cols[0], cols[1], cols[2], scales[0], scales[1], scales[2])
-    _disks_kernel(x, y, rows, u0, u1, L, sigma, bool(jac), val, J)
+    _disks_kernel(x, y, rows, u0, u1, L, sigma, float(h), bool(jac), val, J)
 
 
 @compiled
-def _disks_kernel(x, y, rows, u0, u1, L, sigma, jac, val, J):  # pragma: no cover - compiled
+def _disks_kernel(x, y, rows, u0, u1, L, sigma, h, jac, val, J):  # pragma: no cover - compiled
     """:func:`_disk_kernel` of each disk's row of :func:`_add_disks`, in order."""
     for n in range(rows.shape[0]):
         r = rows[n]
         _disk_kernel(
-            x, y, r[0], r[1], r[2], r[3], r[4], u0, u1, L, sigma, r[5], r[6], r[7], jac, val, J,
+            x, y, r[0], r[1], r[2], r[3], r[4], u0, u1, L, sigma, h, r[5], r[6], r[7], jac, val, J,
             int(r[8]), int(r[9]), int(r[10]), r[11], r[12], r[13],
         )  # fmt: skip
 
 
 @compiled
 def _disk_kernel(
-    x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
+    x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, h, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
 ):  # pragma: no cover - compiled
-    """:func:`_add_disk` per point: the chord [s1, s2] of the ellipse along the motion
+    """:func:`_add_disks` per point (or, with ``h`` > 0, per each of the four points (+-h,
+    +-h) around it, a quarter each): the chord [s1, s2] of the ellipse along the motion
     through the point (shifted across it by each Gauss-Hermite node), its overlap with
     the box [-L/2, L/2] smoothed by sigma (G, the antiderivative of the normal CDF,
     in closed form), and the derivatives through the chord ends."""
@@ -136,16 +160,21 @@ def _disk_kernel(
     Lh = 0.5 * L
     qu0, qu1 = q00 * u0 + q01 * u1, q01 * u0 + q11 * u1
     A = u0 * qu0 + u1 * qu1
+    subs = 4 if h > 0 else 1
+    share = 1.0 / subs
     for i in range(len(x)):
         if not (abs(x[i] - c0) < ext0 and abs(y[i] - c1) < ext1):
             continue
         vi = 0.0
         j0 = j1 = j2 = j3 = j4 = j5 = j6 = j7 = 0.0
-        for node in range(3):
-            tau, w = _GH_T[node], _GH_W[node]
+        for node3 in range(3 * subs):
+            node, sub = node3 % 3, node3 // 3
+            ox = 0.0 if subs == 1 else (h if sub & 1 else -h)
+            oy = 0.0 if subs == 1 else (h if sub & 2 else -h)
+            tau, w = _GH_T[node], _GH_W[node] * share
             off = tau * sigma
-            dx = x[i] + off * n0 - c0
-            dy = y[i] + off * n1 - c1
+            dx = x[i] + ox + off * n0 - c0
+            dy = y[i] + oy + off * n1 - c1
             B = dx * qu0 + dy * qu1
             C = q00 * dx * dx + 2 * q01 * dx * dy + q11 * dy * dy - 1.0
             disc = B * B - A * C
@@ -188,7 +217,7 @@ def _disk_kernel(
 def _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss):  # pragma: no cover - compiled
     """Add ``sign`` times point ``i``'s derivatives (centre, form, the centre's copy,
     theta / L / sigma) to its row of ``J``, the form's divided by ``sq`` and L's and
-    sigma's multiplied by ``sl`` and ``ss`` (the reparametrisation of :func:`_add_disk`)."""
+    sigma's multiplied by ``sl`` and ``ss`` (the reparametrisation of :func:`_add_disks`)."""
     J[i, col_cq] += sign * j0
     J[i, col_cq + 1] += sign * j1
     J[i, col_cq + 2] += sign * j2 / sq
@@ -235,6 +264,7 @@ class _Problem:
         self.scale = float(np.mean([np.sqrt(1 / np.sqrt(np.linalg.det(Q))) for _, Q in self.cqs]))  # ~ sqrt(radius)
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
+        self.block = False  # the model of each sample's block mean (True) or of its centre
 
     def pixels(self, reach, stride=1, motion=None):
         """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
@@ -334,7 +364,7 @@ class _Problem:
                 raise ValueError("ellipse form not positive definite")
             disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
             disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
-        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J)
+        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J, block_offset(self.box) if self.block else 0.0)
         if not jac:
             return R, None
         self._kept = (p.copy(), R, J)
@@ -555,7 +585,15 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     if not _fit_pixels(prob, (p0[-3], 1.3 * np.exp(p0[-2])), c):
         return None
     try:
-        p, nfev, gave_up = _robust_lm(prob, p0, c)
+        block = c["block_fit"] and prob.box > 1
+        first = {**c, "center_tol": c["block_start_tol"], "ftol": c["block_start_ftol"]} if block else c
+        p, nfev, gave_up = _robust_lm(prob, p0, first)
+        if block and not gave_up:
+            # The fit of the blocks' centres (the cheaper model) gives the start of the fit
+            # of their means, which costs four times as much per iteration.
+            prob.block, prob._kept = True, None
+            p, more, gave_up = _robust_lm(prob, p, c)
+            nfev += more
     except (np.linalg.LinAlgError, ValueError):
         return None
     if not np.all(np.isfinite(p)):

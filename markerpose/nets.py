@@ -390,7 +390,8 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     activations' ranges calibrated (min-max) on ``batches`` ((B, 1, H, W) float32 inputs
     in [0, 1]); the input's range is [0, 1] whatever the batches hold. The operators that
     produce the network's outputs stay float32: quantized logits lose the resolution that
-    ranks stage 1's candidates (a small marker's rings among them). The markerpose
+    ranks stage 1's candidates (a small marker's rings among them); so do the narrow ones
+    (:data:`INT8_MIN_CHANNELS`), where int8 runs slower. The markerpose
     metadata is kept, with ``int8`` (the number of calibration inputs) added. Needs
     ``onnx`` (the train extra) to make; the result runs without it, on ONNX Runtime (or
     OpenVINO)."""
@@ -447,6 +448,7 @@ def _quantize_qdq(pre: Path, dest: Path, batches: list) -> None:
 
     outputs = {o.name for o in graph.output}
     last = [n.name for n in graph.node if outputs & set(n.output)]
+    narrow = _narrow_nodes(graph)
     pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
     quantize_static(
         str(pre),
@@ -456,9 +458,26 @@ def _quantize_qdq(pre: Path, dest: Path, batches: list) -> None:
         per_channel=True,
         activation_type=QuantType.QUInt8,
         weight_type=QuantType.QInt8,
-        nodes_to_exclude=last,
+        nodes_to_exclude=last + narrow,
         extra_options={"TensorQuantOverrides": pinned},
     )
+
+
+# Operators whose output has fewer channels than this stay float32: ONNX Runtime's int8
+# convolutions are slower than its float32 ones on layers this narrow (the stem of the
+# stage-1 networks, at full and half resolution), and faster on the wider ones after it.
+INT8_MIN_CHANNELS = 16
+
+
+def _narrow_nodes(graph) -> list[str]:
+    """Names of ``graph``'s operators (shapes inferred) whose (N, C, H, W) output has fewer
+    than :data:`INT8_MIN_CHANNELS` channels C."""
+    channels = {}
+    for v in [*graph.value_info, *graph.output]:
+        dims = v.type.tensor_type.shape.dim
+        if len(dims) == 4 and dims[1].HasField("dim_value"):
+            channels[v.name] = dims[1].dim_value
+    return [n.name for n in graph.node if 0 < channels.get(n.output[0], INT8_MIN_CHANNELS) < INT8_MIN_CHANNELS]
 
 
 def _drop_unused_opsets(model) -> None:

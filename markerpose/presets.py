@@ -40,19 +40,19 @@ PRESETS: dict[str, dict] = {
     },
     "classical": {"detector": "classical"},
     "default-bf16": {"backend": "openvino-bf16"},
-    "default-int8": {"propose": {"int8": True}},
+    "default-float32": {"propose": {"int8": False}},
     "default-lite": {"propose": {"network": "lite"}},
 }
 
 ABOUT: dict[str, str] = {
-    "default": "ours: stage-1 candidates (the mid network at the image's aspect) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
-    "ellipses the three points predict (EllipSegNet's masks where that fails), blurred-ring fit, plate check, "
+    "default": "ours: stage-1 candidates (the mid network at the image's aspect, int8 in its wide layers) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
+    "ellipses the three points predict (EllipSegNet's masks where that fails), blurred-ring fit (of the sampled blocks' means), plate check, "
     "perspective-bias correction, rigid pose; a second look at twice the input's size when nothing is found",
     "paper": "the paper's MarkerPose: ring IDs from the ID head, EllipSegNet on fixed 120 px patches with cv2.fitEllipse, "
     "DLT of the ellipse centres, R = [x y x×y]",
     "paper-classical": "the paper's classical detector (§3.4): binarisation, contours, concentric ellipses, epipolar pairing; paper pose",
     "classical": "the classical detector with our sub-pixel edges, blurred-ring fit, bias correction and rigid pose",
-    "default-int8": "default with stage 1's network in int8 on ONNX Runtime (shipped, no extra)",
+    "default-float32": "default with stage 1's network in float32 throughout (the default until v0.42)",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra): faster on CPUs with AMX",
     "default-lite": "default with the lite stage-1 network (a quarter of the paper's widths, an eighth in the first four "
     "convolutions; the default's mid network has three eighths)",

@@ -1,5 +1,6 @@
-"""Stage 1 in int8: the shipped quantized copy of the keypoint network (preset
-``default-int8``) and the tool that makes it (:func:`markerpose.nets.quantize_onnx`)."""
+"""Stage 1 in int8: the shipped quantized copy of the keypoint network (the default's;
+preset ``default-float32`` without it) and the tool that makes it
+(:func:`markerpose.nets.quantize_onnx`)."""
 
 import json
 
@@ -40,16 +41,16 @@ def test_int8_stage1_finds_float32s_candidates(stem):
 
 
 @pytest.mark.parametrize("gain", [1.0, 2.2])
-def test_default_int8_gives_the_defaults_poses(gain):
+def test_the_default_int8_stage1_gives_float32s_poses(gain):
     """Stage 1 only proposes: the edge fit places the centres, so the poses agree to
     1e-3 mm, also on images brighter than the renderer's (the paper near 90 % of full
     scale, as cameras are often set), outside most of the calibration images' range."""
     rig = mp.StereoRig.default()
-    ref, i8 = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-int8")
-    assert (
-        i8.detector.proposer.net.path == nets.int8_weights(propose.NETWORKS[propose.default_conf["network"]])
-        and ref.detector.proposer.net.path != i8.detector.proposer.net.path
-    )
+    ref, i8 = mp.MarkerPose(rig, preset="default-float32"), mp.MarkerPose(rig)
+    stem = propose.NETWORKS[propose.default_conf["network"]]
+    assert i8.detector.proposer.net.path == nets.int8_weights(stem) and ref.detector.proposer.net.path == nets.default_weights(stem)
+    # The paper's configuration keeps its float32 network.
+    assert mp.MarkerPose(rig, preset="paper").detector.proposer.net.path == nets.default_weights("keypoints")
     for frame in _frames():
         images = [np.clip(np.asarray(im, np.float32) * gain, 0, 255).astype(np.uint8) for im in frame.images]
         a, b = ref.estimate(*images), i8.estimate(*images)
@@ -58,14 +59,22 @@ def test_default_int8_gives_the_defaults_poses(gain):
         assert np.linalg.norm(a.t - frame.T_left_marker[:3, 3]) < 0.05
 
 
-def test_int8_needs_the_shipped_weights_and_is_listed_where_it_runs(monkeypatch, tmp_path):
+def test_int8_needs_the_shipped_weights_and_falls_back_to_float32_where_there_is_none(monkeypatch, tmp_path):
+    rig = mp.StereoRig.default()
     with pytest.raises(ValueError, match="--int8 SRC DEST"):
-        mp.MarkerPose(mp.StereoRig.default(), propose={"int8": True, "weights": "mine.onnx"})
-    assert "default-int8" in configs.available()
+        mp.MarkerPose(rig, propose={"int8": True, "weights": "mine.onnx"})
+    with pytest.raises(ValueError, match="int8.*true, false or null"):
+        mp.MarkerPose(rig, propose={"int8": "yes"})
+    mine = mp.MarkerPose(rig, propose={"weights": str(nets.default_weights("keypoints-lite"))})
+    assert mine.detector.proposer.net.path == nets.default_weights("keypoints-lite")  # your weights as given
+    assert {"default", "default-float32"} <= set(configs.available())
     missing = tmp_path / "keypoints-int8.onnx"
-    monkeypatch.setattr(nets, "int8_weights", lambda kind: missing)
-    monkeypatch.setattr(configs, "int8_weights", lambda kind: missing)
-    assert "default-int8" not in configs.available() and "default" in configs.available()
+    for module in (nets, configs, propose):
+        monkeypatch.setattr(module, "int8_weights", lambda kind: missing)
+    assert "default" in configs.available()
+    assert mp.MarkerPose(rig).detector.proposer.net.path == nets.default_weights("keypoints-mid")
+    with pytest.raises(ValueError, match="no int8 copy"):
+        mp.MarkerPose(rig, propose={"int8": True})
     with pytest.raises(ValueError, match="not found.*--int8 SRC DEST"):
         nets.load_network(missing, "keypoints", None)
 
@@ -119,3 +128,30 @@ def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tm
         nets.quantizable_meta(nets.WEIGHTS_DIR / "keypoints.pt")
     with pytest.raises(ValueError, match="no such file"):
         nets.quantizable_meta(tmp_path / "none.onnx")
+
+
+def test_the_narrow_layers_stay_float32():
+    """The shipped int8 copy of the default's network keeps float32 where int8 runs slower
+    (outputs under nets.INT8_MIN_CHANNELS channels: its stem at full and half resolution)
+    and for the logits; every wider convolution takes int8 weights."""
+    onnx = pytest.importorskip("onnx")
+    model = onnx.load(str(nets.int8_weights("keypoints-mid")))
+    inits = {i.name: i for i in model.graph.initializer}
+    produced = {o: n for n in model.graph.node for o in n.output}
+    kinds = {}
+    for n in model.graph.node:
+        if n.op_type != "Conv":
+            continue
+        w = n.input[1]
+        if w in inits:  # a float32 weight
+            kinds[n.name] = ("float", inits[w].dims[0])
+        else:  # dequantized from int8
+            q = inits[produced[w].input[0]]
+            kinds[n.name] = ("int8" if q.data_type == onnx.TensorProto.INT8 else "?", q.dims[0])
+    outputs = {o.name for o in model.graph.output}
+    for n in model.graph.node:
+        if n.op_type == "Conv":
+            kind, channels = kinds[n.name]
+            float32 = channels < nets.INT8_MIN_CHANNELS or bool(set(n.output) & outputs)
+            assert kind == ("float" if float32 else "int8"), (n.name, kind, channels)
+    assert sum(k == "float" for k, _ in kinds.values()) == 4 + 2 and sum(k == "int8" for k, _ in kinds.values()) == 6

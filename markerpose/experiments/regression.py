@@ -26,7 +26,7 @@ from tqdm import tqdm
 from markerpose import Marker, MarkerPose, StereoRig
 from markerpose.experiments import endtoend, sequence
 
-USER_PRESETS = ("default", "paper", "paper-classical", "classical", "default-int8", "default-bf16")
+USER_PRESETS = ("default", "paper", "paper-classical", "classical", "default-float32", "default-bf16")
 SETS = ("standard", "dark_0.0625", "blur_25", "far", "marker_free")
 NAN_T, NAN_C = np.full((4, 4), np.nan), np.full((2, 3, 2), np.nan)
 

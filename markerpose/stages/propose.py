@@ -25,8 +25,8 @@ import numpy as np
 from .. import classical, jit, keypoints, settings
 from ..keypoints import KeypointNet
 from ..marker import Marker
-from ..nets import default_weights, int8_weights
-from ..settings import choice, flag, number, path
+from ..nets import default_weights, have_onnxruntime, int8_weights
+from ..settings import Rule, choice, number, path
 
 # The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
 # markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx). "standard" is the paper's
@@ -35,12 +35,14 @@ from ..settings import choice, flag, number, path
 NETWORKS = {"mid": "keypoints-mid", "standard": "keypoints", "lite": "keypoints-lite"}
 # The paper's configuration and the ablations from it towards ours keep the network and
 # the input they were measured with.
-PAPER_NETWORK = {"network": "standard", "input": "paper"}
+PAPER_NETWORK = {"network": "standard", "input": "paper", "int8": False}
 
 default_conf = {
     "network": "mid",  # neural: which shipped stage-1 network (NETWORKS) ...
     "weights": None,  # ... or this weights file (None: the shipped network)
-    "int8": False,  # neural: the shipped weights' int8 copy (ours; ONNX Runtime or OpenVINO)
+    "int8": None,  # neural: the shipped network's int8 copy (ours; float32 in its narrow layers and its
+    #                 logits): True, False (float32), or None: where one is shipped, no weights are
+    #                 given and ONNX Runtime or OpenVINO's float32 runs the networks
     "threshold": 0.01,  # neural: the candidates' least location score
     "second_look": 2.0,  # neural: zoom of a second look when the first finds nothing (1: none) ...
     "second_look_min": 0.2,  # ... and has, in some view, three candidates scoring at least this (a
@@ -52,7 +54,7 @@ default_conf = {
 RULES = {
     "network": choice(*NETWORKS),
     "weights": path(),
-    "int8": flag(),
+    "int8": Rule(lambda v: None if v is None or isinstance(v, bool) else "true, false or null"),
     "threshold": number(0, 1),
     "second_look": number(1),
     "second_look_min": number(0, 1),
@@ -100,7 +102,10 @@ class NeuralProposer:
         if ids != "stereo":
             decoding["second_look"] = float(conf["second_look"])
         weights = conf["weights"]
-        if conf["int8"]:
+        int8 = conf["int8"]
+        if int8 is None:
+            int8 = weights is None and backend in ("onnxruntime", "openvino") and have_onnxruntime() and int8_weights(NETWORKS[conf["network"]]).is_file()
+        if int8:
             if weights is not None:
                 raise ValueError(
                     "propose int8 runs the shipped weights' int8 copy; quantize your own weights with "
