@@ -95,7 +95,10 @@ def test_small_blurred_rings_fit_the_same_from_any_start():
     shifts = [(0, 0), (1.1, 0.4), (-0.9, 0.7), (0.5, -1.2), (-1.3, -0.8), (2.0, 1.0)]
     worst = {}
     for block in (True, False):
-        fits = [blurfit.fit_blurred_rings(gray, [(c + np.array(d), Q) for c, Q in base], RHO, C.noise_sigma(gray), {"block_fit": block}) for d in shifts]
+        fits = [
+            blurfit.fit_blurred_rings(gray, [(c + np.array(d), Q) for c, Q in base], RHO, C.noise_sigma(gray), {"block_fit": block})
+            for d in shifts
+        ]
         centres = np.array([[c for c, _ in f["cqs"]] for f in fits])
         spread = max(np.linalg.norm(a - b, axis=1).max() for a in centres for b in centres)
         worst[block] = (spread, np.linalg.norm(centres - truth.outer_centers, axis=2).max())

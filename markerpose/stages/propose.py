@@ -104,7 +104,12 @@ class NeuralProposer:
         weights = conf["weights"]
         int8 = conf["int8"]
         if int8 is None:
-            int8 = weights is None and backend in ("onnxruntime", "openvino") and have_onnxruntime() and int8_weights(NETWORKS[conf["network"]]).is_file()
+            int8 = (
+                weights is None
+                and backend in ("onnxruntime", "openvino")
+                and have_onnxruntime()
+                and int8_weights(NETWORKS[conf["network"]]).is_file()
+            )
         if int8:
             if weights is not None:
                 raise ValueError(
