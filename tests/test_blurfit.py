@@ -417,6 +417,21 @@ def test_pipeline_option_switches_the_blur_fit():
     assert err[True] < 0.15 and err[True] < err[False], err
 
 
+def test_the_blocks_setting_reaches_the_blurred_ring_fit(monkeypatch):
+    """refine={"blur_blocks": False} fits the samples' centres alone (v0.42's model): the
+    same motion found, the centres apart by a few hundredths of a pixel."""
+    rig = StereoRig.default()
+    T = synth.look_at_pose([10, -10, 700], 30, 60, 30)
+    f = synth.render_stereo(rig, T, imaging=synth.Imaging(alpha=0.6, motion_blur=25, motion_angle=110), seed=4)
+    seen, fit = [], blurfit.fit_blurred_rings
+    monkeypatch.setattr(blurfit, "fit_blurred_rings", lambda *a: (seen.append(a[4]["block_fit"]), fit(*a))[1])
+    est = {on: MarkerPose(rig, refine={"blur_blocks": on}).estimate(*f.images) for on in (True, False)}
+    assert seen and set(seen) == {True, False}
+    assert all(d.blur_px == pytest.approx(25, abs=2) for e in est.values() for d in e.detections)
+    moved = max(np.abs(a.centers - b.centers).max() for a, b in zip(est[True].detections, est[False].detections))
+    assert 0 < moved < 0.1
+
+
 @pytest.mark.parametrize("damage", ["dark occluder", "bright strip"])
 def test_damaged_blurred_rings_give_flags_or_right_centres(blurred_view, damage):
     # Something across a blurred ring: a ring is either flagged as not refined or its

@@ -43,6 +43,8 @@ default_conf = {
     #                       fails (ours: the network's masks are then rarely needed)
     "subpixel": True,  # classical fits: sub-pixel edges (False: the paper's contour ellipse)
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
+    "blur_blocks": True,  # ... the fit's samples (block means) modelled as means (ours; False: as
+    #                       their centres, about half the cost and start-dependent at sharp edges)
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
@@ -58,6 +60,7 @@ RULES = {
     "layout_seed": flag(),
     "subpixel": flag(),
     "blur_fit": flag(),
+    "blur_blocks": flag(),
     "max_blur_fits": number(0, integer=True),
     "plate_edge": flag(),
 }
@@ -77,7 +80,11 @@ class Refiner:
         if conf["method"] not in METHODS:
             raise ValueError(f"unknown refine method {conf['method']!r}; choose from {METHODS}")
         self.conf, self.marker = conf, marker
-        self.classical = {"blur_fit": bool(conf["blur_fit"]), "plate_edge": bool(conf["plate_edge"])}  # settings of the classical fits
+        self.classical = {  # settings of the classical fits
+            "blur_fit": bool(conf["blur_fit"]),
+            "blur_fit_blocks": bool(conf["blur_blocks"]),
+            "plate_edge": bool(conf["plate_edge"]),
+        }
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
         steps = [edges.warm_up, camera.warm_up, geometry.warm_up, classical.warm_up]
         if conf["blur_fit"]:
