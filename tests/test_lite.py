@@ -19,11 +19,11 @@ needs_lite = pytest.mark.skipif(not propose.network_weights("lite").is_file(), r
 
 @needs_lite
 def test_the_three_networks_give_the_same_poses():
-    """Stage 1 only proposes: the edge fit places the centres, so where the default (the mid
-    network), default-lite and the former default's network find the marker the poses
-    agree to 1e-3 mm; each runs its own file, the default's between the other two in size."""
+    """Stage 1 only proposes: the edge fit places the centres, so where the default's mid
+    network (in float32), default-lite and the former default's network find the marker the
+    poses agree to 1e-3 mm; each runs its own file, the mid one between the other two in size."""
     rig = mp.StereoRig.default()
-    ref, lite = mp.MarkerPose(rig), mp.MarkerPose(rig, preset="default-lite")
+    ref, lite = mp.MarkerPose(rig, preset="default-float32"), mp.MarkerPose(rig, preset="default-lite")
     former = configs.build("default-standard-net", rig)
     nets = ref.detector.proposer.net, lite.detector.proposer.net, former.detector.proposer.net
     assert [n.path for n in nets] == [propose.network_weights(k) for k in ("mid", "lite", "standard")]

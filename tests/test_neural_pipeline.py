@@ -215,30 +215,32 @@ def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypat
     # view's rings 7-30 px off (the pair is completed, or transferred, from the left view's
     # pose: test below). The left view's pose predicts the right view's ellipses to
     # a fraction of a pixel; refined at the predicted centres instead (the former way), the
-    # right view's rings slide onto their neighbours' blur and the pair is lost.
+    # right view's rings slide onto their neighbours' blur and the pair is lost. Stage 1 in
+    # float32: its int8 copy, the default's, finds no triple in this pair's left view.
     T, f = _steep_blurred_pair(rig)
-    est = mp.MarkerPose(rig).estimate(*f.images)
+    est = mp.MarkerPose(rig, preset="default-float32").estimate(*f.images)
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
     from markerpose.detectors import stereo
 
     monkeypatch.setattr(stereo, "ring_ellipses", lambda *a: [None] * 3)  # no predicted ellipses
-    assert mp.MarkerPose(rig).estimate(*f.images) is None
+    assert mp.MarkerPose(rig, preset="default-float32").estimate(*f.images) is None
 
 
 def test_a_triple_refined_in_one_view_is_completed_by_its_pose(rig, monkeypatch):
     # The same blurred pair: the default's stage 1 matches a triple whose right-view points
     # are 7-16 px off; the left view's rings refine, the right view's c1 does not. The left
     # view's plate pose completes the pair on the spot, without the transfer fallback;
-    # without the completion the budget of hypotheses is spent before the transfer runs.
+    # without the completion the budget of hypotheses is spent before the transfer runs
+    # (stage 1 in float32, as above).
     from markerpose.detectors import stereo
 
     T, f = _steep_blurred_pair(rig)
     monkeypatch.setattr(stereo.StereoDetector, "transferred", lambda *a: iter(()))
-    est = mp.MarkerPose(rig).estimate(*f.images)
+    est = mp.MarkerPose(rig, preset="default-float32").estimate(*f.images)
     assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
     monkeypatch.setattr(stereo.StereoDetector, "completed", lambda *a: iter(()))
-    tracker = mp.MarkerPose(rig)
+    tracker = mp.MarkerPose(rig, preset="default-float32")
     assert tracker.estimate(*f.images) is None and "not refined in the right view" in tracker.why
 
 
@@ -490,7 +492,8 @@ def test_windowed_looks_find_what_the_whole_input_gives(rig, tracker):
 def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
     # The views swapped: no triple matches strictly, every fit is the transfer's. By default
     # its fits stop where the layout's seeds do not fit (the masks cost most of such a
-    # pair's time and found no held-out pair); transfer_masks=True lets them go on.
+    # pair's time and found no held-out pair); transfer_masks=True lets them go on (stage 1
+    # in float32, whose candidates here reach fits the layout's seeds do not serve).
     from markerpose.experiments.bench import _pairs
     from markerpose.stages import refine
 
@@ -499,5 +502,5 @@ def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
     masks = refine.Refiner._from_masks
     monkeypatch.setattr(refine.Refiner, "_from_masks", lambda self, *a: (calls.append(1), masks(self, *a))[1])
     left, right = frame.images
-    assert mp.MarkerPose(rig).estimate(right, left) is None and not calls
-    assert mp.MarkerPose(rig, match={"transfer_masks": True}).estimate(right, left) is None and calls
+    assert mp.MarkerPose(rig, preset="default-float32").estimate(right, left) is None and not calls
+    assert mp.MarkerPose(rig, preset="default-float32", match={"transfer_masks": True}).estimate(right, left) is None and calls
