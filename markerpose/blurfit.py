@@ -60,8 +60,8 @@ default_conf: dict = {
     #                        a large ring-like decoy many more (seconds of fitting)
     "block_fit": True,  # ... fitted by a model of the blocks' means (block_offset), started
     #                     where a fit of the model at the blocks' centres settled (False:
-    #                     that fit alone, its result then depends on its start by up to
-    #                     tenths of a pixel at sharp edges) ...
+    #                     that fit alone, whose result then depends on its start at sharp
+    #                     edges) ...
     "block_start_tol": 0.01,  # ... which stops at this centre step, px, or ...
     "block_start_ftol": 1e-3,  # ... this relative cost change
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
@@ -107,9 +107,9 @@ def block_offset(box: int) -> float:
 
     A block's mean is the image convolved with that discrete box. Modelled as the point
     model alone (its Gaussian widened to take the box in), the box's flat profile is
-    misfitted at sharp edges, by what depends on where the sparse samples fall on them:
-    fits of the same rings from starts a pixel apart settled up to tenths of a pixel apart
-    and the far and blurred held-out poses' errors doubled in their tails."""
+    misfitted at sharp edges, by what depends on where the sparse samples fall on them: fits
+    of the same rings from nearby starts then settle apart, and the poses depend on where
+    stage 1 put its candidates."""
     r = int(box) // 2
     return math.sqrt(r * (r + 1) / 3.0)
 

@@ -44,7 +44,7 @@ default_conf = {
     "subpixel": True,  # classical fits: sub-pixel edges (False: the paper's contour ellipse)
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
     "blur_blocks": True,  # ... the fit's samples (block means) modelled as means (ours; False: as
-    #                       their centres, about half the cost and start-dependent at sharp edges)
+    #                       their centres: cheaper, and start-dependent at sharp edges)
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
