@@ -52,7 +52,7 @@ ABOUT: dict[str, str] = {
     "DLT of the ellipse centres, R = [x y x×y]",
     "paper-classical": "the paper's classical detector (§3.4): binarisation, contours, concentric ellipses, epipolar pairing; paper pose",
     "classical": "the classical detector with our sub-pixel edges, blurred-ring fit, bias correction and rigid pose",
-    "default-float32": "default with stage 1's network in float32 throughout (the default until v0.42)",
+    "default-float32": "default with stage 1's network in float32 throughout (the former default)",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra): faster on CPUs with AMX",
     "default-lite": "default with the lite stage-1 network (a quarter of the paper's widths, an eighth in the first four "
     "convolutions; the default's mid network has three eighths)",

@@ -44,8 +44,10 @@ def number(lo: float = -math.inf, hi: float = math.inf, *, above: bool = False, 
     return Rule(test)
 
 
-def flag() -> Rule:
-    """True or False."""
+def flag(optional: bool = False) -> Rule:
+    """True or False; with ``optional`` also None (a default decided where it is used)."""
+    if optional:
+        return Rule(lambda v: None if v is None or isinstance(v, bool) else "true, false or null")
     return Rule(lambda v: None if isinstance(v, bool) else "true or false")
 
 

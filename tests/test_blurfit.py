@@ -418,7 +418,7 @@ def test_pipeline_option_switches_the_blur_fit():
 
 
 def test_the_blocks_setting_reaches_the_blurred_ring_fit(monkeypatch):
-    """refine={"blur_blocks": False} fits the samples' centres alone (v0.42's model): the
+    """refine={"blur_blocks": False} fits the samples' centres alone (the former model): the
     same motion found, the centres apart by a few hundredths of a pixel."""
     rig = StereoRig.default()
     T = synth.look_at_pose([10, -10, 700], 30, 60, 30)

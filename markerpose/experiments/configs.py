@@ -48,7 +48,7 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
     "default-no-plate-edge": ({"refine": {"plate_edge": False}}, "default whose fits take in what the plate's blurred edge reaches"),
     "default-blur-centres": (
         {"refine": {"blur_blocks": False}},
-        "default whose blurred-ring fit models its samples (3x3 block means) by their centres alone (v0.42's)",
+        "default whose blurred-ring fit models its samples (3x3 block means) by their centres alone (the former model)",
     ),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (

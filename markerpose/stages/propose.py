@@ -26,7 +26,7 @@ from .. import classical, jit, keypoints, settings
 from ..keypoints import KeypointNet
 from ..marker import Marker
 from ..nets import default_weights, have_onnxruntime, int8_weights
-from ..settings import Rule, choice, number, path
+from ..settings import choice, flag, number, path
 
 # The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
 # markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx). "standard" is the paper's
@@ -54,7 +54,7 @@ default_conf = {
 RULES = {
     "network": choice(*NETWORKS),
     "weights": path(),
-    "int8": Rule(lambda v: None if v is None or isinstance(v, bool) else "true, false or null"),
+    "int8": flag(optional=True),
     "threshold": number(0, 1),
     "second_look": number(1),
     "second_look_min": number(0, 1),
