@@ -136,7 +136,7 @@ def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0):
     _disks_kernel(x, y, rows, u0, u1, L, sigma, float(h), bool(jac), val, J)
 
 
-@compiled
+@compiled(fast=True)
 def _disks_kernel(x, y, rows, u0, u1, L, sigma, h, jac, val, J):  # pragma: no cover - compiled
     """:func:`_disk_kernel` of each disk's row of :func:`_add_disks`, in order."""
     for n in range(rows.shape[0]):
@@ -147,7 +147,7 @@ def _disks_kernel(x, y, rows, u0, u1, L, sigma, h, jac, val, J):  # pragma: no c
         )  # fmt: skip
 
 
-@compiled
+@compiled(fast=True)
 def _disk_kernel(
     x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, h, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
 ):  # pragma: no cover - compiled
@@ -213,7 +213,7 @@ def _disk_kernel(
             _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss)
 
 
-@compiled
+@compiled(fast=True)
 def _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss):  # pragma: no cover - compiled
     """Add ``sign`` times point ``i``'s derivatives (centre, form, the centre's copy,
     theta / L / sigma) to its row of ``J``, the form's divided by ``sq`` and L's and
@@ -231,7 +231,7 @@ def _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col
     J[i, col_m + 2] += sign * j7 * ss
 
 
-@compiled
+@compiled(fast=True)
 def _normal(t):  # pragma: no cover - compiled
     """(G, Phi, phi) of t: G(t) = t Phi(t) + phi(t), the antiderivative of the normal CDF
     Phi, and its density phi; beyond |t| >= 5 their limits (max(t, 0), step, 0)."""
@@ -398,7 +398,7 @@ class _Problem:
 _NO_J = np.zeros((1, 1))  # the derivatives' place where none are asked for
 
 
-@compiled
+@compiled(fast=True)
 def _levels_and_normals(R, J, xs, ys, v, w, noise, jac, res, beta, H, g):  # pragma: no cover - compiled
     """:meth:`_Problem.evaluate`'s algebra: the levels' weighted least squares (the six
     columns M = [1, x, y, R, R x, R y], weights w; a 1e-9 ridge), the residuals (M beta -
@@ -465,7 +465,7 @@ def _levels_and_normals(R, J, xs, ys, v, w, noise, jac, res, beta, H, g):  # pra
     return True
 
 
-@compiled
+@compiled(fast=True)
 def _cholesky(A, L):  # pragma: no cover - compiled
     """L lower-triangular with L L^T = A (n x n); False where A is not positive definite."""
     n = A.shape[0]
@@ -483,7 +483,7 @@ def _cholesky(A, L):  # pragma: no cover - compiled
     return True
 
 
-@compiled
+@compiled(fast=True)
 def _cholesky_solve(L, x):  # pragma: no cover - compiled
     """x <- A^-1 x for A = L L^T, in place."""
     n = L.shape[0]

@@ -16,13 +16,23 @@ import numpy as np
 from .signals import held_interrupt
 
 
-def compiled(fn):
+# Floating-point rewrites that keep NaN and infinity semantics (no "nnan" / "ninf": the loops'
+# ``not x > 0`` tests must still see a NaN): contraction into fused multiply-adds, reassociation,
+# reciprocals and approximate library functions, so that LLVM can vectorise and reorder.
+FAST_MATH = frozenset({"contract", "afn", "reassoc", "arcp", "nsz"})
+
+
+def compiled(fn=None, *, fast: bool = False):
     """``fn`` compiled by numba (nopython, releasing the GIL), its machine code cached on
-    disk when there is somewhere to write it."""
+    disk when there is somewhere to write it; with ``fast`` (``@compiled(fast=True)``) under
+    :data:`FAST_MATH`, for loops whose results may move in the last bits."""
+    if fn is None:
+        return lambda f: compiled(f, fast=fast)
+    opts = {"nogil": True, **({"fastmath": set(FAST_MATH)} if fast else {})}
     try:
-        return numba.njit(cache=True, nogil=True)(fn)
+        return numba.njit(cache=True, **opts)(fn)
     except RuntimeError:  # numba found no writable cache location
-        return numba.njit(nogil=True)(fn)
+        return numba.njit(**opts)(fn)
 
 
 class CompileError(RuntimeError):

@@ -7,6 +7,7 @@ version to 2.5 (and compiles into an empty cache) types every kernel as under nu
 """
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -125,3 +126,22 @@ def test_kernels_compile_and_agree_as_under_numpy_2_5(tmp_path):
     est = mp.MarkerPose(rig).estimate(*render_stereo(rig, look_at_pose([10, -5, 560], 30, 45, 0), seed=4).images)
     np.testing.assert_allclose(child["T"], est.T, rtol=0, atol=1e-9)
     assert child["fits"] == _fits()
+
+
+def _guarded_sum(x):  # pragma: no cover - compiled
+    s = 0.0
+    for v in x:
+        if not v > 0:  # NaN and non-positive values skipped
+            continue
+        s += math.sqrt(v) * 0.1 + v / 3.0
+    return s
+
+
+def test_fast_math_keeps_nan_tests_and_values():
+    """``compiled(fast=True)`` may reorder arithmetic but not drop the NaN tests the loops rely on."""
+    plain, fast = jit.compiled(_guarded_sum), jit.compiled(fast=True)(_guarded_sum)
+    x = np.random.default_rng(0).normal(size=1000)
+    x[::7] = np.nan
+    assert np.isfinite(fast(x))
+    assert fast(x) == pytest.approx(plain(x), rel=1e-12)
+    assert not {"nnan", "ninf"} & jit.FAST_MATH
