@@ -15,7 +15,6 @@ import numpy as np
 
 from .signals import held_interrupt
 
-
 # Floating-point rewrites that keep NaN and infinity semantics (no "nnan" / "ninf": the loops'
 # ``not x > 0`` tests must still see a NaN): contraction into fused multiply-adds, reassociation,
 # reciprocals and approximate library functions, so that LLVM can vectorise and reorder.
