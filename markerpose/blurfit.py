@@ -45,6 +45,20 @@ _SQ2 = np.sqrt(2.0)
 _GH_T = np.array([-np.sqrt(3.0), 0.0, np.sqrt(3.0)])
 _GH_W = np.array([1 / 6, 2 / 3, 1 / 6])
 
+
+def _smooth_sqrt_table(lo=-6.0, hi=12.05, step=0.05):
+    """F(a) = E[sqrt(max(a + z, 0))] and F'(a), z ~ N(0, 1), on a grid of a: with a + z = t^2,
+    F = 2 int_0^inf t^2 phi(t^2 - a) dt and F' = int_0^inf phi(t^2 - a) dt."""
+    a = np.arange(lo, hi + step / 2, step)
+    t, dt = np.linspace(0.0, np.sqrt(hi + 12.0), 4001, retstep=True)
+    phi = np.exp(-0.5 * (t[None, :] ** 2 - a[:, None]) ** 2) / np.sqrt(2 * np.pi)
+    trap = np.full(len(t), dt)
+    trap[[0, -1]] = dt / 2  # the trapezoid rule's weights
+    return float(a[0]), step, (phi * (2 * t * t)) @ trap, phi @ trap
+
+
+_SQ_LO, _SQ_STEP, _SQ_F, _SQ_FP = _smooth_sqrt_table()
+
 default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
@@ -70,6 +84,12 @@ default_conf: dict = {
     "center_tol": 0.002,  # ... or no centre moved more than this, px
     "max_move": 0.0,  # give up once a centre is this far from its start, px (0: never)
     "loss_scale": 3.0,  # robust loss: residuals beyond this many noise sigmas count less
+    "tangent_smooth": 0.5,  # near the ellipses' tangents along the motion, each of the three
+    #                         lines across is smoothed across by this fraction of sigma (the
+    #                         lines spread by the rest of its variance): a bare line's chord
+    #                         opens as a square root where it meets the tangent, which put
+    #                         cusps into the cost wherever a sample's line crossed one (the
+    #                         steps zigzag, fits from nearby starts settle apart); 0: bare lines
     "min_length": 0.0,  # give up when the coarse search's best blur length is under this, px
     #                     (seeds where no edge fitted: without blur, they missed the rings)
 }
@@ -80,11 +100,12 @@ PLATE_SLACK_PX = 3.0  # beyond the motion's reach, the optics' blur and a block 
 _JCOLS = {"c": slice(0, 2), "Q": slice(2, 5), "theta": 5, "L": 6, "sigma": 7}  # a disk's derivative columns
 
 
-def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, box=1):
+def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, box=1, smooth=None):
     """The indicator of the ellipse (p - c)^T Q (p - c) <= 1 convolved with a box of length
     ``L`` along ``theta`` (radians) and a Gaussian of ``sigma`` px (exact along the motion,
-    a three-point rule across), at the points (x, y); with an odd ``box`` > 1, its mean
-    over the ``box`` x ``box`` pixels centred on each point (:func:`block_offset`).
+    a three-point rule across, each line smoothed near the tangents by ``smooth`` x sigma,
+    None: ``default_conf["tangent_smooth"]``), at the points (x, y); with an odd ``box`` > 1,
+    its mean over the ``box`` x ``box`` pixels centred on each point (:func:`block_offset`).
 
     Returns the values (N,), and with ``jac`` also their derivatives: a dict with ``c``
     (N, 2), ``Q`` (N, 3) for (Q11, Q12, Q22), ``theta``, ``L`` and ``sigma`` (N,).
@@ -94,7 +115,8 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, box=1):
     x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
     val = np.zeros(len(x))
     J = np.zeros((len(x), 8) if jac else (1, 8))
-    _add_disks(x, y, [(c, Q, 1.0, (0, -1, 5), (1.0, 1.0, 1.0))], theta, L, sigma, jac, val, J, block_offset(box))
+    kap = default_conf["tangent_smooth"] if smooth is None else smooth
+    _add_disks(x, y, [(c, Q, 1.0, (0, -1, 5), (1.0, 1.0, 1.0))], theta, L, sigma, jac, val, J, block_offset(box), kap)
     if not jac:
         return val
     return val, {k: J[:, col] for k, col in _JCOLS.items()}
@@ -114,9 +136,10 @@ def block_offset(box: int) -> float:
     return math.sqrt(r * (r + 1) / 3.0)
 
 
-def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0):
+def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0, smooth=0.0):
     """Add each of ``disks`` = (c, Q, sign, cols, scales), in their order, in one compiled
-    call: ``sign`` times :func:`blurred_disk` at (x, y), or with ``h`` > 0 its mean over the
+    call: ``sign`` times :func:`blurred_disk` at (x, y) (lines smoothed near the tangents by
+    ``smooth`` x sigma), or with ``h`` > 0 its mean over the
     four points (x +- h, y +- h) (:func:`block_offset`), to ``val`` and, with ``jac``, its
     derivatives to ``J``'s columns ``cols`` = (centre and form (5 from there), a second copy
     of the centre's (-1: none), theta / L / sigma (3 from there)); ``scales`` = (the form's,
@@ -133,35 +156,61 @@ def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0):
         ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma + h
         ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma + h
         rows[n] = (c[0], c[1], q00, q01, q11, ext0, ext1, sign, cols[0], cols[1], cols[2], scales[0], scales[1], scales[2])
-    _disks_kernel(x, y, rows, u0, u1, L, sigma, float(h), bool(jac), val, J)
+    if not 0.0 <= smooth < 1.0:
+        raise ValueError(f"tangent_smooth must be in [0, 1), got {smooth}")
+    _disks_kernel(x, y, rows, u0, u1, L, sigma, float(h), float(smooth), bool(jac), val, J)
 
 
 @compiled(fast=True)
-def _disks_kernel(x, y, rows, u0, u1, L, sigma, h, jac, val, J):  # pragma: no cover - compiled
+def _disks_kernel(x, y, rows, u0, u1, L, sigma, h, kap, jac, val, J):  # pragma: no cover - compiled
     """:func:`_disk_kernel` of each disk's row of :func:`_add_disks`, in order."""
     for n in range(rows.shape[0]):
         r = rows[n]
         _disk_kernel(
-            x, y, r[0], r[1], r[2], r[3], r[4], u0, u1, L, sigma, h, r[5], r[6], r[7], jac, val, J,
+            x, y, r[0], r[1], r[2], r[3], r[4], u0, u1, L, sigma, h, kap, r[5], r[6], r[7], jac, val, J,
             int(r[8]), int(r[9]), int(r[10]), r[11], r[12], r[13],
         )  # fmt: skip
 
 
 @compiled(fast=True)
 def _disk_kernel(
-    x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, h, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
+    x, y, c0, c1, q00, q01, q11, u0, u1, L, sigma, h, kap, ext0, ext1, sign, jac, val, J, col_cq, col_d, col_m, sq, sl, ss
 ):  # pragma: no cover - compiled
     """:func:`_add_disks` per point (or, with ``h`` > 0, per each of the four points (+-h,
     +-h) around it, a quarter each): the chord [s1, s2] of the ellipse along the motion
     through the point (shifted across it by each Gauss-Hermite node), its overlap with
     the box [-L/2, L/2] smoothed by sigma (G, the antiderivative of the normal CDF,
-    in closed form), and the derivatives through the chord ends."""
+    in closed form), and the derivatives through the chord ends.
+
+    The chord's half-length r = sqrt(disc) / A (disc = B^2 - A C, q(s) = A s^2 + 2 B s + C
+    the quadratic whose roots are its ends) is taken smoothed across by eps = ``kap``
+    sigma: r = sqrt(d_eps) F(disc / d_eps), F the Gaussian mean of a square
+    root (:func:`_smooth_sqrt`). Across the motion disc is a concave parabola with slope
+    d_eps / eps = 2 sqrt(det Q n^T adj(Q) n) at the tangents, so near them this is the chord
+    averaged over lines within eps; away from them F(a) = sqrt(a) (1 - 1 / (8 a^2) ...). The
+    derivatives follow s_1,2 = (-B -+ r) / A through B, C, A and d_eps. With ``kap`` 0, bare
+    lines: r = sqrt(disc), its derivative clipped at tangent chords."""
     n0, n1 = -u1, u0
     Lh = 0.5 * L
     qu0, qu1 = q00 * u0 + q01 * u1, q01 * u0 + q11 * u1
     A = u0 * qu0 + u1 * qu1
     subs = 4 if h > 0 else 1
     share = 1.0 / subs
+    spread = math.sqrt(1.0 - kap * kap)  # the lines' spread: sigma's variance less eps's
+    det = q00 * q11 - q01 * q01
+    Nn = n0 * n0 * q11 - 2.0 * n0 * n1 * q01 + n1 * n1 * q00  # n^T adj(Q) n
+    root = math.sqrt(det * Nn)
+    eps = kap * sigma
+    deps = 2.0 * eps * root
+    sq_deps = math.sqrt(deps)
+    smooth = deps > 0.0
+    # d_eps's derivatives: Q's three entries (the off-diagonal counted twice), theta, sigma
+    e00 = eps * (Nn * q11 + det * n1 * n1) / root
+    e01 = eps * (-2.0 * Nn * q01 - 2.0 * det * n0 * n1) / root
+    e11 = eps * (Nn * q00 + det * n0 * n0) / root
+    eth = eps * det * (-2.0 * (u0 * (q11 * n0 - q01 * n1) + u1 * (q00 * n1 - q01 * n0))) / root
+    esg = deps / sigma
+    nqu = n0 * qu0 + n1 * qu1  # n^T Q u
     for i in range(len(x)):
         if not (abs(x[i] - c0) < ext0 and abs(y[i] - c1) < ext1):
             continue
@@ -171,16 +220,27 @@ def _disk_kernel(
             node, sub = node3 % 3, node3 // 3
             ox = 0.0 if subs == 1 else (h if sub & 1 else -h)
             oy = 0.0 if subs == 1 else (h if sub & 2 else -h)
-            tau, w = _GH_T[node], _GH_W[node] * share
+            tau, w = _GH_T[node] * spread, _GH_W[node] * share
             off = tau * sigma
             dx = x[i] + ox + off * n0 - c0
             dy = y[i] + oy + off * n1 - c1
             B = dx * qu0 + dy * qu1
             C = q00 * dx * dx + 2 * q01 * dx * dy + q11 * dy * dy - 1.0
             disc = B * B - A * C
-            if not disc > 0:
-                continue
-            r = np.sqrt(disc)
+            if smooth:
+                a = disc / deps
+                if not a > _SQ_LO:
+                    continue
+                F, Fp = _smooth_sqrt(a)
+                r = sq_deps * F
+                kd = Fp / sq_deps  # dr / d(disc)
+                ke = (F - 2.0 * a * Fp) / (2.0 * sq_deps)  # dr / d(d_eps)
+            else:
+                if not disc > 0:
+                    continue
+                r = math.sqrt(disc)
+                kd = 0.5 / max(r, 0.25 * A)  # tangent chords: the derivative is clipped
+                ke = 0.0
             s1, s2 = (-B - r) / A, (-B + r) / A
             G0, P0, p0 = _normal((Lh - s1) / sigma)
             G1, P1, p1 = _normal((-Lh - s1) / sigma)
@@ -190,27 +250,46 @@ def _disk_kernel(
             vi += w * v
             if not jac:
                 continue
-            dsig = (p0 - p1 - p2 + p3) / L
-            rc = max(r, 0.25 * A)  # tangent chords: the derivative is clipped
             j6 += w * (-v / L + (P0 + P1 - P2 - P3) / (2 * L))
-            for end in range(2):
-                s, den, dvs = (s1, -rc, -(P0 - P1) / L) if end == 0 else (s2, rc, (P2 - P3) / L)
-                px, py = dx + s * u0, dy + s * u1
-                gx, gy = q00 * px + q01 * py, q01 * px + q11 * py
-                k = w * dvs / den
-                j0 += k * gx
-                j1 += k * gy
-                kp = -0.5 * k * px
-                j2 += kp * px
-                j3 += 2 * kp * py
-                j4 += -0.5 * k * py * py
-                ng = n0 * gx + n1 * gy
-                j5 += w * dvs * off - k * s * ng
-                dsig -= (dvs / den) * tau * ng
-            j7 += w * dsig
+            # dv = dv/ds1 ds1 + dv/ds2 ds2, ds_1,2 = (-dB -+ dr - s_1,2 dA) / A and
+            # dr = kd (2 B dB - A dC - C dA) + ke d(d_eps): per parameter KB dB + KC dC + KA dA + KE d(d_eps).
+            dv1, dv2 = -(P0 - P1) / L, (P2 - P3) / L
+            cR = (dv2 - dv1) / A
+            KB = -(dv1 + dv2) / A + 2.0 * B * kd * cR
+            KC = -A * kd * cR
+            KA = -(dv1 * s1 + dv2 * s2) / A - C * kd * cR
+            KE = ke * cR
+            gx, gy = q00 * dx + q01 * dy, q01 * dx + q11 * dy  # Q d
+            j0 += w * (-KB * qu0 - 2.0 * KC * gx)
+            j1 += w * (-KB * qu1 - 2.0 * KC * gy)
+            j2 += w * (KB * u0 * dx + KC * dx * dx + KA * u0 * u0 + KE * e00)
+            j3 += w * (KB * (u0 * dy + u1 * dx) + 2.0 * KC * dx * dy + 2.0 * KA * u0 * u1 + KE * e01)
+            j4 += w * (KB * u1 * dy + KC * dy * dy + KA * u1 * u1 + KE * e11)
+            j5 += w * (KB * (n0 * gx + n1 * gy - off * A) - 2.0 * KC * off * B + 2.0 * KA * nqu + KE * eth)
+            j7 += w * ((p0 - p1 - p2 + p3) / L + KB * tau * nqu + 2.0 * KC * tau * (n0 * gx + n1 * gy) + KE * esg)
         val[i] += sign * vi
         if jac:
             _add_disk_row(J, i, sign, j0, j1, j2, j3, j4, j5, j6, j7, col_cq, col_d, col_m, sq, sl, ss)
+
+
+@compiled(fast=True)
+def _smooth_sqrt(a):  # pragma: no cover - compiled
+    """(F(a), F'(a)) of :func:`_smooth_sqrt_table`: from a = 12 on (most of a chord's
+    lines) its series sqrt(a) (1 - 1 / (8 a^2) - 15 / (128 a^4)), whose next term is below
+    1e-7 there; below, the table's cubic Hermite interpolation (F' the interpolant's own
+    derivative, so that the fit's derivatives are those of its model)."""
+    if a >= 12.0:
+        ra, i2 = math.sqrt(a), 1.0 / (a * a)
+        return ra * (1.0 - i2 * (0.125 + 0.1171875 * i2)), (0.5 + i2 * (0.1875 + 0.41015625 * i2)) / ra
+    u = (a - _SQ_LO) / _SQ_STEP
+    k = int(u)
+    t = u - k
+    f0, f1 = _SQ_F[k], _SQ_F[k + 1]
+    m0, m1 = _SQ_FP[k] * _SQ_STEP, _SQ_FP[k + 1] * _SQ_STEP
+    t2, t3 = t * t, t * t * t
+    F = (2 * t3 - 3 * t2 + 1) * f0 + (t3 - 2 * t2 + t) * m0 + (-2 * t3 + 3 * t2) * f1 + (t3 - t2) * m1
+    dF = (6 * t2 - 6 * t) * f0 + (3 * t2 - 4 * t + 1) * m0 + (-6 * t2 + 6 * t) * f1 + (3 * t2 - 2 * t) * m1
+    return F, dF / _SQ_STEP
 
 
 @compiled(fast=True)
@@ -265,6 +344,7 @@ class _Problem:
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
         self.block = False  # the model of each sample's block mean (True) or of its centre
+        self.smooth = default_conf["tangent_smooth"]  # the lines' smoothing near the tangents (fit_blurred_rings sets it)
 
     def pixels(self, reach, stride=1, motion=None):
         """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
@@ -364,7 +444,7 @@ class _Problem:
                 raise ValueError("ellipse form not positive definite")
             disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
             disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
-        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J, block_offset(self.box) if self.block else 0.0)
+        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
         if not jac:
             return R, None
         self._kept = (p.copy(), R, J)
@@ -574,6 +654,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     if c["grid_search"] not in ("axes", "full"):
         raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
     prob = _Problem(gray, cqs, rho, noise, box=c["stride"], plate=plate)
+    prob.smooth = float(c["tangent_smooth"])
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.

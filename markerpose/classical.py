@@ -100,6 +100,8 @@ default_conf: dict = {
     "level_tol": 0.25,  # drop rays whose two ends depart from the ring's levels unequally (x contrast)
     "blur_fit": True,  # refit wide-edged (motion-blurred) rings with a blurred-image model (ours)
     "blur_fit_blocks": True,  # ... its samples (block means) modelled as means (blurfit's block_fit)
+    "blur_fit_tangents": True,  # ... its lines smoothed near the rings' tangents (blurfit's
+    #                             tangent_smooth; False: bare lines, a cost with cusps)
     "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
     #                         fraction of the smallest outer minor semi-axis
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
@@ -882,6 +884,8 @@ def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: 
     # Seeds where no edge fitted are worth the fit only if the image there is blurred. A
     # fit whose centres wander well beyond the move kept below is given up early.
     fit_conf = {"max_move": 2 * c["blur_fit_max_move"], "block_fit": c["blur_fit_blocks"]}
+    if not c["blur_fit_tangents"]:
+        fit_conf["tangent_smooth"] = 0.0
     if not any(r.refined for r in rings):
         fit_conf["min_length"] = 10.0
     plate = plate_sides(rings, marker, camera) if _plate_near(marker, c) else None

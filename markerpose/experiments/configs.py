@@ -50,6 +50,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         {"refine": {"blur_blocks": False}},
         "default whose blurred-ring fit models its samples (3x3 block means) by their centres alone (the former model)",
     ),
+    "default-bare-tangents": (
+        {"refine": {"blur_tangents": False}},
+        "default whose blurred-ring fit takes its three lines across the motion bare, not smoothed near the rings' tangents",
+    ),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (
         {"propose": {"network": "lite", "input": "paper"}},

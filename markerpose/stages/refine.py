@@ -45,6 +45,9 @@ default_conf = {
     "blur_fit": True,  # sub-pixel fits: refit motion-blurred rings under a blur model (ours)
     "blur_blocks": True,  # ... the fit's samples (block means) modelled as means (ours; False: as
     #                       their centres: cheaper, and start-dependent at sharp edges)
+    "blur_tangents": True,  # ... its lines across the motion smoothed near the rings' tangents
+    #                         (ours; False: bare lines, whose chords open as square roots there:
+    #                         a cost with cusps, more iterations, start-dependent fits)
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
@@ -61,6 +64,7 @@ RULES = {
     "subpixel": flag(),
     "blur_fit": flag(),
     "blur_blocks": flag(),
+    "blur_tangents": flag(),
     "max_blur_fits": number(0, integer=True),
     "plate_edge": flag(),
 }
@@ -83,6 +87,7 @@ class Refiner:
         self.classical = {  # settings of the classical fits
             "blur_fit": bool(conf["blur_fit"]),
             "blur_fit_blocks": bool(conf["blur_blocks"]),
+            "blur_fit_tangents": bool(conf["blur_tangents"]),
             "plate_edge": bool(conf["plate_edge"]),
         }
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
