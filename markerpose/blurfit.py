@@ -693,13 +693,17 @@ def _coarse_motion(prob, base, c):
         return float(r @ r), p
 
     angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
-    if c["grid_search"] == "full":
-        best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
-    else:
-        # The direction shows at any length near the true one; the length then at that direction.
-        middle = sorted(lengths)[len(lengths) // 2]
-        best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
-        best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
+    smooth, prob.smooth = prob.smooth, 0.0  # a coarse choice: the bare lines, cheaper, do
+    try:
+        if c["grid_search"] == "full":
+            best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
+        else:
+            # The direction shows at any length near the true one; the length then at that direction.
+            middle = sorted(lengths)[len(lengths) // 2]
+            best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
+            best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
+    finally:
+        prob.smooth, prob._kept = smooth, None
     return best[1]
 
 
