@@ -21,7 +21,8 @@ The box-blurred indicator of an ellipse is exact and cheap: along the line throu
 pixel in the motion direction the ellipse occupies a chord [s1, s2] (a quadratic's
 roots), and the blurred value is the chord's overlap with [-L/2, L/2] over L, smoothed
 by sigma in closed form. Across the motion, sigma is applied by a three-point
-Gauss-Hermite rule.
+Gauss-Hermite rule, each of its lines itself smoothed across near the ellipse's tangents
+(where a bare line's chord opens as a square root and the fit's cost would have cusps).
 
 The fit samples the image sparsely, each sample the mean of the pixel block around it, so
 that every pixel's noise counts at a fraction of the model's cost. Its last iterations
