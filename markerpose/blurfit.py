@@ -252,6 +252,8 @@ def _disk_kernel(
             if not jac:
                 continue
             j6 += w * (-v / L + (P0 + P1 - P2 - P3) / (2 * L))
+            if P0 == P1 and P2 == P3 and p0 == 0.0 and p1 == 0.0 and p2 == 0.0 and p3 == 0.0:
+                continue  # both chord ends beyond the box on one side each: no other derivative
             # dv = dv/ds1 ds1 + dv/ds2 ds2, ds_1,2 = (-dB -+ dr - s_1,2 dA) / A and
             # dr = kd (2 B dB - A dC - C dA) + ke d(d_eps): per parameter KB dB + KC dC + KA dA + KE d(d_eps).
             dv1, dv2 = -(P0 - P1) / L, (P2 - P3) / L
