@@ -116,11 +116,18 @@ def blurred_disk(x, y, c, Q, theta, L, sigma, jac=False, box=1, smooth=None):
     x, y = np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64)
     val = np.zeros(len(x))
     J = np.zeros((len(x), 8) if jac else (1, 8))
-    kap = default_conf["tangent_smooth"] if smooth is None else smooth
-    _add_disks(x, y, [(c, Q, 1.0, (0, -1, 5), (1.0, 1.0, 1.0))], theta, L, sigma, jac, val, J, block_offset(box), kap)
+    _add_disks(x, y, [(c, Q, 1.0, (0, -1, 5), (1.0, 1.0, 1.0))], theta, L, sigma, jac, val, J, block_offset(box), _tangent_smooth(smooth))
     if not jac:
         return val
     return val, {k: J[:, col] for k, col in _JCOLS.items()}
+
+
+def _tangent_smooth(smooth) -> float:
+    """``smooth`` (None: ``default_conf["tangent_smooth"]``) as the kernel takes it, checked."""
+    kap = float(default_conf["tangent_smooth"] if smooth is None else smooth)
+    if not 0.0 <= kap < 1.0:
+        raise ValueError(f"tangent_smooth must be in [0, 1), got {kap}")
+    return kap
 
 
 def block_offset(box: int) -> float:
@@ -157,8 +164,6 @@ def _add_disks(x, y, disks, theta, L, sigma, jac, val, J, h=0.0, smooth=0.0):
         ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * L + 6.0 * sigma + h
         ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * L + 6.0 * sigma + h
         rows[n] = (c[0], c[1], q00, q01, q11, ext0, ext1, sign, cols[0], cols[1], cols[2], scales[0], scales[1], scales[2])
-    if not 0.0 <= smooth < 1.0:
-        raise ValueError(f"tangent_smooth must be in [0, 1), got {smooth}")
     _disks_kernel(x, y, rows, u0, u1, L, sigma, float(h), float(smooth), bool(jac), val, J)
 
 
@@ -335,7 +340,7 @@ class _Problem:
     disk's offset (2); then theta, log L, log sigma shared by all rings.
     """
 
-    def __init__(self, gray, cqs, rho, noise, box=1, plate=None):
+    def __init__(self, gray, cqs, rho, noise, box=1, plate=None, smooth=None):
         self.cqs = [(np.asarray(c, float), np.asarray(Q, float)) for c, Q in cqs]
         self.plate = None if plate is None else np.asarray(plate, np.float64).reshape(4, 3)
         self.rho, self.gray, self.box = rho, gray, int(box) | 1  # odd: centred on its pixel
@@ -347,7 +352,7 @@ class _Problem:
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
         self.block = False  # the model of each sample's block mean (True) or of its centre
-        self.smooth = default_conf["tangent_smooth"]  # the lines' smoothing near the tangents (fit_blurred_rings sets it)
+        self.smooth = _tangent_smooth(smooth)  # the lines' smoothing near the tangents
 
     def pixels(self, reach, stride=1, motion=None):
         """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
@@ -656,8 +661,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
         c.update(conf)
     if c["grid_search"] not in ("axes", "full"):
         raise ValueError(f"grid_search must be 'axes' or 'full', got {c['grid_search']!r}")
-    prob = _Problem(gray, cqs, rho, noise, box=c["stride"], plate=plate)
-    prob.smooth = float(c["tangent_smooth"])
+    prob = _Problem(gray, cqs, rho, noise, box=c["stride"], plate=plate, smooth=c["tangent_smooth"])
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.
