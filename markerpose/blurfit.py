@@ -369,6 +369,9 @@ class _Problem:
             boxes.append((c[0] - R, c[1] - R, c[0] + R, c[1] + R))
         b = np.array(boxes)
         x0, y0 = int(max(np.floor(b[:, 0].min()), 0)), int(max(np.floor(b[:, 1].min()), 0))
+        # The grid on multiples of the stride: the samples (and the blocks whose means they
+        # are) do not move with the start, so nearby starts fit the same data.
+        x0, y0 = x0 + (-x0) % stride, y0 + (-y0) % stride
         x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
         if x1 - x0 < 8 or y1 - y0 < 8:
             return False
@@ -598,7 +601,7 @@ def _robust_lm(prob, p, conf):
     (a start that missed the rings)."""
     f2 = conf["loss_scale"] ** 2
     start = prob.centers(p).copy()
-    r = prob.residual(p)
+    r = prob.residual(p, keep=True)  # its derivatives: the first iteration's
     lam, nfev = 1e-3, 1
     for _ in range(conf["max_iter"]):
         prob.w = 1 / (1 + r * r / f2)

@@ -108,6 +108,9 @@ default_conf: dict = {
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
     "blur_fit_max_move": 3.0,  # ... no ring refined if it would move a centre farther, px
+    "blur_fit_edge_passes": 3,  # ... and rings whose outer edges are wider than blur_fit_width
+    #                             take at most this many edge-fit passes (0: no limit): the
+    #                             model fit refits them from wherever these leave them
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
@@ -655,6 +658,8 @@ def _refine_batch(
     view = np.asarray(view, np.intp)
     floor = np.array([max(1.0, 2.0 * n) for n in noises])[view]  # smallest edge contrast, grey levels
     oth = [[o._outer_cq for o in os if o is not r] for r, os in zip(rings, others)]
+    if c["blur_fit"] and c["blur_fit_edge_passes"]:
+        c = {**c, "wide_edge_passes": c["blur_fit_edge_passes"], "wide_edge_width": c["blur_fit_width"]}
     outer = edges.refine_edges(
         grays,
         view,
@@ -928,7 +933,7 @@ def refine_blurred(
     kept = _blur_kept(gray, rings, marker, c, limits)
     if kept is not None:
         return kept
-    return _blur_outcome(rings, _fit_blurred(gray, rings, marker, c, noise, camera), c)
+    return _blur_outcome(rings, _fit_blurred(gray, rings, marker, c, noise, camera), c, camera)
 
 
 def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noises: list, limits: list, cameras: list) -> list:
@@ -943,7 +948,7 @@ def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noise
         return _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k])
 
     fits = dict(zip(due, _WORKER.map(fit, due)))
-    return [r if r is not None else _blur_outcome(views[k], fits[k], c) for k, r in enumerate(kept)]
+    return [r if r is not None else _blur_outcome(views[k], fits[k], c, cameras[k]) for k, r in enumerate(kept)]
 
 
 _WORKER = Worker()  # the second of two blurred-ring fits at once
@@ -965,9 +970,10 @@ def _blur_kept(gray: np.ndarray, rings: list, marker: Marker, c: dict, limits: B
     return None
 
 
-def _blur_outcome(rings: list, fit: dict | None, c: dict) -> list:
+def _blur_outcome(rings: list, fit: dict | None, c: dict, camera: Camera | None = None) -> list:
     """``rings`` after their blurred-ring fit ``fit`` (None: it failed): refitted, unchanged,
-    or unrefined where the two fits disagree."""
+    or unrefined where the two fits disagree; ``camera``: the view's, for the centres'
+    distortion correction (:func:`_blur_fitted`)."""
     if fit is None:
         return rings
     # A fit that gave up (a centre beyond twice the bound) stopped with that centre far.
@@ -981,19 +987,42 @@ def _blur_outcome(rings: list, fit: dict | None, c: dict) -> list:
         return _unrefined(rings)
     if any(far) or fit["gave_up"]:  # a seed the edge fit gave up on went astray: the edge fit stands
         return rings
-    return _blur_fitted(rings, fit)
+    return _blur_fitted(rings, fit, camera if c["center"] == "outer" else None)
 
 
-def _blur_fitted(rings: list, fit: dict) -> list:
-    """``rings`` with the blurred-ring fit's outer ellipses, each centre moved as its edge
-    fit's distortion correction moved it."""
+def _blur_fitted(rings: list, fit: dict, camera: Camera | None = None) -> list:
+    """``rings`` with the blurred-ring fit's outer ellipses. Each centre is, with ``camera``,
+    that of the ellipse in ideal pixels (:func:`_ideal_centres`) as the edge fit takes it;
+    without, moved as the edge fit's own correction moved it (none without a camera; the
+    concentric centre's)."""
+    ideal = None if camera is None else _ideal_centres(fit["cqs"], camera)
     out = []
-    for r, (cen, Q), cov in zip(rings, fit["cqs"], fit["center_covs"]):
-        shift = r.center - r._outer_cq[0]  # distortion correction of the edge fit
+    for k, (r, (cen, Q), cov) in enumerate(zip(rings, fit["cqs"], fit["center_covs"])):
+        # Under heavy blur the edge fit's points are biased along the motion, and its own
+        # correction (fitted to them) with them: the fitted ellipse's is exact.
+        shift = r.center - r._outer_cq[0] if ideal is None else ideal[k] - cen
         out.append(
             replace(r, center=cen + shift, outer=cq_to_rect(cen, Q), refined=True, _outer_cq=(cen, Q), _blur=fit["length"], _center_cov=cov)
         )
     return out
+
+
+_IDEAL_SAMPLES = np.linspace(0.0, 2 * np.pi, 48, endpoint=False)
+
+
+def _ideal_centres(cqs: list, camera: Camera) -> np.ndarray:
+    """(n, 2) the centres, in the image's pixels, of the ellipses (centre, Q) ``cqs`` of
+    the distorted image refitted in ideal pixels (points on each, undistorted, fitted,
+    the centre mapped back): where a circle's image is an ellipse, as the edge fit takes
+    a ring's centre (:func:`_image_centres`). A centre whose refit fails stays."""
+    unit = np.stack([np.cos(_IDEAL_SAMPLES), np.sin(_IDEAL_SAMPLES)], 1)
+    cen = np.array([cq[0] for cq in cqs], np.float64)
+    half = edges._spd2(np.array([cq[1] for cq in cqs], np.float64), -0.5)[0]  # Q^-1/2: the unit circle onto each ellipse
+    P = cen[:, None, :] + unit @ half  # Q^-1/2 is symmetric
+    ideal = camera.undistort_points(P.reshape(-1, 2)).reshape(P.shape)
+    ci, _, ok = edges.fit_ellipses(ideal, np.ones(P.shape[:2], bool))
+    mapped = _ideal_to_pixels(camera, ci)
+    return np.where(ok[:, None] & np.isfinite(mapped), mapped, cen)
 
 
 # --- IDs from the layout -------------------------------------------------------------------

@@ -1461,6 +1461,11 @@ def _fit_passes(
     screen = np.full(K, not close)
     tol = c["refine_tol"]
     sparse = c["first_pass_spacing"] if not c["refine_first_tol"] else 0.0
+    # Edges wider than c["wide_edge_width"] of the minor semi-axis (rings the blurred-ring
+    # fit refits) stop after c["wide_edge_passes"] full passes: there each pass at best
+    # halves the error, and the model fit starts from wherever they leave the ellipse.
+    wide_passes, wide_width = c.get("wide_edge_passes", 0), c.get("wide_edge_width", np.inf)
+    passes = np.zeros(K, np.intp)
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
         if not len(a):
@@ -1513,7 +1518,8 @@ def _fit_passes(
             else:
                 done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
             last[k] = move[i]
-            if done:
+            passes[k] += 1
+            if done or (wide_passes and passes[k] >= wide_passes and wdg[i] > wide_width * _semi_axes(Q[k]).min()):
                 active[k] = False
     return found, width, shared, reached
 
