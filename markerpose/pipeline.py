@@ -116,7 +116,18 @@ class ToolPipeline:
         found = frame.prefitted(self.name, predicted)
         if found is None:
             found = frame.timed(
-                "refine", self.refiner.from_ellipses, frame, frame.grays, list(self.rig.cameras), predicted, 1.0, False, first_tol, noises
+                "refine",
+                self.refiner.from_ellipses,
+                frame,
+                frame.grays,
+                list(self.rig.cameras),
+                predicted,
+                1.0,
+                False,
+                first_tol,
+                noises,
+                None,
+                True,
             )
         if any(det is None for det in found):
             return None
@@ -411,6 +422,8 @@ class MarkerPose:
             1.0,
             False,
             self.conf["track"]["one_pass_move"],
+            None,
+            True,
         )
         for (name, rings), fit in zip(items, found):
             frame.prefit(name, rings, fit)

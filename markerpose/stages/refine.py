@@ -48,6 +48,12 @@ default_conf = {
     "blur_tangents": True,  # ... its lines across the motion smoothed near the rings' tangents
     #                         (ours; False: bare lines, whose chords open as square roots there:
     #                         a cost with cusps, more iterations, start-dependent fits)
+    "blur_width": 0.3,  # ... due when the widest outer edge's 10-90 % width exceeds this fraction
+    #                     of the smallest minor semi-axis: before blurred neighbours reach into
+    #                     the edge fit's rays (ours)
+    "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted: the fit is the
+    #                           costliest step of a tracked frame, and the edge fit from a close
+    #                           seed keeps its accuracy a little further
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
@@ -65,6 +71,8 @@ RULES = {
     "blur_fit": flag(),
     "blur_blocks": flag(),
     "blur_tangents": flag(),
+    "blur_width": number(0.0, above=True),
+    "track_blur_width": number(0.0, above=True),
     "max_blur_fits": number(0, integer=True),
     "plate_edge": flag(),
 }
@@ -88,6 +96,7 @@ class Refiner:
             "blur_fit": bool(conf["blur_fit"]),
             "blur_fit_blocks": bool(conf["blur_blocks"]),
             "blur_fit_tangents": bool(conf["blur_tangents"]),
+            "blur_fit_width": float(conf["blur_width"]),
             "plate_edge": bool(conf["plate_edge"]),
         }
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
@@ -286,6 +295,7 @@ class Refiner:
         first_tol: float = 0.0,
         noises: list | None = None,
         blur_gate=None,
+        tracked: bool = False,
     ) -> list:
         """The rings' edges fitted from predicted outer ellipses (the transfer, tracking),
         all views in one batch: per view a Detection when all three refine, else None.
@@ -293,10 +303,11 @@ class Refiner:
         prediction that missed them). ``first_tol``: the edge fit may stop after its first
         pass when that moved the ellipses less than this (px; see ``refine_first_tol``).
         ``noises``: per view, the image's noise sigma if known. ``blur_gate``: as in
-        :meth:`__call__`."""
-        return self.from_ellipses_of(frame, grays, cameras, [(self.marker, ellipses, noises)], score, blur_unrefined, first_tol, blur_gate)[
-            0
-        ]
+        :meth:`__call__`. ``tracked``: the ellipses are a tracker's prediction (the
+        blurred-ring fit's gate is then ``track_blur_width``)."""
+        return self.from_ellipses_of(
+            frame, grays, cameras, [(self.marker, ellipses, noises)], score, blur_unrefined, first_tol, blur_gate, tracked
+        )[0]
 
     def from_ellipses_of(
         self,
@@ -308,6 +319,7 @@ class Refiner:
         blur_unrefined: bool = True,
         first_tol: float = 0.0,
         blur_gate=None,
+        tracked: bool = False,
     ) -> list:
         """:meth:`from_ellipses` of several markers' rings in the same views, in one batch:
         ``items`` are (marker, per view its predicted ellipses, per view the noise sigma or
@@ -315,6 +327,8 @@ class Refiner:
         conf = self.classical if blur_unrefined else {**self.classical, "blur_fit_unrefined": False}
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
+        if tracked:
+            conf = {**conf, "blur_fit_width": float(self.conf["track_blur_width"])}
         n = len(grays)
         fits = classical.refine_ellipses_views(
             grays * len(items),
