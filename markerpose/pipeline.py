@@ -110,9 +110,8 @@ class ToolPipeline:
 
     def fitted(self, frame: Frame, predicted: list, first_tol: float, noises: list | None = None, motion: Motion | None = None):
         """Per view, the rings' edges fitted from ``predicted`` ellipses (a tracker's),
-        verified and solved (``source`` "tracked"), or None. A one-pass prediction
-        (``first_tol`` > 0) goes to the blurred-ring fit from the tracker's gate
-        (``refine.track_blur_width``), the search near it from the cold detection's. With ``motion`` (the pair's
+        verified and solved (``source`` "tracked"), or None; the blurred-ring fit from the
+        tracker's gate (``refine.track_blur_width``). With ``motion`` (the pair's
         capture times and the motion before, :func:`markerpose.sync.motion`), the right view
         is moved to the left view's time before the verification and the solve."""
         found = frame.prefitted(self.name, predicted)
@@ -129,7 +128,7 @@ class ToolPipeline:
                 first_tol,
                 noises,
                 None,
-                first_tol > 0,
+                True,
             )
         if any(det is None for det in found):
             return None

@@ -51,9 +51,9 @@ default_conf = {
     "blur_width": 0.3,  # ... due when the widest outer edge's 10-90 % width exceeds this fraction
     #                     of the smallest minor semi-axis: before blurred neighbours reach into
     #                     the edge fit's rays (ours)
-    "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted (one pass from a
-    #                           close prediction): the fit is the costliest step of a tracked
-    #                           frame, whose budget is the stream's frame interval
+    "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted or searched near
+    #                           its prediction: the fit is the costliest step of a tracked frame,
+    #                           whose budget is the stream's frame interval
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
