@@ -102,7 +102,7 @@ default_conf: dict = {
     "blur_fit_blocks": True,  # ... its samples (block means) modelled as means (blurfit's block_fit)
     "blur_fit_tangents": True,  # ... its lines smoothed near the rings' tangents (blurfit's
     #                             tangent_smooth; False: bare lines, a cost with cusps)
-    "blur_fit_width": 0.3,  # ... when the widest outer edge's 10-90 % width exceeds this
+    "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
     #                         fraction of the smallest outer minor semi-axis
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
     #                               refit rings the edge fit found; a tracker's prediction

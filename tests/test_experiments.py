@@ -358,10 +358,7 @@ def test_jumps_track_each_trial_with_and_without_the_search(tmp_path):
         assert sum(b["n"] for b in s[name]["by_jump"].values()) == s[name]["visible"]
     assert s["no search"]["search"] == 0 and s["search"]["search"] >= 3
     by_search = [r for r in rows if r["search"]["how"] == "search"]
-    # Stage 1 hands rings blurred by over 10 px here to the blurred-ring fit, the search (a
-    # tracker's step, refine.track_blur_width) keeps their edge fit: close, not the same.
-    assert all(r["no search"]["how"] == "stage 1" for r in by_search)
-    assert all(abs(r["search"]["t_mm"] - r["no search"]["t_mm"]) < (0.005 if r["blur_px"] <= 10 else 0.05) for r in by_search)
+    assert all(r["no search"]["how"] == "stage 1" and abs(r["search"]["t_mm"] - r["no search"]["t_mm"]) < 0.005 for r in by_search)
     for bad, what in (({"trials": 0}, "trials"), ({"block": 1}, "unknown jump settings")):
         with pytest.raises(ValueError, match=what):
             jumps.main(bad, out_dir=None, progress=False)

@@ -54,9 +54,9 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         {"refine": {"blur_tangents": False}},
         "default whose blurred-ring fit takes its three lines across the motion bare, not smoothed near the rings' tangents",
     ),
-    "default-late-blur-fit": (
-        {"refine": {"blur_width": 0.4}},
-        "default whose blurred-ring fit takes over from the edge fit only at edges 0.4 of the minor semi-axis wide (the former gate; 0.3)",
+    "default-early-blur-fit": (
+        {"refine": {"blur_width": 0.3}},
+        "default whose blurred-ring fit takes over from the edge fit at edges 0.3 of the minor semi-axis wide (0.4)",
     ),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
     "default-lite-paper-input": (

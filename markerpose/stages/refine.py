@@ -48,9 +48,10 @@ default_conf = {
     "blur_tangents": True,  # ... its lines across the motion smoothed near the rings' tangents
     #                         (ours; False: bare lines, whose chords open as square roots there:
     #                         a cost with cusps, more iterations, start-dependent fits)
-    "blur_width": 0.3,  # ... due when the widest outer edge's 10-90 % width exceeds this fraction
-    #                     of the smallest minor semi-axis: before blurred neighbours reach into
-    #                     the edge fit's rays (ours)
+    "blur_width": 0.4,  # ... due when the widest outer edge's 10-90 % width exceeds this fraction
+    #                     of the smallest minor semi-axis (0.3: before blurred neighbours reach
+    #                     into the edge fit's rays, but a shadow's edge can then send sharp rings
+    #                     to a motion model that cannot explain it; design §4)
     "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted or searched near
     #                           its prediction: the fit is the costliest step of a tracked frame,
     #                           whose budget is the stream's frame interval

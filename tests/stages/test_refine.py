@@ -48,23 +48,24 @@ def test_predicted_ellipses_refine_to_the_true_centres_in_both_views(rig, scene)
     assert refiner.from_ellipses(Frame(list(f.images)), list(f.images), list(rig.cameras), far, 1.0, False) == [None, None]
 
 
-def test_a_tracker_hands_blurred_rings_to_the_model_fit_later_than_a_cold_detection(rig):
+def test_the_blur_gates_of_cold_and_tracked_fits_are_each_their_own(rig):
     """Edges about a third of the minor semi-axis wide (19 px of blur at 560 mm along
-    c0 -> c1): a cold detection's fit (``blur_width`` 0.3) refits them under the blur model,
-    a tracker's (``track_blur_width`` 0.4, the fit being the costliest step of a tracked
-    frame) keeps the edge fit; both within 0.05 px of the truth. One gate for both gives one
-    behaviour."""
+    c0 -> c1): with ``blur_width`` 0.3 a cold detection's fit refits them under the blur
+    model while a tracker's (``track_blur_width`` 0.4) keeps the edge fit; both within
+    0.05 px of the truth. One gate for both gives one behaviour; the defaults (0.4 both)
+    keep the edge fit."""
     T = look_at_pose([0.0, 0.0, 560.0])
     marker = mp.Marker()
     f = render_stereo(rig, T, imaging=Imaging(alpha=0.7, motion_blur=19.0, motion_angle=0.0), seed=3)
     predicted = [ring_ellipses(cam, Tv, marker.points3d, marker.outer_radius) for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T))]
     blur = {}
-    for name, conf in (("default", {}), ("one gate", {"track_blur_width": 0.3})):
+    for name, conf in (("early", {"blur_width": 0.3}), ("one gate", {"blur_width": 0.3, "track_blur_width": 0.3}), ("default", {})):
         refiner = refine.Refiner({**refine.default_conf, **conf}, marker, neural=False)
         for tracked in (False, True):
             frame = Frame(list(f.images))
             found = refiner.from_ellipses(frame, frame.grays, list(rig.cameras), predicted, 1.0, tracked=tracked)
             assert all(d is not None and np.abs(d.centers - v.outer_centers).max() < 0.05 for d, v in zip(found, f.views))
             blur[name, tracked] = [d.blur_px for d in found]
-    assert min(blur["default", False]) > 15 and blur["default", True] == [0.0, 0.0], blur
+    assert min(blur["early", False]) > 15 and blur["early", True] == [0.0, 0.0], blur
     assert min(blur["one gate", True]) > 15, blur
+    assert blur["default", False] == blur["default", True] == [0.0, 0.0], blur
