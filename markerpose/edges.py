@@ -1505,7 +1505,9 @@ def _fit_passes(
         screened = screen[g]
         screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
-        move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(_semi_axes(np.where(okf[:, None, None], Qf, Q[g])) - _semi_axes(Q[g])).max(1)
+        axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))  # (of the ellipses kept)
+        move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(axes - _semi_axes(Q[g])).max(1)
+        wide = wdg > wide_width * axes.min(1)
         for i in np.nonzero(okf)[0]:
             k = g[i]
             cen[k], Q[k] = cf[i], Qf[i]
@@ -1519,7 +1521,7 @@ def _fit_passes(
                 done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
             last[k] = move[i]
             passes[k] += 1
-            if done or (wide_passes and passes[k] >= wide_passes and wdg[i] > wide_width * _semi_axes(Q[k]).min()):
+            if done or (wide_passes and passes[k] >= wide_passes and wide[i]):
                 active[k] = False
     return found, width, shared, reached
 

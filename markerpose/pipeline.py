@@ -21,6 +21,7 @@ Each tool has its own, over networks shared by all. What one call needs lives in
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import closing, contextmanager
@@ -118,7 +119,7 @@ class ToolPipeline:
         if found is None:
             found = frame.timed(
                 "refine",
-                self.refiner.from_ellipses,
+                functools.partial(self.refiner.from_ellipses, tracked=True),
                 frame,
                 frame.grays,
                 list(self.rig.cameras),
@@ -127,8 +128,6 @@ class ToolPipeline:
                 False,
                 first_tol,
                 noises,
-                None,
-                True,
             )
         if any(det is None for det in found):
             return None
@@ -415,7 +414,7 @@ class MarkerPose:
         tools = [self.tools[name] for name, _ in items]
         found = frame.timed(
             "refine",
-            self.refiner.from_ellipses_of,
+            functools.partial(self.refiner.from_ellipses_of, tracked=True),
             frame,
             frame.grays,
             list(self.rig.cameras),
@@ -423,8 +422,6 @@ class MarkerPose:
             1.0,
             False,
             self.conf["track"]["one_pass_move"],
-            None,
-            True,
         )
         for (name, rings), fit in zip(items, found):
             frame.prefit(name, rings, fit)

@@ -211,7 +211,7 @@ def test_tracked_tools_fitted_in_one_batch_as_each_alone(rig, tools):
     alone._fit_together = lambda frame, expected: None
     calls = []
     fit = batched.refiner.from_ellipses_of
-    batched.refiner.from_ellipses_of = lambda *a: (calls.append(len(a[3])), fit(*a))[1]
+    batched.refiner.from_ellipses_of = lambda *a, **k: (calls.append(len(a[3])), fit(*a, **k))[1]
     for k in range(3):
         poses = [(t, T.copy()) for t, T in zip(tools, POSES)]
         for _, T in poses:
