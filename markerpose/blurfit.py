@@ -64,7 +64,9 @@ default_conf: dict = {
     "margin": 4.0,  # pixels used: within the blurred ring's reach plus this, px
     "grid_angles": 8,  # coarse search: motion directions over 180° ...
     "grid_lengths": (6.0, 14.0, 26.0),  # ... and blur lengths, px
-    "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y
+    "grid_stride": 4,  # ... on every grid_stride-th pixel in x and y, or ...
+    "grid_stride_frac": 0.2,  # ... every this fraction of the smallest minor semi-axis, if more
+    #                           (large rings: the search's choice is as clear on fewer pixels)
     "grid_search": "axes",  # "axes": every direction at the middle length, then every length
     #                        at the best direction; "full": every (direction, length) pair
     "stride": 3,  # the fit uses every stride-th pixel in x and y, each the mean of the
@@ -77,6 +79,9 @@ default_conf: dict = {
     #                     where a fit of the model at the blocks' centres settled (False:
     #                     that fit alone, whose result then depends on its start at sharp
     #                     edges) ...
+    "block_jac_once": True,  # ... its derivatives those of its first evaluation (its centres
+    #                          move by hundredths of a pixel; False: at every iterate) ...
+    "jac_move": 0.01,  # ... but anew at a trial step that moves a centre farther than this, px
     "block_start_tol": 0.01,  # ... which stops at this centre step, px, or ...
     "block_start_ftol": 1e-3,  # ... this relative cost change
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
@@ -352,6 +357,7 @@ class _Problem:
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
         self.block = False  # the model of each sample's block mean (True) or of its centre
+        self.frozen = None  # False: derivatives to be frozen at the next model with them; then those
         self.smooth = _tangent_smooth(smooth)  # the lines' smoothing near the tangents
 
     def pixels(self, reach, stride=1, motion=None):
@@ -446,7 +452,9 @@ class _Problem:
         rings, theta, L, sigma = self.unpack(p)
         N, k = len(self.v), self.k
         R = np.zeros(N)
-        J = np.zeros((N, 7 * k + 3) if jac else (1, 7 * k + 3))
+        frozen = self.frozen is not None and self.frozen is not False
+        full = jac and not frozen
+        J = np.zeros((N, 7 * k + 3) if full else (1, 7 * k + 3))
         # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
         # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
         disks = []
@@ -455,9 +463,13 @@ class _Problem:
                 raise ValueError("ellipse form not positive definite")
             disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
             disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
-        _add_disks(self.x, self.y, disks, theta, L, sigma, jac, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
+        _add_disks(self.x, self.y, disks, theta, L, sigma, full, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
         if not jac:
             return R, None
+        if frozen:
+            J = self.frozen
+        elif self.frozen is False:
+            self.frozen = J
         self._kept = (p.copy(), R, J)
         return R, J
 
@@ -613,6 +625,8 @@ def _robust_lm(prob, p, conf):
         while True:
             step = np.linalg.solve(H + lam * np.diag(D), -g)
             trial = p + step
+            if prob.frozen is not None and np.abs(prob.centers(step)).max() > conf["jac_move"]:
+                prob.frozen = False  # derivatives frozen this far away would be stale: anew at the trial
             try:
                 rt = prob.residual(trial, keep=True)  # accepted, it is the next iterate
                 Et = float(prob.w @ (rt * rt))
@@ -668,7 +682,9 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.
-    if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=c["grid_stride"]):
+    minor = min(1 / np.sqrt(np.linalg.eigvalsh(Q)[-1]) for _, Q in prob.cqs)
+    grid_stride = max(int(c["grid_stride"]), int(c["grid_stride_frac"] * minor))
+    if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=grid_stride):
         return None
     p0 = _coarse_motion(prob, base, c)
     if np.exp(p0[-2]) < c["min_length"]:
@@ -683,6 +699,8 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
             # The fit of the blocks' centres (the cheaper model) gives the start of the fit
             # of their means, which costs four times as much per iteration.
             prob.block, prob._kept = True, None
+            if c["block_jac_once"]:
+                prob.frozen = False
             p, more, gave_up = _robust_lm(prob, p, c)
             nfev += more
     except (np.linalg.LinAlgError, ValueError):
