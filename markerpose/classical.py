@@ -108,7 +108,7 @@ default_conf: dict = {
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
     "blur_fit_max_move": 3.0,  # ... no ring refined if it would move a centre farther, px
-    "blur_fit_edge_passes": 1,  # ... and rings whose outer edges are wider than blur_fit_width
+    "blur_fit_edge_passes": 3,  # ... and rings whose outer edges are wider than blur_fit_width
     #                             take at most this many edge-fit passes (0: no limit): the
     #                             model fit refits them from wherever these leave them
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
