@@ -79,8 +79,10 @@ default_conf: dict = {
     #                     where a fit of the model at the blocks' centres settled (False:
     #                     that fit alone, whose result then depends on its start at sharp
     #                     edges) ...
-    "block_jac_once": True,  # ... its derivatives those of its first evaluation (its centres
-    #                          move by hundredths of a pixel; False: at every iterate) ...
+    "jac_once_length": 10.0,  # ... its derivatives those of its first evaluation (its centres
+    #                           move by hundredths of a pixel) where the blur is at least this
+    #                           long, px (inf: at every iterate; shorter blur leaves sharper
+    #                           edges, whose derivatives change faster) ...
     "jac_move": 0.01,  # ... but anew at a trial step that moves a centre farther than this, px
     "block_start_tol": 0.01,  # ... which stops at this centre step, px, or ...
     "block_start_ftol": 1e-3,  # ... this relative cost change
@@ -357,7 +359,8 @@ class _Problem:
         self.k = len(self.cqs)
         self._kept = None  # (parameters, model, derivatives) of the last model with derivatives
         self.block = False  # the model of each sample's block mean (True) or of its centre
-        self.frozen = None  # False: derivatives to be frozen at the next model with them; then those
+        self.freeze = False  # keep the derivatives of the next model computed with them ...
+        self.frozen = None  # ... here, and give those instead of computing them again
         self.smooth = _tangent_smooth(smooth)  # the lines' smoothing near the tangents
 
     def pixels(self, reach, stride=1, motion=None):
@@ -452,8 +455,7 @@ class _Problem:
         rings, theta, L, sigma = self.unpack(p)
         N, k = len(self.v), self.k
         R = np.zeros(N)
-        frozen = self.frozen is not None and self.frozen is not False
-        full = jac and not frozen
+        full = jac and self.frozen is None
         J = np.zeros((N, 7 * k + 3) if full else (1, 7 * k + 3))
         # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
         # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
@@ -466,10 +468,10 @@ class _Problem:
         _add_disks(self.x, self.y, disks, theta, L, sigma, full, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
         if not jac:
             return R, None
-        if frozen:
+        if self.frozen is not None:
             J = self.frozen
-        elif self.frozen is False:
-            self.frozen = J
+        elif self.freeze:
+            self.frozen, self.freeze = J, False
         self._kept = (p.copy(), R, J)
         return R, J
 
@@ -626,7 +628,7 @@ def _robust_lm(prob, p, conf):
             step = np.linalg.solve(H + lam * np.diag(D), -g)
             trial = p + step
             if prob.frozen is not None and np.abs(prob.centers(step)).max() > conf["jac_move"]:
-                prob.frozen = False  # derivatives frozen this far away would be stale: anew at the trial
+                prob.frozen, prob.freeze = None, True  # derivatives frozen this far away would be stale: anew at the trial
             try:
                 rt = prob.residual(trial, keep=True)  # accepted, it is the next iterate
                 Et = float(prob.w @ (rt * rt))
@@ -699,8 +701,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
             # The fit of the blocks' centres (the cheaper model) gives the start of the fit
             # of their means, which costs four times as much per iteration.
             prob.block, prob._kept = True, None
-            if c["block_jac_once"]:
-                prob.frozen = False
+            prob.freeze = bool(np.exp(p[-2]) >= c["jac_once_length"])
             p, more, gave_up = _robust_lm(prob, p, c)
             nfev += more
     except (np.linalg.LinAlgError, ValueError):

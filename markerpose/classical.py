@@ -104,6 +104,11 @@ default_conf: dict = {
     #                             tangent_smooth; False: bare lines, a cost with cusps)
     "blur_fit_width": 0.4,  # ... when the widest outer edge's 10-90 % width exceeds this
     #                         fraction of the smallest outer minor semi-axis
+    "blur_fit_long_width": 0.3,  # ... or this fraction where that width is also at least
+    "blur_fit_long_px": 7.5,  # ... this many px (about 10 px of motion blur: from there on the
+    #                           edge fit loses to the model whatever the rings' size, while
+    #                           shorter blur on foreshortened rings, or a shadow's edge across
+    #                           them, is better left to the edge fit; 0: no such rule)
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
@@ -869,8 +874,10 @@ def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     # Where the plate's blurred edge reached an edge fit's rays, half that blur is enough:
     # the edge fit has lost (or kept) the rays along the motion there, and the model leaves
     # out the pixels the plate's edge reaches.
-    gate = c["blur_fit_width"] * (0.5 if any(r._plate_reached for r in rings) else 1.0)
-    if any(r.refined for r in rings) and max(r._edge_width for r in rings) < gate * minor:
+    half = 0.5 if any(r._plate_reached for r in rings) else 1.0
+    wide = max(r._edge_width for r in rings)
+    long_blur = c["blur_fit_long_px"] > 0 and wide >= c["blur_fit_long_px"] and wide >= half * c["blur_fit_long_width"] * minor
+    if any(r.refined for r in rings) and wide < half * c["blur_fit_width"] * minor and not long_blur:
         return False
     if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
         return False

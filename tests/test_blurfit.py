@@ -97,7 +97,7 @@ def test_small_blurred_rings_fit_the_same_from_any_start():
     shifts = [(0, 0), (1.1, 0.4), (-0.9, 0.7), (0.5, -1.2), (-1.3, -0.8), (2.0, 1.0)]
     worst, nfev = {}, {}
     # The step counts compare derivatives taken at every iterate (frozen ones take more, cheaper steps).
-    exact = {"block_jac_once": False}
+    exact = {"jac_once_length": np.inf}
     variants = {"default": {}, "centres": {"block_fit": False}, "exact": exact, "bare": {**exact, "tangent_smooth": 0.0}}
     for name, conf in variants.items():
         fits = [blurfit.fit_blurred_rings(gray, [(c + np.array(d), Q) for c, Q in base], RHO, C.noise_sigma(gray), conf) for d in shifts]
@@ -218,7 +218,7 @@ def test_frozen_derivatives_and_a_sparser_search_end_where_the_exact_fit_does(bl
         blurfit._Problem, "pixels", lambda self, reach, stride=1, motion=None: strides.append(stride) or pixels(self, reach, stride, motion)
     )
     fits, jacs = {}, {}
-    for name, conf in {"default": {}, "exact": {"block_jac_once": False, "grid_stride_frac": 0.0}}.items():
+    for name, conf in {"default": {}, "exact": {"jac_once_length": np.inf, "grid_stride_frac": 0.0}}.items():
         counts.clear()
         fits[name] = np.array([c for c, _ in blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf)["cqs"]])
         jacs[name] = counts.get(True, 0)

@@ -54,6 +54,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         {"refine": {"blur_tangents": False}},
         "default whose blurred-ring fit takes its three lines across the motion bare, not smoothed near the rings' tangents",
     ),
+    "default-no-long-blur-fit": (
+        {"refine": {"blur_long_px": 0.0}},
+        "default whose blurred-ring fit takes over at edges 0.4 of the minor semi-axis wide only, not also at 0.3 where they are 7.5 px wide",
+    ),
     "default-early-blur-fit": (
         {"refine": {"blur_width": 0.3}},
         "default whose blurred-ring fit takes over from the edge fit at edges 0.3 of the minor semi-axis wide (0.4)",

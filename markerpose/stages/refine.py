@@ -52,9 +52,15 @@ default_conf = {
     #                     of the smallest minor semi-axis (0.3: before blurred neighbours reach
     #                     into the edge fit's rays, but a shadow's edge can then send sharp rings
     #                     to a motion model that cannot explain it; design §4)
+    "blur_long_width": 0.3,  # ... or this fraction, where that width is also at least
+    "blur_long_px": 7.5,  # ... this many px (about 10 px of motion blur, which the edge fit
+    #                       loses to the model whatever the rings' size; shorter blur on
+    #                       foreshortened rings, or a shadow's edge, stays with the edge fit;
+    #                       0: no such rule; design §4)
     "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted or searched near
-    #                           its prediction: the fit is the costliest step of a tracked frame,
-    #                           whose budget is the stream's frame interval
+    #                           its prediction, without the rule for long blur: the fit is the
+    #                           costliest step of a tracked frame, whose budget is the stream's
+    #                           frame interval
     "max_blur_fits": 4,  # blur-model fits (one per view) per cold detection: the costliest
     #                      refinement; two hypotheses of a blurred pair (both views) need four
     "plate_edge": True,  # sub-pixel fits: leave out what the plate's blurred edge reaches (ours;
@@ -73,6 +79,8 @@ RULES = {
     "blur_blocks": flag(),
     "blur_tangents": flag(),
     "blur_width": number(0.0, above=True),
+    "blur_long_width": number(0.0, above=True),
+    "blur_long_px": number(0.0),
     "track_blur_width": number(0.0, above=True),
     "max_blur_fits": number(0, integer=True),
     "plate_edge": flag(),
@@ -98,6 +106,8 @@ class Refiner:
             "blur_fit_blocks": bool(conf["blur_blocks"]),
             "blur_fit_tangents": bool(conf["blur_tangents"]),
             "blur_fit_width": float(conf["blur_width"]),
+            "blur_fit_long_width": float(conf["blur_long_width"]),
+            "blur_fit_long_px": float(conf["blur_long_px"]),
             "plate_edge": bool(conf["plate_edge"]),
         }
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
@@ -329,7 +339,7 @@ class Refiner:
         if first_tol:
             conf = {**conf, "refine_first_tol": float(first_tol)}
         if tracked:
-            conf = {**conf, "blur_fit_width": float(self.conf["track_blur_width"])}
+            conf = {**conf, "blur_fit_width": float(self.conf["track_blur_width"]), "blur_fit_long_px": 0.0}
         n = len(grays)
         fits = classical.refine_ellipses_views(
             grays * len(items),

@@ -52,14 +52,21 @@ def test_the_blur_gates_of_cold_and_tracked_fits_are_each_their_own(rig):
     """Edges about a third of the minor semi-axis wide (19 px of blur at 560 mm along
     c0 -> c1): with ``blur_width`` 0.3 a cold detection's fit refits them under the blur
     model while a tracker's (``track_blur_width`` 0.4) keeps the edge fit; both within
-    0.05 px of the truth. One gate for both gives one behaviour; the defaults (0.4 both)
-    keep the edge fit."""
+    0.05 px of the truth. One gate for both gives one behaviour. By default the cold fit
+    refits them too (edges over 7.5 px wide: ``blur_long_px``), the tracker's does not;
+    without that rule both keep the edge fit."""
     T = look_at_pose([0.0, 0.0, 560.0])
     marker = mp.Marker()
     f = render_stereo(rig, T, imaging=Imaging(alpha=0.7, motion_blur=19.0, motion_angle=0.0), seed=3)
     predicted = [ring_ellipses(cam, Tv, marker.points3d, marker.outer_radius) for cam, Tv in zip(rig.cameras, (T, rig.T_right_left @ T))]
     blur = {}
-    for name, conf in (("early", {"blur_width": 0.3}), ("one gate", {"blur_width": 0.3, "track_blur_width": 0.3}), ("default", {})):
+    cases = {
+        "early": {"blur_width": 0.3},
+        "one gate": {"blur_width": 0.3, "track_blur_width": 0.3},
+        "default": {},
+        "no long rule": {"blur_long_px": 0.0},
+    }
+    for name, conf in cases.items():
         refiner = refine.Refiner({**refine.default_conf, **conf}, marker, neural=False)
         for tracked in (False, True):
             frame = Frame(list(f.images))
@@ -68,4 +75,5 @@ def test_the_blur_gates_of_cold_and_tracked_fits_are_each_their_own(rig):
             blur[name, tracked] = [d.blur_px for d in found]
     assert min(blur["early", False]) > 15 and blur["early", True] == [0.0, 0.0], blur
     assert min(blur["one gate", True]) > 15, blur
-    assert blur["default", False] == blur["default", True] == [0.0, 0.0], blur
+    assert min(blur["default", False]) > 15 and blur["default", True] == [0.0, 0.0], blur
+    assert blur["no long rule", False] == blur["no long rule", True] == [0.0, 0.0], blur
