@@ -460,11 +460,12 @@ def test_the_plate_sides_follow_the_rings_pose():
 def test_a_tight_plate_on_a_dark_ground_does_not_pull_the_blurred_rings(margin):
     """A plate cut 2-3 mm beyond the rings on a dark ground, blurred 19-21 px along c0 -> c1:
     what lies beyond the plate reaches into the rings' outer edges. Taken in by the edge
-    fit (kept there under the default blur gate, 0.4), it pulls c0 and c1 apart by a
-    quarter of a pixel or more; with the plate's edge left out (its rays, and the
-    blurred-ring fit, which takes over there, its pixels) the distance c0-c1 in each view is
-    within 0.05 px and every centre within 0.1 px. Under the gate 0.3 the blurred-ring fit
-    runs at 21 px even where the plate is not known: within 0.1 px."""
+    fit (kept there under the blur gate 0.4 alone), it pulls c0 and c1 apart by a quarter
+    of a pixel or more; with the plate's edge left out (its rays, and the blurred-ring fit,
+    which takes over there, its pixels) the distance c0-c1 in each view is within 0.05 px
+    and every centre within 0.1 px. Edges this wide (over 7.5 px) go to the blurred-ring
+    fit at the gate 0.3 by default, so even where the plate is not known the distance is
+    within 0.1 px at 21 px."""
     rig, mk = mp.StereoRig.default(), mp.Marker(margin=margin)
     T = look_at_pose([0.0, 0.0, 560.0])
     ground = tuple(np.full(c.image_size[::-1], 0.05, np.float32) for c in rig.cameras)
@@ -473,9 +474,9 @@ def test_a_tight_plate_on_a_dark_ground_does_not_pull_the_blurred_rings(margin):
         f = render_stereo(rig, T, mk, Imaging(alpha=0.7, motion_blur=L, motion_angle=0.0), ground, seed=5)
         d01, worst = {}, {}
         for name, conf in (
-            ("edge fit, plate taken in", {"plate_edge": False}),
+            ("edge fit, plate taken in", {"plate_edge": False, "blur_fit_long_px": 0.0}),
             ("default", {}),
-            ("plate unknown", {"plate_edge": False, "blur_fit_width": 0.3}),
+            ("plate unknown", {"plate_edge": False}),
         ):
             out = classical.refine_ellipses_views(f.images, ells, mk, conf, list(rig.cameras))
             assert all(o[1].all() for o in out)
