@@ -921,7 +921,9 @@ def refine_blurred(
     heaviest blur); the model fit uses every pixel around the three rings. It runs when every
     ring has an ellipse and either the widest edge-refined outer edge (75th percentile
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
-    semi-axis (the blur nears the black band's width) or no ring could be edge-refined;
+    semi-axis (the blur nears the black band's width), or conf["blur_fit_long_width"] times
+    it where it is also conf["blur_fit_long_px"] px wide (long blur), or no ring could be
+    edge-refined;
     a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too. When a
     fitted centre lies farther than conf["blur_fit_max_move"] px from the edge fit's
     (of a ring the edge fit refined), the two disagree and no ring is refined: under that

@@ -532,3 +532,40 @@ def test_blur_fit_leaves_rings_whose_sizes_do_not_fit_their_spacing():
     big = [(c, Q / 4.0) for c, Q in cqs[:1]] + cqs[1:]  # one ring twice as large
     assert not _sizes_fit_spacing(big, m, 1.5)
     assert not _sizes_fit_spacing([(c, Q * 9.0) for c, Q in cqs], m, 1.5)  # all three a third
+
+
+@pytest.mark.parametrize(
+    ("minor", "width", "plate", "due"),
+    [
+        (30.0, 13.0, False, True),  # over 0.4 of the minor semi-axis
+        (30.0, 10.0, False, True),  # a third of it and 10 px wide: long blur
+        (13.0, 4.4, False, False),  # a third of a small one, but 4.4 px: short blur (or a shadow's edge)
+        (30.0, 8.0, False, False),  # 7.5 px wide but under 0.3 of the minor semi-axis
+        (30.0, 8.0, True, True),  # ... where the plate's edge reached the rays, half the fractions
+    ],
+)
+def test_the_blur_fit_is_due_for_wide_edges_or_long_blur(minor, width, plate, due):
+    """The blurred-ring fit's gate: edges wider than ``blur_fit_width`` (0.4) of the smallest
+    minor semi-axis, or ``blur_fit_long_width`` (0.3) of it where they are also
+    ``blur_fit_long_px`` (7.5 px) wide; both fractions halved where the plate's blurred edge
+    reached the edge fit's rays. Without the long-blur rule only the first."""
+    marker = Marker()
+    scale = minor / marker.outer_radius  # px per mm: circles of this radius, their sizes fitting their spacing
+    Q = np.eye(2) / minor**2
+    rings = [
+        C.Ring(
+            c,
+            ((0, 0), (2 * minor, 2 * minor), 0),
+            ((0, 0), (minor, minor), 0),
+            1.0,
+            refined=True,
+            _outer_cq=(c, Q),
+            _edge_width=width,
+            _plate_reached=plate,
+        )
+        for c in (np.array(marker.centers2d) * scale + 500.0)
+    ]
+    c = C._merge_conf(None)
+    assert C._blur_fit_due(rings, marker, c) is due
+    without = C._blur_fit_due(rings, marker, {**c, "blur_fit_long_px": 0.0})
+    assert without is (width >= (0.2 if plate else 0.4) * minor)
