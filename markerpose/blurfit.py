@@ -38,6 +38,7 @@ import math
 import cv2
 import numpy as np
 
+from .geometry import minor_semi_axis
 from .jit import compiled
 
 _SQ2PI = np.sqrt(2 * np.pi)
@@ -684,7 +685,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     base = prob.start()
     # Coarse search over the motion (direction, length) with the start ellipses, on a
     # sparse pixel grid.
-    minor = min(1 / np.sqrt(np.linalg.eigvalsh(Q)[-1]) for _, Q in prob.cqs)
+    minor = min(minor_semi_axis(Q) for _, Q in prob.cqs)
     grid_stride = max(int(c["grid_stride"]), int(c["grid_stride_frac"] * minor))
     if not prob.pixels(0.5 * max(c["grid_lengths"]) + c["margin"], stride=grid_stride):
         return None

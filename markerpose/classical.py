@@ -49,7 +49,6 @@ All tunables live in :data:`default_conf`; pass ``conf={...}`` to override some.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -58,7 +57,7 @@ import numpy as np
 
 from . import edges
 from .camera import Camera
-from .geometry import cq_to_conic, cq_to_rect, layout_affine, rect_to_cq, ring_diameter, sqrtm_spd, view_poses
+from .geometry import cq_to_conic, cq_to_rect, layout_affine, minor_semi_axis, rect_to_cq, ring_diameter, sqrtm_spd, view_poses
 from .images import as_gray
 from .jit import compiled
 from .marker import Marker
@@ -857,20 +856,13 @@ def _unrefined(rings: list) -> list:
     return [replace(r, refined=False, _rejected=True) for r in rings]
 
 
-def _minor_semi_axis(Q: np.ndarray) -> float:
-    """The minor semi-axis of the ellipse (x - c)^T Q (x - c) = 1: one over the square root
-    of Q's larger eigenvalue (closed form: this runs for every ring of every pair)."""
-    (a, b), (_, d) = np.asarray(Q, np.float64).tolist()
-    return 1.0 / math.sqrt(0.5 * (a + d) + math.hypot(0.5 * (a - d), b))
-
-
 def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     """Whether :func:`refine_blurred` fits ``rings``: the fit is on, every ring has an
     ellipse, the edges are wide (or no ring was edge-refined, where conf allows that) and,
     for three rings, their sizes fit their spacing."""
     if not c["blur_fit"] or len(rings) < 2 or any(r is None or r._outer_cq is None for r in rings):
         return False
-    minor = min(_minor_semi_axis(r._outer_cq[1]) for r in rings)
+    minor = min(minor_semi_axis(r._outer_cq[1]) for r in rings)
     # Where the plate's blurred edge reached an edge fit's rays, half that blur is enough:
     # the edge fit has lost (or kept) the rays along the motion there, and the model leaves
     # out the pixels the plate's edge reaches.

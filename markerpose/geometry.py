@@ -254,6 +254,13 @@ def rect_to_cq(rect) -> tuple[np.ndarray, np.ndarray]:
     return np.array([cx, cy], float), np.array([[c * c * ia + s * s * ib, q01], [q01, s * s * ia + c * c * ib]])
 
 
+def minor_semi_axis(Q: np.ndarray) -> float:
+    """The minor semi-axis of the ellipse (x - c)^T Q (x - c) = 1: one over the square root
+    of Q's larger eigenvalue (closed form: this runs for every ring of every pair)."""
+    (a, b), (_, d) = np.asarray(Q, np.float64).tolist()
+    return 1.0 / math.sqrt(0.5 * (a + d) + math.hypot(0.5 * (a - d), b))
+
+
 def cq_to_rect(c: np.ndarray, Q: np.ndarray) -> tuple:
     """(centre, Q) → RotatedRect ((cx, cy), (w, h), angle_deg), width = major axis along angle."""
     # The symmetric 2 x 2 eigen-decomposition in closed form (a ring's every fit makes one):
