@@ -225,8 +225,26 @@ def _disk_kernel(
     eth = eps * det * (-2.0 * (u0 * (q11 * n0 - q01 * n1) + u1 * (q00 * n1 - q01 * n0))) / root
     esg = deps / sigma
     nqu = n0 * qu0 + n1 * qu1  # n^T Q u
+    # Points whose every line lies within the ellipse over the box and the Gaussian's reach
+    # (1) or misses it there (0), found at the point itself: their lines' origins are within
+    # ro of it (the block's offsets, the lines across, their smoothing near the tangents), and
+    # a point that far moves the ellipse's norm by at most ro / (minor semi-axis).
+    ro = (math.sqrt(2.0) * h + (_GH_T[2] + 6.0 * kap) * sigma + 0.5) * math.sqrt(
+        0.5 * (q00 + q11) + math.sqrt(0.25 * (q00 - q11) ** 2 + q01 * q01)
+    )
+    reach = Lh + 5.0 * sigma + 0.5
     for i in range(len(x)):
         if not (abs(x[i] - c0) < ext0 and abs(y[i] - c1) < ext1):
+            continue
+        dx, dy = x[i] - c0, y[i] - c1
+        B = dx * qu0 + dy * qu1
+        C = q00 * dx * dx + 2 * q01 * dx * dy + q11 * dy * dy
+        sm = min(max(-B / A, -reach), reach)  # the nearest point to the centre on the segment
+        if math.sqrt(max(A * sm * sm + 2.0 * B * sm + C, 0.0)) >= 1.0 + ro:
+            continue  # every line misses the ellipse within the reach: no value, no derivative
+        qa, qb = A * reach * reach + C, 2.0 * B * reach
+        if math.sqrt(max(qa + qb, qa - qb, 0.0)) <= 1.0 - ro:
+            val[i] += sign  # every line's chord covers the box and the Gaussian's reach
             continue
         vi = 0.0
         j0 = j1 = j2 = j3 = j4 = j5 = j6 = j7 = 0.0

@@ -39,6 +39,32 @@ def test_blurred_disk_keeps_the_area_and_its_centroid(theta, L):
     assert v.max() <= 1 + 1e-6 and v.min() >= -1e-6
 
 
+@pytest.mark.parametrize("theta, L, sigma", [(0.3, 0.5, 0.6), (1.1, 12.0, 0.9), (0.4, 30.0, 1.4)])
+def test_blurred_disk_is_its_lines_chords_over_the_box_everywhere(theta, L, sigma):
+    """With bare lines, each point's value is the three Gauss-Hermite lines' chords
+    overlapping the box, smoothed by sigma along it: computed here point by point, on a grid
+    that holds points deep inside and far outside the blurred ellipse (the kernel settles
+    those without their lines) and every point between."""
+    from scipy.stats import norm
+
+    c, Q = _ellipse()
+    ys, xs = np.mgrid[10:110:1.3, 10:110:1.3]
+    x, y = xs.ravel(), ys.ravel()
+    got = blurfit.blurred_disk(x, y, c, Q, theta, L, sigma, smooth=0.0)
+    u, n = np.array([np.cos(theta), np.sin(theta)]), np.array([-np.sin(theta), np.cos(theta)])
+    G = lambda t: t * norm.cdf(t) + norm.pdf(t)  # noqa: E731
+    want = np.zeros(len(x))
+    for tau, w in zip(np.sqrt(3.0) * np.array([-1.0, 0.0, 1.0]), [1 / 6, 2 / 3, 1 / 6]):
+        d = np.stack([x, y], 1) + tau * sigma * n - c
+        A, B, Cq = u @ Q @ u, d @ Q @ u, np.einsum("ni,ij,nj->n", d, Q, d) - 1
+        r = np.sqrt(np.maximum(B * B - A * Cq, 0.0))
+        s1, s2 = (-B - r) / A, (-B + r) / A
+        v = (G((L / 2 - s1) / sigma) - G((-L / 2 - s1) / sigma) - G((L / 2 - s2) / sigma) + G((-L / 2 - s2) / sigma)) * sigma / L
+        want += w * np.where(B * B - A * Cq > 0, v, 0.0)
+    assert (want > 1 - 1e-9).sum() > 100 and (want < 1e-9).sum() > 100  # both kinds of settled points
+    assert np.abs(got - want).max() < 1e-6
+
+
 @pytest.mark.parametrize("box", [1, 3])
 def test_blurred_disk_derivatives_match_finite_differences(box):
     c, Q = _ellipse()
