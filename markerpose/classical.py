@@ -107,7 +107,11 @@ default_conf: dict = {
     "blur_fit_long_px": 7.5,  # ... this many px (about 10 px of motion blur: from there on the
     #                           edge fit loses to the model whatever the rings' size, while
     #                           shorter blur on foreshortened rings, or a shadow's edge across
-    #                           them, is better left to the edge fit; 0: no such rule)
+    #                           them, is better left to the edge fit; 0: no such rule) ...
+    "blur_fit_long_even": 0.6,  # ... and where the edges' widths are uneven around the rings:
+    #                             the rings' median of their 25th percentile over their 75th at
+    #                             most this (motion widens the edges along it only; defocus and
+    #                             resampling widen all of them alike; 1: any edges)
     "blur_fit_unrefined": True,  # ... also when no ring could be edge-fitted (False: only
     #                               refit rings the edge fit found; a tracker's prediction
     #                               that missed the rings then fails fast)
@@ -210,6 +214,7 @@ class Ring:
     _outer_cq: tuple = field(default=None, repr=False)
     _inner_cq: tuple = field(default=None, repr=False)
     _edge_width: float = field(default=0.0, repr=False)  # outer edge's 10-90 % width, px (refined)
+    _edge_even: float = field(default=1.0, repr=False)  # those widths' 25th percentile over their 75th (refined)
     _plate_reached: bool = field(default=False, repr=False)  # the plate's blurred edge reached its edge fit's rays
     _blur: float = field(default=0.0, repr=False)  # motion blur length of the blurred-ring fit, px (0: not fitted)
     _rejected: bool = field(default=False, repr=False)  # under heavy blur the edge fit is not trusted: the blurred-ring
@@ -612,7 +617,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
     conf["center"] = "concentric", the two ellipses' concentric centre. ``mapped``: the
     outer ideal centre in the image's pixels and the lens's local map there
     (:func:`_image_centres`), None where the ring was not fitted in ideal pixels."""
-    outer_cq, outer_ideal, width, cov, plate_reached = outer
+    outer_cq, outer_ideal, width, cov, plate_reached, even = outer
     inner_ideal = None
     if inner is not None:
         inner_cq, inner_ideal = inner[:2]
@@ -640,6 +645,7 @@ def _refined_ring(ring: Ring, outer: tuple, inner_cq, inner: tuple | None, camer
         _outer_cq=outer_cq,
         _inner_cq=inner_cq,
         _edge_width=width,
+        _edge_even=even,
         _plate_reached=plate_reached,
         _center_cov=cov,
     )
@@ -868,7 +874,12 @@ def _blur_fit_due(rings: list, marker: Marker, c: dict) -> bool:
     # out the pixels the plate's edge reaches.
     half = 0.5 if any(r._plate_reached for r in rings) else 1.0
     wide = max(r._edge_width for r in rings)
-    long_blur = c["blur_fit_long_px"] > 0 and wide >= c["blur_fit_long_px"] and wide >= half * c["blur_fit_long_width"] * minor
+    long_blur = (
+        c["blur_fit_long_px"] > 0
+        and wide >= c["blur_fit_long_px"]
+        and wide >= half * c["blur_fit_long_width"] * minor
+        and float(np.median([r._edge_even for r in rings])) <= c["blur_fit_long_even"]
+    )
     if any(r.refined for r in rings) and wide < half * c["blur_fit_width"] * minor and not long_blur:
         return False
     if not c["blur_fit_unrefined"] and not any(r.refined for r in rings):
@@ -914,7 +925,8 @@ def refine_blurred(
     ring has an ellipse and either the widest edge-refined outer edge (75th percentile
     of its 10-90 % widths) exceeds conf["blur_fit_width"] times the smallest ring's minor
     semi-axis (the blur nears the black band's width), or conf["blur_fit_long_width"] times
-    it where it is also conf["blur_fit_long_px"] px wide (long blur), or no ring could be
+    it where it is also conf["blur_fit_long_px"] px wide and the widths are uneven around
+    the rings (conf["blur_fit_long_even"]: long motion blur), or no ring could be
     edge-refined;
     a ring the edge fit gave up on (e.g. for a neighbour's blur) is fitted too. When a
     fitted centre lies farther than conf["blur_fit_max_move"] px from the edge fit's

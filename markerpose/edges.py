@@ -775,7 +775,10 @@ def edge_points(
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,), the covariance of the edges' shared shift
         (K, 2, 2), :func:`_shared_shift`, whether the plate's blurred edge reached the
-        ring's rays (K,): left out, or kept where too many to leave out).
+        ring's rays (K,): left out, or kept where too many to leave out), and the widths'
+        25th percentile over their 75th (K,): motion blur widens the edges along the
+        motion only, and the edges across it stay sharp (a low ratio); defocus widens them
+        all alike (near 1).
     """
     half = _per_ellipse(half, len(cen))
     L, a, b, n, S, m = _ray_counts(Q, half, c)
@@ -800,13 +803,16 @@ def edge_points(
     pen = (0.15 * np.sqrt(a * b)) ** 2
     planes = _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c, ok)
     e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
+    low = np.empty(K)
+    _row_stats(w1090, ok, 25.0, 0.0, low)  # the 25th percentile, over the rays the 75th is over
+    even = np.divide(low, width, out=np.ones(K), where=width > 0)
     if keep is not None:
         ok &= keep
     shared = _shared_shift(local, (v_in, v_out), xy, cen, pen, clean, planes, ok, width, c)
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
     mask = np.arange(N)[None, :] < cnt[:, None]
-    return P, mask, n_use, Wc, width, shared, reached
+    return P, mask, n_use, Wc, width, shared, reached, even
 
 
 def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, width, c: dict) -> np.ndarray:
@@ -1443,11 +1449,11 @@ def _fit_passes(
     ellipses still moving; cen (K, 2) and Q (K, 2, 2) are updated in place. Returns (per
     ellipse (edge points (M, 2), weights (M,)) of its last fit or None, edge widths (K,),
     the covariances of the edges' shared shift (K, 2, 2), whether the plate's edge reached
-    the last fit's rays (K,): :func:`edge_points`)."""
+    the last fit's rays (K,), the widths' evenness (K,): :func:`edge_points`)."""
     K = len(cen)
     active = np.ones(K, bool)
     found: list = [None] * K
-    width = np.zeros(K)
+    width, even = np.zeros(K), np.ones(K)
     reached = np.zeros(K, bool)
     shared = np.zeros((K, 2, 2))
     last = np.full(K, np.inf)  # each ellipse's move in the pass before (inf: no fit taken yet)
@@ -1472,7 +1478,7 @@ def _fit_passes(
             break
         coarse = it == 0 and sparse > 0  # an ellipse the coarse pass fails gets a full one
         cp = {**c, "edge_spacing": sparse} if coarse else c
-        P, M, n_use, W, wd, sh, cr = edge_points(
+        P, M, n_use, W, wd, sh, cr, ev = edge_points(
             grays,
             view[a],
             cen[a],
@@ -1493,7 +1499,7 @@ def _fit_passes(
                 continue
             break
         g = a[go]
-        Pg, Wg, wdg, shg, crg = P[go], W[go], wd[go], sh[go], cr[go]
+        Pg, Wg, wdg, shg, crg, evg = P[go], W[go], wd[go], sh[go], cr[go], ev[go]
         cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg, screen[g])
         nk, nm = keep.sum(1), M[go].sum(1)
         okf = fitted & (nk >= need[go])
@@ -1512,7 +1518,7 @@ def _fit_passes(
             k = g[i]
             cen[k], Q[k] = cf[i], Qf[i]
             found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
-            width[k] = wdg[i]
+            width[k], even[k] = wdg[i], evg[i]
             reached[k] = crg[i]
             shared[k] = shg[i]
             if np.isinf(last[k]):  # the first fit this ellipse took
@@ -1523,7 +1529,7 @@ def _fit_passes(
             passes[k] += 1
             if done or (wide_passes and passes[k] >= wide_passes and wide[i]):
                 active[k] = False
-    return found, width, shared, reached
+    return found, width, shared, reached, even
 
 
 def center_covariances(fits: list) -> np.ndarray:
@@ -1646,12 +1652,12 @@ def refine_edges(
     Returns per ellipse ((centre, Q) in image px, (centre, Q) in ideal px or None, edge
     width px, the centre's covariance (2, 2) in the px of the fit the centre comes from:
     ideal where there is one, :func:`center_covariances`, whether the plate's blurred edge
-    reached its rays: :func:`edge_points`) or None when too few edge points
-    are found.
+    reached its rays, the 25th percentile of its edges' widths over their 75th:
+    :func:`edge_points`) or None when too few edge points are found.
     """
     K = len(cen)
     cen, Q = np.array(cen, np.float64).reshape(K, 2), np.array(Q, np.float64).reshape(K, 2, 2)
-    found, width, shared, reached = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others, plates)
+    found, width, shared, reached, even = _fit_passes(grays, view, cen, Q, _per_ellipse(half, K), dark_inside, c, floor, others, plates)
     out: list = [None] * K
     ks = [k for k in range(K) if found[k] is not None]
     ideal: dict = {}
@@ -1664,7 +1670,7 @@ def refine_edges(
     fits = [(*ideal[k][2:], found[k][1], *ideal[k][:2], shared[k]) if k in ideal else (*found[k], cen[k], Q[k], shared[k]) for k in ks]
     covs = center_covariances(fits)
     for i, k in enumerate(ks):
-        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i], bool(reached[k]))
+        out[k] = ((cen[k], Q[k]), ideal[k][:2] if k in ideal else None, float(width[k]), covs[i], bool(reached[k]), float(even[k]))
     return out
 
 

@@ -535,20 +535,24 @@ def test_blur_fit_leaves_rings_whose_sizes_do_not_fit_their_spacing():
 
 
 @pytest.mark.parametrize(
-    ("minor", "width", "plate", "due"),
+    ("minor", "width", "plate", "even", "due"),
     [
-        (30.0, 13.0, False, True),  # over 0.4 of the minor semi-axis
-        (30.0, 10.0, False, True),  # a third of it and 10 px wide: long blur
-        (13.0, 4.4, False, False),  # a third of a small one, but 4.4 px: short blur (or a shadow's edge)
-        (30.0, 8.0, False, False),  # 7.5 px wide but under 0.3 of the minor semi-axis
-        (30.0, 8.0, True, True),  # ... where the plate's edge reached the rays, half the fractions
+        (30.0, 13.0, False, 0.4, True),  # over 0.4 of the minor semi-axis
+        (30.0, 13.0, False, 0.8, True),  # ... whatever blurred the edges
+        (30.0, 10.0, False, 0.4, True),  # a third of it and 10 px wide, sharp across the motion: long blur
+        (30.0, 10.0, False, 0.8, False),  # ... but as wide all round: defocus, not motion
+        (13.0, 4.4, False, 0.4, False),  # a third of a small one, but 4.4 px: short blur (or a shadow's edge)
+        (30.0, 8.0, False, 0.4, False),  # 7.5 px wide but under 0.3 of the minor semi-axis
+        (30.0, 8.0, True, 0.4, True),  # ... where the plate's edge reached the rays, half the fractions
     ],
 )
-def test_the_blur_fit_is_due_for_wide_edges_or_long_blur(minor, width, plate, due):
+def test_the_blur_fit_is_due_for_wide_edges_or_long_blur(minor, width, plate, even, due):
     """The blurred-ring fit's gate: edges wider than ``blur_fit_width`` (0.4) of the smallest
     minor semi-axis, or ``blur_fit_long_width`` (0.3) of it where they are also
-    ``blur_fit_long_px`` (7.5 px) wide; both fractions halved where the plate's blurred edge
-    reached the edge fit's rays. Without the long-blur rule only the first."""
+    ``blur_fit_long_px`` (7.5 px) wide and uneven around the rings (their widths' 25th
+    percentile at most ``blur_fit_long_even`` (0.6) of their 75th); both fractions halved
+    where the plate's blurred edge reached the edge fit's rays. Without the long-blur rule
+    only the first."""
     marker = Marker()
     scale = minor / marker.outer_radius  # px per mm: circles of this radius, their sizes fitting their spacing
     Q = np.eye(2) / minor**2
@@ -561,11 +565,15 @@ def test_the_blur_fit_is_due_for_wide_edges_or_long_blur(minor, width, plate, du
             refined=True,
             _outer_cq=(c, Q),
             _edge_width=width,
+            _edge_even=even,
             _plate_reached=plate,
         )
         for c in (np.array(marker.centers2d) * scale + 500.0)
     ]
     c = C._merge_conf(None)
     assert C._blur_fit_due(rings, marker, c) is due
+    assert C._blur_fit_due(rings, marker, {**c, "blur_fit_long_even": 1.0}) is (
+        due or (width >= 7.5 and width >= (0.15 if plate else 0.3) * minor)
+    )
     without = C._blur_fit_due(rings, marker, {**c, "blur_fit_long_px": 0.0})
     assert without is (width >= (0.2 if plate else 0.4) * minor)

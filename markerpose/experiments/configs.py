@@ -58,6 +58,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         {"refine": {"blur_long_px": 0.0}},
         "default whose blurred-ring fit takes over at edges 0.4 of the minor semi-axis wide only, not also at 0.3 where they are 7.5 px wide",
     ),
+    "default-long-blur-even": (
+        {"refine": {"blur_long_even": 1.0}},
+        "default whose rule for long blur also takes rings whose edges are widened alike all round (defocus, resampling)",
+    ),
     "default-early-blur-fit": (
         {"refine": {"blur_width": 0.3}},
         "default whose blurred-ring fit takes over from the edge fit at edges 0.3 of the minor semi-axis wide (0.4)",

@@ -56,7 +56,11 @@ default_conf = {
     "blur_long_px": 7.5,  # ... this many px (about 10 px of motion blur, which the edge fit
     #                       loses to the model whatever the rings' size; shorter blur on
     #                       foreshortened rings, or a shadow's edge, stays with the edge fit;
-    #                       0: no such rule; design §4)
+    #                       0: no such rule; design §4) ...
+    "blur_long_even": 0.6,  # ... and where the edges' widths are uneven around the rings (the
+    #                         25th percentile at most this fraction of the 75th, the rings'
+    #                         median): motion widens the edges along it only, defocus or
+    #                         resampling all of them alike (1: any edges)
     "track_blur_width": 0.4,  # ... the same for the rings a tracker predicted or searched near
     #                           its prediction, without the rule for long blur: the fit is the
     #                           costliest step of a tracked frame, whose budget is the stream's
@@ -81,6 +85,7 @@ RULES = {
     "blur_width": number(0.0, above=True),
     "blur_long_width": number(0.0, above=True),
     "blur_long_px": number(0.0),
+    "blur_long_even": number(0.0, 1.0),
     "track_blur_width": number(0.0, above=True),
     "max_blur_fits": number(0, integer=True),
     "plate_edge": flag(),
@@ -108,6 +113,7 @@ class Refiner:
             "blur_fit_width": float(conf["blur_width"]),
             "blur_fit_long_width": float(conf["blur_long_width"]),
             "blur_fit_long_px": float(conf["blur_long_px"]),
+            "blur_fit_long_even": float(conf["blur_long_even"]),
             "plate_edge": bool(conf["plate_edge"]),
         }
         # Compiled now, not in a stream's first frames (a live tracker would stall on them).
