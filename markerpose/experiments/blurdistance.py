@@ -343,9 +343,16 @@ def plot(res: dict, path: Path) -> Path:
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("motion blur (px)")
         ax.grid(alpha=0.3)
-        ax.legend(frameon=False, fontsize=8)
     axes[0][0].set_ylabel("error of the distance (mm)")
-    fig.tight_layout()
+    # One legend for all panels, below them: per panel, nine configurations' entries hid the curves.
+    from matplotlib.lines import Line2D
+
+    handles = [Line2D([], [], color=f"C{i}", marker="o", ms=4, label=n) for i, n in enumerate(res["summary"])]
+    if len(parts) > 1:
+        handles += [Line2D([], [], color="0.3", ls=ls, label=what) for ls, what in (("-", "c0-c1"), ("--", "c0-c2 (the path)"))]
+    rows = -(-len(handles) // 6)
+    fig.legend(handles=handles, loc="lower center", ncol=min(6, len(handles)), frameon=False, fontsize=8)
+    fig.tight_layout(rect=(0, 0.06 * rows + 0.02, 1, 1))
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
