@@ -316,6 +316,7 @@ def plot(res: dict, path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
 
     parts = [("random poses, blur along c0 -> c1 in each view", res["summary"], None)]
     if res.get("path"):
@@ -345,8 +346,6 @@ def plot(res: dict, path: Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0][0].set_ylabel("error of the distance (mm)")
     # One legend for all panels, below them: per panel, nine configurations' entries hid the curves.
-    from matplotlib.lines import Line2D
-
     handles = [Line2D([], [], color=f"C{i}", marker="o", ms=4, label=n) for i, n in enumerate(res["summary"])]
     if len(parts) > 1:
         handles += [Line2D([], [], color="0.3", ls=ls, label=what) for ls, what in (("-", "c0-c1"), ("--", "c0-c2 (the path)"))]
