@@ -228,6 +228,9 @@ class KeypointNet:
             triples) when the checkpoint has them; else those for single images.
         threads: the runtime's threads (None: its default, every core).
         backend: what runs ``.onnx`` weights (:data:`markerpose.nets.BACKENDS`).
+        stack_views: run a batch of two (a stereo pair's views) by the weights'
+            :func:`markerpose.nets.stack_views` copy where one lies beside them (ONNX
+            Runtime only; the same outputs).
     """
 
     def __init__(
@@ -239,16 +242,17 @@ class KeypointNet:
         stereo: bool = False,
         threads: int | None = None,
         backend: str = "onnxruntime",
+        stack_views: bool = False,
     ):
         def build(meta):
             return build_network(float(meta["width"]), meta.get("stem_width"))
 
         self.runner, meta, self.path = load_network(
-            weights, "keypoints", build, threads, device, required=("state_dict", "width"), backend=backend
+            weights, "keypoints", build, threads, device, required=("state_dict", "width"), backend=backend, stack_views=stack_views
         )
         if "width" not in meta:
             raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
-        self.locator = self._locator(meta, threads, backend)
+        self.locator = self._locator(meta, threads, backend, stack_views)
         # Decoding thresholds: the defaults, those tuned for this ID mode and operating
         # point when the weights were exported (keyed by tuned_key), then the caller's.
         self.tuned = meta.get("decode", {})
@@ -262,14 +266,14 @@ class KeypointNet:
         # stage 1 is trained on).
         self.isotropic = False
 
-    def _locator(self, meta: dict, threads: int | None, backend: str):
+    def _locator(self, meta: dict, threads: int | None, backend: str, stack_views: bool = False):
         """The runner of these weights' detector-head-only copy (:func:`markerpose.nets.detector_only`)
         where one lies beside an ``.onnx`` file with the same metadata, else None (the
         candidates then come from the whole network: the same values, a little later)."""
         det = detector_only_path(self.path)
         if self.path.suffix != ".onnx" or not det.is_file():
             return None
-        runner, det_meta, _ = load_network(det, "keypoints", None, threads, backend=backend)
+        runner, det_meta, _ = load_network(det, "keypoints", None, threads, backend=backend, stack_views=stack_views)
         return runner if det_meta == {**meta, "detector_only": True} else None
 
     def look_size(self, zoom: float, shape: tuple) -> tuple[int, int]:

@@ -114,8 +114,9 @@ class Runner:
     """A network ready for inference: ``runner(x)`` with x (B, 1, H, W) float32 → tuple of
     float32 outputs. ``backend`` is "onnxruntime", "openvino", "openvino-bf16" or "torch"."""
 
-    def __init__(self, fn: Callable, backend: str):
+    def __init__(self, fn: Callable, backend: str, stacked: bool = False):
         self._fn, self.backend = fn, backend
+        self.stacked = stacked  # batches of two run by the weights' stacked copy (stack_views)
 
     def __call__(self, x: np.ndarray) -> tuple:
         return self._fn(np.ascontiguousarray(x, np.float32))
@@ -139,14 +140,24 @@ def _checked_meta(path: Path, kind: str, raw: str | None) -> dict:
     return meta
 
 
-def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, dict]:
+# ONNX Runtime graph rewrites left out: QDQ propagation moves an int8 network's first
+# quantization above the max-pool before it, which then runs on int8 in the plain layout,
+# slower than the float32 pool in the blocked one (the outputs are the same either way:
+# the max commutes with a monotonic quantization).
+_SKIPPED_REWRITES = ["QDQPropagationTransformer"]
+
+
+def _onnx_runner(path: Path, kind: str, threads: int | None, stacked: Path | None = None) -> tuple[Runner, dict]:
+    """ONNX Runtime's runner of ``path``; ``stacked``: its :func:`stack_views` copy, which
+    then runs every batch of two (where its metadata is that of ``path`` plus the stacking
+    entry; else it is left unused)."""
     try:
         with held_interrupt():
             import onnxruntime as ort
     except ImportError as exc:
         raise ValueError(f"{path}: ONNX weights need onnxruntime (pip install onnxruntime)") from exc
 
-    def session(n: int | None):
+    def session(n: int | None, file: Path = path):
         opts = ort.SessionOptions()
         if n:
             opts.intra_op_num_threads = int(n)
@@ -155,30 +166,38 @@ def _onnx_runner(path: Path, kind: str, threads: int | None) -> tuple[Runner, di
         # rest of the pipeline (and from other sessions, e.g. the other network).
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         try:
-            return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            return ort.InferenceSession(str(file), opts, providers=["CPUExecutionProvider"], disabled_optimizers=_SKIPPED_REWRITES)
         except Exception as exc:  # ORT raises its own exception types for unreadable models
-            raise _unreadable(path, exc) from exc
+            raise _unreadable(file, exc) from exc
 
     whole = session(threads)
     meta = _checked_meta(path, kind, whole.get_modelmeta().custom_metadata_map.get(META_KEY))
     name = whole.get_inputs()[0].name
     n = int(threads or cores())
-    if n < 2:
+    pair = session(n, stacked) if stacked is not None else None
+    if pair is not None and json.loads(pair.get_modelmeta().custom_metadata_map.get(META_KEY) or "{}") != {
+        **meta,
+        "stacked_views": STACK_CHANNELS,
+    }:
+        pair = None  # not this file's copy (e.g. left from older weights)
+    if n < 2 and pair is None:
         return Runner(lambda x: tuple(whole.run(None, {name: x})), "onnxruntime"), meta
-    # A batch (the two views, a look's windows) runs as two halves at once, each on half the
-    # threads: the small layers of these networks leave threads idle at every operator's
-    # barrier when one run spreads over all of them.
-    halves = (session(n // 2), session(n - n // 2))
+    # Otherwise a batch (the two views, a look's windows) runs as two halves at once, each
+    # on half the threads: the small layers of these networks leave threads idle at every
+    # operator's barrier when one run spreads over all of them.
+    halves = (session(n // 2), session(n - n // 2)) if n >= 2 else None
     worker = Worker()
 
     def run(x):
-        if len(x) < 2:
+        if pair is not None and len(x) == 2:
+            return tuple(pair.run(None, {name: x.reshape(1, 2, *x.shape[2:])}))
+        if len(x) < 2 or halves is None:
             return tuple(whole.run(None, {name: x}))
         k = len(x) // 2
         first, second = worker.both(lambda: halves[0].run(None, {name: x[:k]}), lambda: halves[1].run(None, {name: x[k:]}))
-        return tuple(np.concatenate(pair) for pair in zip(first, second))
+        return tuple(np.concatenate(both) for both in zip(first, second))
 
-    return Runner(run, "onnxruntime"), meta
+    return Runner(run, "onnxruntime", stacked=pair is not None), meta
 
 
 BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run
@@ -248,6 +267,7 @@ def load_network(
     device: str = "cpu",
     required: tuple = ("state_dict",),
     backend: str = "onnxruntime",
+    stack_views: bool = False,
 ) -> tuple[Runner, dict, Path]:
     """A network and what its file says besides the weights (format, width, tuned
     thresholds, metrics), from an ``.onnx`` file (ONNX Runtime or OpenVINO) or a ``.pt``
@@ -260,6 +280,8 @@ def load_network(
         threads: the runtime's threads (None: its default, every core).
         backend: what runs ``.onnx`` weights (:data:`BACKENDS`): ONNX Runtime, or OpenVINO
             at float32 or bfloat16.
+        stack_views: on ONNX Runtime, run batches of two by the file's :func:`stack_views`
+            copy where one lies beside it with the same metadata.
     Returns:
         (runner, meta, path).
     """
@@ -278,7 +300,8 @@ def load_network(
     if path.suffix == ".onnx" and backend != "onnxruntime":
         return (*_openvino_runner(path, kind, threads, backend == "openvino-bf16"), path)
     if path.suffix == ".onnx":
-        return (*_onnx_runner(path, kind, threads), path)
+        stacked = stacked_views_path(path) if stack_views else None
+        return (*_onnx_runner(path, kind, threads, stacked if stacked is not None and stacked.is_file() else None), path)
     if importlib.util.find_spec("torch") is None:
         raise ValueError(
             f"{path}: PyTorch checkpoints need PyTorch (the train extra); inference runs the .onnx copy that "
@@ -348,6 +371,117 @@ def detector_only(src: str | Path, dest: str | Path | None = None) -> Path:
     entry.key, entry.value = META_KEY, json.dumps({**meta, "detector_only": True})
     onnx.save(det, str(dest))
     return dest
+
+
+def stacked_views_path(path: str | Path) -> Path:
+    """Where the :func:`stack_views` copy of stage-1 weights ``path`` lies."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}-pair.onnx")
+
+
+# ONNX Runtime's blocked convolutions work on this many channels at a time on CPUs with
+# AVX-512 (8 with AVX2): a layer with fewer output channels costs about as much as one
+# with this many. :func:`stack_views` stacks the two views' layers narrower than this.
+STACK_CHANNELS = 16
+
+
+def wide_vectors() -> bool:
+    """Whether this CPU has AVX-512, where ONNX Runtime's convolutions work on
+    :data:`STACK_CHANNELS` channels at a time (the stacked copies pay there; with 8-wide
+    blocks, their zero blocks would double the narrow layers' work)."""
+    try:
+        import llvmlite.binding as llvm  # numba's, installed with it
+
+        return bool(llvm.get_host_cpu_features().get("avx512f", False))
+    except Exception:  # no feature list on this platform: assume narrow vectors
+        return False
+
+
+def stack_views(src: str | Path, dest: str | Path | None = None) -> Path:
+    """A copy of an ``.onnx`` stage-1 network that takes a batch of two images as the two
+    channels of one input (1, 2, H, W) and gives what the network gives the batch (2, 1,
+    H, W): its first convolutions narrower than :data:`STACK_CHANNELS` (and the ReLUs and
+    max-pools between them) work on both images at once, their weights block-diagonal
+    (each image's channels see only its own), and a reshape then makes the two a batch
+    again. Why: ONNX Runtime pads such narrow layers to :data:`STACK_CHANNELS` channels on
+    CPUs with AVX-512, so the two images' stem costs about what one image's did.
+
+    The same metadata plus ``stacked_views``; ``dest`` defaults to
+    :func:`stacked_views_path`. ``ValueError`` when the network starts with no such
+    layer. Needs ``onnx``."""
+    import onnx
+    from onnx import helper, numpy_helper
+
+    src = Path(src)
+    model = onnx.load(str(src))
+    meta = _checked_meta(src, "keypoints", _meta_text(model))
+    if "stacked_views" in meta:
+        raise ValueError(f"{src} is already a stacked copy")
+    graph = model.graph
+    inits = {t.name: t for t in graph.initializer}
+    consumers: dict[str, list] = {}
+    for node in graph.node:
+        for x in node.input:
+            consumers.setdefault(x, []).append(node)
+    cur, stacked = graph.input[0].name, 0
+    # Follow the chain from the input while it is one narrow convolution, ReLU or max-pool
+    # after another (each tensor read by that node only).
+    while len(consumers.get(cur, [])) == 1:
+        node = consumers[cur][0]
+        if node.op_type == "Conv":
+            group = next((a.i for a in node.attribute if a.name == "group"), 1)
+            if group != 1 or node.input[1] not in inits or (len(node.input) > 2 and node.input[2] not in inits):
+                break
+            w = numpy_helper.to_array(inits[node.input[1]])
+            if w.shape[0] >= STACK_CHANNELS:
+                break
+            co, ci = w.shape[:2]
+            both = np.zeros((2 * co, 2 * ci, *w.shape[2:]), w.dtype)
+            both[:co, :ci], both[co:, ci:] = w, w
+            inits[node.input[1]].CopyFrom(numpy_helper.from_array(both, node.input[1]))
+            if len(node.input) > 2:
+                b = numpy_helper.to_array(inits[node.input[2]])
+                inits[node.input[2]].CopyFrom(numpy_helper.from_array(np.concatenate([b, b]), node.input[2]))
+            stacked, channels = stacked + 1, co
+        elif node.op_type not in ("Relu", "MaxPool"):
+            break
+        cur = node.output[0]
+    if not stacked:
+        raise ValueError(f"{src} starts with no convolution narrower than {STACK_CHANNELS} channels: nothing to stack")
+    # (1, 2 C, h, w) -> (2, C, h, w): the first C channels are the first image's.
+    shape = f"{cur}_views_shape"
+    graph.initializer.append(numpy_helper.from_array(np.array([2, channels, 0, 0], np.int64), shape))
+    for node in consumers.get(cur, []):
+        for k, x in enumerate(node.input):
+            if x == cur:
+                node.input[k] = f"{cur}_views"
+    for k, out in enumerate(graph.output):
+        if out.name == cur:  # a network that is all stem: its output is the batch too
+            graph.output[k].name = f"{cur}_views"
+    at = next(i for i, node in enumerate(graph.node) if cur in node.output) + 1
+    graph.node.insert(at, helper.make_node("Reshape", [cur, shape], [f"{cur}_views"], name="views_to_batch"))
+    dims = graph.input[0].type.tensor_type.shape.dim
+    dims[0].dim_value, dims[1].dim_value = 1, 2
+    del graph.value_info[:]  # the shapes inferred for one image per batch item
+    for m in list(model.metadata_props):
+        model.metadata_props.remove(m)
+    entry = model.metadata_props.add()
+    entry.key, entry.value = META_KEY, json.dumps({**meta, "stacked_views": STACK_CHANNELS})
+    onnx.checker.check_model(model)
+    dest = Path(dest) if dest is not None else stacked_views_path(src)
+    onnx.save(model, str(dest))
+    return dest
+
+
+def candidate_copies(path: str | Path) -> list[Path]:
+    """What stage 1's candidates run, written beside stage-1 weights ``path``: the
+    :func:`detector_only` copy, and its :func:`stack_views` copy where the network starts
+    narrow. Needs ``onnx``."""
+    det = detector_only(path)
+    try:
+        return [det, stack_views(det)]
+    except ValueError:  # a stem of full blocks: nothing to stack
+        return [det]
 
 
 def _meta_text(model) -> str | None:

@@ -67,6 +67,10 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         "default whose blurred-ring fit takes over from the edge fit at edges 0.3 of the minor semi-axis wide (0.4)",
     ),
     "default-no-second-look": ({"propose": {"second_look": 1.0}}, "default without stage 1's second look"),
+    "default-unstacked": (
+        {"propose": {"stack_views": False}},
+        "default with stage 1's two views as a batch of two on two threads, not as two channels of one run",
+    ),
     "default-lite-paper-input": (
         {"propose": {"network": "lite", "input": "paper"}},
         "default-lite with stage 1's input at the paper's 320x240 instead of the image's aspect",

@@ -25,7 +25,7 @@ import numpy as np
 from .. import classical, jit, keypoints, settings
 from ..keypoints import KeypointNet
 from ..marker import Marker
-from ..nets import default_weights, have_onnxruntime, int8_weights
+from ..nets import default_weights, have_onnxruntime, int8_weights, wide_vectors
 from ..settings import choice, flag, number, path
 
 # The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
@@ -50,6 +50,10 @@ default_conf = {
     #                          mostly does not: no second look on most marker-free pairs; 0: always)
     "input": "isotropic",  # neural: the input's size: "paper" 320x240 whatever the image, "isotropic"
     #                    the image's aspect at 320 wide (320x256 for 1280x1024: an exact 4x4 area resize)
+    "stack_views": None,  # neural, ONNX Runtime: the two views in one run of the network's shipped
+    #                       copy that takes them as two channels (nets.stack_views; the same
+    #                       outputs): True where one is shipped, False never, None where one is
+    #                       shipped and the CPU has AVX-512 (nets.wide_vectors)
 }
 RULES = {
     "network": choice(*NETWORKS),
@@ -59,6 +63,7 @@ RULES = {
     "second_look": number(1),
     "second_look_min": number(0, 1),
     "input": choice("paper", "isotropic"),
+    "stack_views": flag(optional=True),
 }
 
 # Stage 1's candidate list for the stereo detector: the same quantities, under the same
@@ -125,7 +130,10 @@ class NeuralProposer:
         elif weights is None:
             weights = network_weights(conf["network"])
         jit.warm_up(keypoints.warm_up)  # compiled now, not at a stream's first frame
-        self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend)
+        stack = conf["stack_views"]
+        if stack is None:
+            stack = wide_vectors()
+        self.net = KeypointNet(weights, decoding, marker=marker, stereo=True, threads=threads, backend=backend, stack_views=stack)
         self.net.isotropic = conf["input"] == "isotropic"
 
     def for_marker(self, marker: Marker) -> NeuralProposer:

@@ -647,7 +647,7 @@ def quantize(src: str | Path, dest: str | Path, n: int = INT8_IMAGES, workers: i
     """An int8 copy of stage-1 ONNX weights (:func:`markerpose.nets.quantize_onnx`), its
     activations' ranges calibrated on the first ``n`` images of the training set (seed 0;
     never a held-out set), eight to a batch. The decoding thresholds are the source's."""
-    from ..nets import detector_only, quantizable_meta, quantize_onnx
+    from ..nets import candidate_copies, quantizable_meta, quantize_onnx
 
     quantizable_meta(src, "keypoints")  # before minutes of rendering
     if int(n) < 1:
@@ -655,7 +655,7 @@ def quantize(src: str | Path, dest: str | Path, n: int = INT8_IMAGES, workers: i
     images = generate(int(n), seed=0, workers=workers, desc="render calibration")["image"]
     x = images.astype(np.float32)[:, None] / 255.0  # the network's input, as kp.to_input makes it
     out = quantize_onnx(src, dest, [x[i : i + 8] for i in range(0, len(x), 8)])
-    detector_only(out)  # what stage 1's candidates run
+    candidate_copies(out)  # what stage 1's candidates run
     return out
 
 

@@ -140,7 +140,7 @@ def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
     name with ``.onnx``."""
     from .. import ellipses as es
     from .. import keypoints as kp
-    from ..nets import detector_only, export_onnx, fuse_batchnorm, load_checkpoint, load_weights
+    from ..nets import candidate_copies, export_onnx, fuse_batchnorm, load_checkpoint, load_weights
 
     weights = Path(weights)
     import torch
@@ -166,7 +166,7 @@ def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
     dest = Path(dest) if dest is not None else weights.with_suffix(".onnx")
     export_onnx(net, dest, shape, kind, meta, outputs, dynamic_hw=dynamic)
     if kind == "keypoints":
-        detector_only(dest)  # what stage 1's candidates run: the ID head left out
+        candidate_copies(dest)  # what stage 1's candidates run: the ID head left out
     return dest
 
 

@@ -152,6 +152,65 @@ def test_the_detector_only_copy_gives_the_whole_networks_det_logits(tmp_path):
     np.testing.assert_array_equal(mine.det_logits(x), mine.logits(x)[0])
 
 
+@needs_nets
+@pytest.mark.parametrize("name", ["keypoints-mid-int8", "keypoints-mid"])
+def test_the_stacked_copy_runs_a_pair_as_the_network_runs_each_view(tmp_path, name):
+    """A stereo pair's views as the two channels of the shipped stacked copy give what the
+    detector-only network gives each view (ONNX Runtime, two or one thread); a stacked copy
+    of other weights is not used; the shipped copy is what ``stack_views`` makes of its
+    source."""
+    import shutil
+
+    from markerpose.nets import WEIGHTS_DIR, stacked_views_path
+
+    x = np.random.default_rng(2).random((2, 256, 320), dtype=np.float32)
+    plain = kp.KeypointNet(WEIGHTS_DIR / f"{name}.onnx", threads=2)
+    each = np.concatenate([plain.det_logits(x[i : i + 1]) for i in range(2)])
+    for threads in (2, 1):
+        net = kp.KeypointNet(WEIGHTS_DIR / f"{name}.onnx", threads=threads, stack_views=True)
+        assert net.locator.stacked and not plain.locator.stacked
+        np.testing.assert_allclose(net.det_logits(x), each, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(net.det_logits(x[:1]), each[:1], rtol=0, atol=1e-5)  # one view: the plain copy
+    shutil.copy(WEIGHTS_DIR / f"{name}.onnx", tmp_path / "mine.onnx")
+    shutil.copy(WEIGHTS_DIR / f"{name}-det.onnx", tmp_path / "mine-det.onnx")
+    other = "keypoints-mid-det-pair.onnx" if "int8" in name else "keypoints-mid-int8-det-pair.onnx"
+    shutil.copy(WEIGHTS_DIR / other, stacked_views_path(tmp_path / "mine-det.onnx"))
+    mine = kp.KeypointNet(tmp_path / "mine.onnx", stack_views=True)
+    assert not mine.locator.stacked
+    np.testing.assert_allclose(mine.det_logits(x), each, rtol=0, atol=1e-5)
+    onnx = pytest.importorskip("onnx")
+    from markerpose.nets import stack_views
+
+    made = stack_views(WEIGHTS_DIR / f"{name}-det.onnx", tmp_path / "made.onnx")
+    shipped = onnx.load(str(stacked_views_path(WEIGHTS_DIR / f"{name}-det.onnx")))
+    assert onnx.load(str(made)).SerializeToString() == shipped.SerializeToString()
+
+
+def test_stack_views_refuses_a_wide_stem_and_a_stacked_copy(tmp_path):
+    pytest.importorskip("onnx")
+    from markerpose.nets import WEIGHTS_DIR, stack_views, stacked_views_path
+
+    with pytest.raises(ValueError, match="nothing to stack"):
+        stack_views(WEIGHTS_DIR / "keypoints-det.onnx", tmp_path / "x.onnx")  # 16 channels from the first layer
+    with pytest.raises(ValueError, match="already a stacked copy"):
+        stack_views(stacked_views_path(WEIGHTS_DIR / "keypoints-mid-int8-det.onnx"), tmp_path / "y.onnx")
+
+
+@needs_nets
+@pytest.mark.parametrize("wide", [True, False])
+def test_the_default_stacks_the_views_on_cpus_with_avx512(monkeypatch, wide):
+    monkeypatch.setattr(propose, "wide_vectors", lambda: wide)
+    stage = propose.NeuralProposer(dict(propose.default_conf), mp.Marker(), "stereo")
+    assert stage.net.locator.stacked == wide
+    forced = propose.NeuralProposer({**propose.default_conf, "stack_views": True}, mp.Marker(), "stereo")
+    assert forced.net.locator.stacked
+
+
+def test_stack_views_setting_is_checked():
+    with pytest.raises(ValueError, match="stack_views"):
+        propose.check_conf({**propose.default_conf, "stack_views": "yes"})
+
+
 _FORKED = {}
 
 
