@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import math
 
-import cv2
 import numpy as np
 
 from .geometry import minor_semi_axis
@@ -403,40 +402,33 @@ class _Problem:
         x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
         if x1 - x0 < 8 or y1 - y0 < 8:
             return False
-        yy, xx = np.mgrid[y0 : y1 + 1 : stride, x0 : x1 + 1 : stride]
-        inside = np.zeros(xx.shape, bool)
-        for c, Qx in forms:
-            dx, dy = xx - c[0], yy - c[1]
-            C = Qx[0, 0] * dx * dx + 2 * Qx[0, 1] * dx * dy + Qx[1, 1] * dy * dy - 1
-            if motion is None:
-                inside |= C <= 0
-                continue
-            # The chord along the motion through the pixel meets the ellipse within L / 2.
+        # Per ring the quantities of its test (the chord along the motion; without motion,
+        # the pixel inside the widened ellipse), per plate side its margin; the grid's
+        # pixels are tested, and their block means taken, in one compiled pass.
+        k = len(forms)
+        cen, Qxs = np.array([c for c, _ in forms], np.float64), np.array([Qx for _, Qx in forms], np.float64)
+        QuA = np.zeros((k, 3))
+        half = -1.0  # no motion
+        if motion is not None:
             u = np.array([np.cos(motion[0]), np.sin(motion[0])])
-            Qu = Qx @ u
-            A = u @ Qu
-            B = dx * Qu[0] + dy * Qu[1]
-            disc = B * B - A * C
-            r = np.sqrt(np.maximum(disc, 0))
-            s1, s2 = (-B - r) / A, (-B + r) / A
-            inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
-        if self.plate is not None:
-            # What lies beyond the plate is not the model's paper: a pixel counts only where
-            # the blur (along the motion, or any way by up to the longest length searched)
-            # cannot bring it in.
-            for a, b, c0 in self.plate:
-                along = 0.5 * motion[1] * abs(a * np.cos(motion[0]) + b * np.sin(motion[0])) if motion is not None else reach
-                inside &= a * xx + b * yy + c0 > along + PLATE_SLACK_PX
-        yi, xi = yy[inside], xx[inside]
-        self.x, self.y = xi.astype(np.float64), yi.astype(np.float64)
+            for j, (_, Qx) in enumerate(forms):
+                Qu = Qx @ u
+                QuA[j] = Qu[0], Qu[1], u @ Qu
+            half = 0.5 * motion[1]
+        sides = np.zeros((0, 3)) if self.plate is None else self.plate
+        # What lies beyond the plate is not the model's paper: a pixel counts only where the
+        # blur (along the motion, or any way by up to the longest length searched) cannot
+        # bring it in.
+        along = np.array(
+            [0.5 * motion[1] * abs(a * np.cos(motion[0]) + b * np.sin(motion[0])) if motion is not None else reach for a, b, _ in sides],
+            np.float64,
+        )
+        n_max = ((y1 - y0) // stride + 1) * ((x1 - x0) // stride + 1)
+        xi, yi, v = np.empty(n_max, np.int64), np.empty(n_max, np.int64), np.empty(n_max)
+        n = _select_pixels(self.gray, x0, y0, x1, y1, stride, cen, Qxs, QuA, half, sides, along + PLATE_SLACK_PX, self.box, xi, yi, v)
+        self.x, self.y = xi[:n].astype(np.float64), yi[:n].astype(np.float64)
         self.stride = stride
-        if self.box > 1:  # each pixel's value: the mean of the box around it
-            r = self.box // 2
-            ya, xa = max(y0 - r, 0), max(x0 - r, 0)
-            crop = np.asarray(self.gray[ya : y1 + r + 1, xa : x1 + r + 1], np.float32)
-            self.v = cv2.blur(crop, (self.box, self.box))[yi - ya, xi - xa].astype(np.float64)
-        else:
-            self.v = self.gray[yi, xi].astype(np.float64)
+        self.v = v[:n].copy()  # a fresh buffer: the compiled fast-math sums split their lanes by where an array starts
         ctr = np.mean([c for c, _ in self.cqs], axis=0)
         span = max(x1 - x0, y1 - y0) / 2
         self.xs, self.ys = (self.x - ctr[0]) / span, (self.y - ctr[1]) / span
@@ -520,6 +512,65 @@ class _Problem:
 
 
 _NO_J = np.zeros((1, 1))  # the derivatives' place where none are asked for
+
+
+@compiled
+def _select_pixels(gray, x0, y0, x1, y1, stride, cen, Qxs, QuA, half, sides, limits, box, xi, yi, v):  # pragma: no cover - compiled
+    """:meth:`_Problem.pixels`' grid: the pixels (x0 + i stride, y0 + j stride) within
+    (x1, y1) that some ring reaches (``half`` < 0: inside its widened ellipse, centre
+    ``cen[j]``, form ``Qxs[j]``; else its chord along the motion, ``QuA[j]`` = (Q u, u Q u),
+    meets it within ``half``) and every plate side (a, b, c) keeps (a x + b y + c >
+    ``limits``), row by row, into ``xi``, ``yi``, and into ``v`` their values: the mean of
+    the ``box`` x ``box`` block around each (float32, as OpenCV's box filter of the grid's
+    crop gives it, the crop's borders reflected), or the pixel's own where ``box`` is 1.
+    Returns their number."""
+    h, w = gray.shape
+    r = box // 2
+    ya, xa = max(y0 - r, 0), max(x0 - r, 0)  # the crop OpenCV's filter would see
+    yb, xb = min(y1 + r + 1, h), min(x1 + r + 1, w)
+    scale = 1.0 / (box * box)
+    n = 0
+    for y in range(y0, y1 + 1, stride):
+        for x in range(x0, x1 + 1, stride):
+            inside = False
+            for j in range(len(cen)):
+                dx, dy = x - cen[j, 0], y - cen[j, 1]
+                C = Qxs[j, 0, 0] * dx * dx + 2 * Qxs[j, 0, 1] * dx * dy + Qxs[j, 1, 1] * dy * dy - 1
+                if half < 0:
+                    if C <= 0:
+                        inside = True
+                        break
+                    continue
+                B = dx * QuA[j, 0] + dy * QuA[j, 1]
+                A = QuA[j, 2]
+                disc = B * B - A * C
+                rt = math.sqrt(max(disc, 0.0))
+                if disc > 0 and (-B - rt) / A <= half and (-B + rt) / A >= -half:
+                    inside = True
+                    break
+            if not inside:
+                continue
+            for m in range(len(sides)):
+                if not sides[m, 0] * x + sides[m, 1] * y + sides[m, 2] > limits[m]:
+                    inside = False
+                    break
+            if not inside:
+                continue
+            xi[n], yi[n] = x, y
+            if box > 1:
+                acc = 0.0
+                for q in range(y - r, y + r + 1):
+                    qq = q if q >= ya else 2 * ya - q  # reflected about the crop's first row ...
+                    qq = qq if qq < yb else 2 * (yb - 1) - qq  # ... and its last
+                    for p in range(x - r, x + r + 1):
+                        pp = p if p >= xa else 2 * xa - p
+                        pp = pp if pp < xb else 2 * (xb - 1) - pp
+                        acc += np.float64(np.float32(gray[qq, pp]))
+                v[n] = np.float64(np.float32(acc * scale))
+            else:
+                v[n] = np.float64(gray[y, x])
+            n += 1
+    return n
 
 
 @compiled(fast=True)
@@ -840,6 +891,25 @@ def warm_up() -> None:
     if not _WARM:
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8, jac=True)
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8)
+        one = np.empty(16, np.int64)
+        _select_pixels(
+            np.zeros((4, 4), np.float32),
+            0,
+            0,
+            3,
+            3,
+            1,
+            np.zeros((1, 2)),
+            np.eye(2)[None],
+            np.zeros((1, 3)),
+            -1.0,
+            np.zeros((0, 3)),
+            np.zeros(0),
+            3,
+            one,
+            one.copy(),
+            np.empty(16),
+        )
         z = np.zeros(8)
         for J in (np.zeros((8, 3)), _NO_J):
             _levels_and_normals(

@@ -195,6 +195,71 @@ def _truth_rects(truth):
     return out
 
 
+def _pixels_reference(prob, reach, stride, motion):
+    """(x, y, v) of the pixels :meth:`blurfit._Problem.pixels` selects, by numpy and OpenCV:
+    the grid's tests as whole arrays, the block means by cv2.blur of the grid's crop."""
+    import cv2
+
+    h, w = prob.gray.shape
+    forms, boxes = [], []
+    for c, Q in prob.cqs:
+        lam, V = np.linalg.eigh(Q)
+        a = 1 / np.sqrt(lam)
+        forms.append((c, (V / (a + reach) ** 2) @ V.T))
+        boxes.append((c[0] - a[0] - reach, c[1] - a[0] - reach, c[0] + a[0] + reach, c[1] + a[0] + reach))
+    b = np.array(boxes)
+    x0, y0 = int(max(np.floor(b[:, 0].min()), 0)), int(max(np.floor(b[:, 1].min()), 0))
+    x0, y0 = x0 + (-x0) % stride, y0 + (-y0) % stride
+    x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
+    yy, xx = np.mgrid[y0 : y1 + 1 : stride, x0 : x1 + 1 : stride]
+    inside = np.zeros(xx.shape, bool)
+    for c, Qx in forms:
+        dx, dy = xx - c[0], yy - c[1]
+        C = Qx[0, 0] * dx * dx + 2 * Qx[0, 1] * dx * dy + Qx[1, 1] * dy * dy - 1
+        if motion is None:
+            inside |= C <= 0
+            continue
+        u = np.array([np.cos(motion[0]), np.sin(motion[0])])
+        Qu = Qx @ u
+        B = dx * Qu[0] + dy * Qu[1]
+        disc = B * B - (u @ Qu) * C
+        r = np.sqrt(np.maximum(disc, 0))
+        s1, s2 = (-B - r) / (u @ Qu), (-B + r) / (u @ Qu)
+        inside |= (disc > 0) & (s1 <= 0.5 * motion[1]) & (s2 >= -0.5 * motion[1])
+    for a, bb, c0 in [] if prob.plate is None else prob.plate:
+        along = 0.5 * motion[1] * abs(a * np.cos(motion[0]) + bb * np.sin(motion[0])) if motion is not None else reach
+        inside &= a * xx + bb * yy + c0 > along + blurfit.PLATE_SLACK_PX
+    yi, xi = yy[inside], xx[inside]
+    if prob.box == 1:
+        return xi, yi, prob.gray[yi, xi].astype(np.float64)
+    r = prob.box // 2
+    ya, xa = max(y0 - r, 0), max(x0 - r, 0)
+    crop = np.asarray(prob.gray[ya : y1 + r + 1, xa : x1 + r + 1], np.float32)
+    return xi, yi, cv2.blur(crop, (prob.box, prob.box))[yi - ya, xi - xa].astype(np.float64)
+
+
+@pytest.mark.parametrize("box", [1, 3, 5])
+@pytest.mark.parametrize("at_border", [False, True])
+def test_the_compiled_pixel_selection_is_numpys(box, at_border):
+    """The compiled grid selection and block means are those of whole-array tests and
+    OpenCV's box filter, with and without the motion and the plate's sides, also where the
+    rings' reach passes the image's border."""
+    rng = np.random.default_rng(box + 10 * at_border)
+    gray = (rng.random((240, 320)) * 255).astype(np.float32)
+    shift = -25.0 if at_border else 60.0
+    cqs = [(np.array([shift + 40.0 + 35 * j, 90.0 + 9 * j]), np.array([[1 / 14.0**2, 0.0004], [0.0004, 1 / 11.0**2]])) for j in range(3)]
+    plate = np.array([[1.0, 0.0, 20.0], [-1.0, 0.0, 300.0], [0.0, 1.0, 10.0], [0.0, -1.0, 230.0]])
+    for pl in (None, plate):
+        prob = blurfit._Problem(gray, cqs, 0.5, 2.0, box=box, plate=pl)
+        for reach, stride, motion in ((13.0, 4, None), (4.0, 3, (0.7, 23.0)), (4.0, 1, (2.9, 9.0))):
+            prob.pixels(reach, stride=stride, motion=motion)
+            x, y, v = _pixels_reference(prob, reach, stride, motion)
+            assert len(x) > 50
+            np.testing.assert_array_equal(prob.x, x)
+            np.testing.assert_array_equal(prob.y, y)
+            np.testing.assert_array_equal(prob.v, v)
+
+
 def test_model_fit_finds_the_motion_and_the_centres(blurred_view):
     rig, img, truth = blurred_view
     gray = C.to_gray(img)
