@@ -153,7 +153,7 @@ def test_the_detector_only_copy_gives_the_whole_networks_det_logits(tmp_path):
 
 
 @needs_nets
-@pytest.mark.parametrize("name", ["keypoints-mid-int8", "keypoints-mid"])
+@pytest.mark.parametrize("name", ["keypoints-mid-int8", "keypoints-mid", "keypoints-lite"])
 def test_the_stacked_copy_runs_a_pair_as_the_network_runs_each_view(tmp_path, name):
     """A stereo pair's views as the two channels of the shipped stacked copy give what the
     detector-only network gives each view (ONNX Runtime, two or one thread); a stacked copy
