@@ -22,6 +22,7 @@ Each tool has its own, over networks shared by all. What one call needs lives in
 from __future__ import annotations
 
 import functools
+import gc
 import threading
 from collections.abc import Iterator, Sequence
 from contextlib import closing, contextmanager
@@ -270,6 +271,11 @@ class MarkerPose:
         self.whys: dict[str, str] = {}  # after estimate_all / track_all: why each tool not found was not
         self.rig_check = RigCheck(rig)  # the calibration checked by every tracked pose (track, track_all)
         self._busy = threading.Lock()
+        # What is alive now (the compiled kernels' and the networks' runtimes, this tracker)
+        # lives as long as the process: Python's cyclic collector is told to skip it, or each
+        # full collection, on whichever frame of a stream it falls, scans all of it again.
+        # Freed by reference counting as before; only cycles among these objects are kept.
+        gc.freeze()
 
     def __repr__(self):
         names = f", markers={list(self.tools)!r}" if len(self.tools) > 1 else ""

@@ -347,3 +347,27 @@ def test_two_trackers_in_two_threads_share_nothing(rig):
     release.set()
     worker.join()
     assert tracker.track(*seqs[0][0]) is not None  # free again
+
+
+def test_a_built_tracker_is_left_out_of_the_cyclic_collectors_scans():
+    """What is alive when a MarkerPose is built (its runtimes' objects, the tracker) is
+    frozen: a full collection on a stream's frame no longer scans it; a dropped tracker is
+    still freed (by reference counting)."""
+    import subprocess
+    import sys
+
+    code = """
+import gc, weakref
+import markerpose as mp
+before = gc.get_freeze_count()
+t = mp.MarkerPose(mp.StereoRig.default())
+frozen = gc.get_freeze_count()
+scanned = any(o is t.conf for o in gc.get_objects())
+gone = weakref.ref(t.detector)
+del t
+gc.collect()
+print(before, frozen, scanned, gone() is None)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=True).stdout.split()
+    assert int(out[0]) == 0 and int(out[1]) > 10_000
+    assert out[2] == "False" and out[3] == "True"
