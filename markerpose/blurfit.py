@@ -728,7 +728,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
     """Outer ellipses of motion-blurred rings by one image-model fit of all of them.
 
     Args:
-        gray: (H, W) float32 grey image.
+        gray: (H, W) grey image, uint8 or float32 (C-contiguous).
         cqs: per ring, (centre (2,), Q (2, 2)) of a starting outer ellipse (e.g. the
             edge fit's); all rings of one marker, so that their blur is modelled.
         rho: inner/outer diameter ratio of the marker's rings.
@@ -892,24 +892,9 @@ def warm_up() -> None:
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8, jac=True)
         blurred_disk(np.zeros(2), np.zeros(2), np.zeros(2), np.eye(2), 0.0, 2.0, 0.8)
         one = np.empty(16, np.int64)
-        _select_pixels(
-            np.zeros((4, 4), np.float32),
-            0,
-            0,
-            3,
-            3,
-            1,
-            np.zeros((1, 2)),
-            np.eye(2)[None],
-            np.zeros((1, 3)),
-            -1.0,
-            np.zeros((0, 3)),
-            np.zeros(0),
-            3,
-            one,
-            one.copy(),
-            np.empty(16),
-        )
+        for dtype in (np.uint8, np.float32):  # a frame's gray, or an image given as float32
+            rings = (np.zeros((1, 2)), np.eye(2)[None], np.zeros((1, 3)), -1.0, np.zeros((0, 3)), np.zeros(0))
+            _select_pixels(np.zeros((4, 4), dtype), 0, 0, 3, 3, 1, *rings, 3, one, one.copy(), np.empty(16))
         z = np.zeros(8)
         for J in (np.zeros((8, 3)), _NO_J):
             _levels_and_normals(

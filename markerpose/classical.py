@@ -904,7 +904,9 @@ def _fit_blurred(gray: np.ndarray, rings: list, marker: Marker, c: dict, noise: 
     if not any(r.refined for r in rings):
         fit_conf["min_length"] = 10.0
     plate = plate_sides(rings, marker, camera) if _plate_near(marker, c) else None
-    return blurfit.fit_blurred_rings(to_gray(gray), [r._outer_cq for r in rings], rho, noise, fit_conf, plate)
+    # A frame's gray view as it is (uint8): the fit reads only the pixels around the rings.
+    pixels = gray if gray.ndim == 2 and gray.dtype == np.uint8 and gray.flags.c_contiguous else to_gray(gray)
+    return blurfit.fit_blurred_rings(pixels, [r._outer_cq for r in rings], rho, noise, fit_conf, plate)
 
 
 def refine_blurred(

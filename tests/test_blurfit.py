@@ -240,12 +240,13 @@ def _pixels_reference(prob, reach, stride, motion):
 
 @pytest.mark.parametrize("box", [1, 3, 5])
 @pytest.mark.parametrize("at_border", [False, True])
-def test_the_compiled_pixel_selection_is_numpys(box, at_border):
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+def test_the_compiled_pixel_selection_is_numpys(box, at_border, dtype):
     """The compiled grid selection and block means are those of whole-array tests and
     OpenCV's box filter, with and without the motion and the plate's sides, also where the
     rings' reach passes the image's border."""
     rng = np.random.default_rng(box + 10 * at_border)
-    gray = (rng.random((240, 320)) * 255).astype(np.float32)
+    gray = (rng.random((240, 320)) * 255).astype(dtype)
     shift = -25.0 if at_border else 60.0
     cqs = [(np.array([shift + 40.0 + 35 * j, 90.0 + 9 * j]), np.array([[1 / 14.0**2, 0.0004], [0.0004, 1 / 11.0**2]])) for j in range(3)]
     plate = np.array([[1.0, 0.0, 20.0], [-1.0, 0.0, 300.0], [0.0, 1.0, 10.0], [0.0, -1.0, 230.0]])
