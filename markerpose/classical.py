@@ -955,15 +955,24 @@ def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noise
     """:func:`refine_blurred` of each view's rings (``views``, with per view its marker,
     noise, :class:`BlurLimits` and camera), the fits that are due two at a time on two
     cores: they run mostly in compiled code and BLAS, outside Python's lock. Whether each
-    view's fit runs (its gate, the budget) is decided first, in the views' order."""
-    kept = [_blur_kept(g, r, mk, c, lim) for g, r, mk, lim in zip(grays, views, markers, limits)]
-    due = [k for k, r in enumerate(kept) if r is None]
+    view's fit runs (its gate, the budget) is decided in the views' order; every other fit
+    that is due begins on the worker thread as soon as it is decided, so that the next
+    view's gate runs beside it, and the rest run here once all are decided."""
 
     def fit(k):
         return _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k])
 
-    fits = dict(zip(due, _WORKER.map(fit, due)))
-    return [r if r is not None else _blur_outcome(views[k], fits[k], c, cameras[k]) for k, r in enumerate(kept)]
+    kept, fits, here = [], {}, []
+    for k, (g, r, mk, lim) in enumerate(zip(grays, views, markers, limits)):
+        kept.append(_blur_kept(g, r, mk, c, lim))
+        if kept[-1] is None:
+            if (len(fits) + len(here)) % 2 == 0:
+                fits[k] = _WORKER.later(fit, k)
+            else:
+                here.append(k)
+    done = {k: fit(k) for k in here}
+    done.update({k: f.result() for k, f in fits.items()})
+    return [r if r is not None else _blur_outcome(views[k], done[k], c, cameras[k]) for k, r in enumerate(kept)]
 
 
 _WORKER = Worker()  # the second of two blurred-ring fits at once

@@ -8,7 +8,7 @@ import functools
 import os
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 
 class Worker:
@@ -24,6 +24,19 @@ class Worker:
         if self._pid != os.getpid():
             self._pool, self._pid = ThreadPoolExecutor(1, thread_name_prefix="markerpose", initializer=_mark_worker), os.getpid()
         return self._pool.submit(fn, *args)
+
+    def later(self, fn: Callable, *args):
+        """``fn(*args)`` begun on the worker thread where this process has two cores or more
+        and the caller is not the worker itself (else run here and now): an object whose
+        ``result()`` gives its value. Calls begun this way run one after another there."""
+        if getattr(_HERE, "worker", False) or cores() < 2:
+            done: Future = Future()
+            try:
+                done.set_result(fn(*args))
+            except BaseException as exc:  # raised by result(), as from the worker
+                done.set_exception(exc)
+            return done
+        return self.submit(fn, *args)
 
     def both(self, first: Callable, second: Callable) -> tuple:
         """(first(), second()), ``second`` on the worker thread while ``first`` runs here; both

@@ -56,3 +56,27 @@ def test_claimed_rings_are_kept_off():
     left, right = frame.unclaimed(cand)
     np.testing.assert_array_equal(left, cand[0][1:])
     np.testing.assert_array_equal(right, cand[1])
+
+
+def test_a_call_begun_on_the_worker_gives_its_value_or_its_error_at_result():
+    """``Worker.later``: on the worker thread beside the caller; run at once where it is
+    asked from the worker itself; an exception is raised by ``result()`` either way."""
+    import threading
+
+    import pytest
+
+    from markerpose.threads import Worker, cores
+
+    w = Worker()
+    main = threading.get_ident()
+    assert (w.later(threading.get_ident).result() != main) == (cores() >= 2)  # one core: here
+
+    def fails():
+        raise ValueError("no fit")
+
+    with pytest.raises(ValueError, match="no fit"):
+        w.later(fails).result()
+    nested = w.submit(lambda: (threading.get_ident(), w.later(threading.get_ident).result())).result()
+    assert nested[0] == nested[1]  # from the worker: run there, not queued behind itself
+    with pytest.raises(ValueError, match="no fit"):
+        w.submit(lambda: w.later(fails)).result().result()
