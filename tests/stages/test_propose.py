@@ -157,8 +157,7 @@ def test_the_detector_only_copy_gives_the_whole_networks_det_logits(tmp_path):
 def test_the_stacked_copy_runs_a_pair_as_the_network_runs_each_view(tmp_path, name):
     """A stereo pair's views as the two channels of the shipped stacked copy give what the
     detector-only network gives each view (ONNX Runtime, two or one thread); a stacked copy
-    of other weights is not used; the shipped copy is what ``stack_views`` makes of its
-    source."""
+    of other weights is not used."""
     import shutil
 
     from markerpose.nets import WEIGHTS_DIR, stacked_views_path
@@ -178,8 +177,13 @@ def test_the_stacked_copy_runs_a_pair_as_the_network_runs_each_view(tmp_path, na
     mine = kp.KeypointNet(tmp_path / "mine.onnx", stack_views=True)
     assert not mine.locator.stacked
     np.testing.assert_allclose(mine.det_logits(x), each, rtol=0, atol=1e-5)
+
+
+@needs_nets
+@pytest.mark.parametrize("name", ["keypoints-mid-int8", "keypoints-mid", "keypoints-lite"])
+def test_the_shipped_stacked_copy_is_what_stack_views_makes(tmp_path, name):
     onnx = pytest.importorskip("onnx")
-    from markerpose.nets import stack_views
+    from markerpose.nets import WEIGHTS_DIR, stack_views, stacked_views_path
 
     made = stack_views(WEIGHTS_DIR / f"{name}-det.onnx", tmp_path / "made.onnx")
     shipped = onnx.load(str(stacked_views_path(WEIGHTS_DIR / f"{name}-det.onnx")))
