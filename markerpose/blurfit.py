@@ -381,11 +381,10 @@ class _Problem:
         self.frozen = None  # ... here, and give those instead of computing them again
         self.smooth = _tangent_smooth(smooth)  # the lines' smoothing near the tangents
 
-    def pixels(self, reach, stride=1, motion=None):
-        """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
-        ``motion`` = (theta, L), only those a blurred ring can reach: within ``reach`` of
-        an outer ellipse moved by up to L / 2 along the motion."""
-        self._kept = None  # the model kept for the old pixels
+    def grid(self, reach, stride=1):
+        """Per ring (centre, the form of its outer ellipse widened by ``reach`` px), and the
+        extent (x0, y0, x1, y1) of the grid of every ``stride``-th pixel that covers them
+        inside the image."""
         h, w = self.gray.shape
         boxes, forms = [], []
         for c, Q in self.cqs:
@@ -400,6 +399,14 @@ class _Problem:
         # are) do not move with the start, so nearby starts fit the same data.
         x0, y0 = x0 + (-x0) % stride, y0 + (-y0) % stride
         x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
+        return forms, (x0, y0, x1, y1)
+
+    def pixels(self, reach, stride=1, motion=None):
+        """Use the pixels within ``reach`` px of any outer ellipse (inside the image); with
+        ``motion`` = (theta, L), only those a blurred ring can reach: within ``reach`` of
+        an outer ellipse moved by up to L / 2 along the motion."""
+        self._kept = None  # the model kept for the old pixels
+        forms, (x0, y0, x1, y1) = self.grid(reach, stride)
         if x1 - x0 < 8 or y1 - y0 < 8:
             return False
         # Per ring the quantities of its test (the chord along the motion; without motion,

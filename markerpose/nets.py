@@ -300,8 +300,8 @@ def load_network(
     if path.suffix == ".onnx" and backend != "onnxruntime":
         return (*_openvino_runner(path, kind, threads, backend == "openvino-bf16"), path)
     if path.suffix == ".onnx":
-        stacked = stacked_views_path(path) if stack_views else None
-        return (*_onnx_runner(path, kind, threads, stacked if stacked is not None and stacked.is_file() else None), path)
+        stacked = stacked_views_path(path)
+        return (*_onnx_runner(path, kind, threads, stacked if stack_views and stacked.is_file() else None), path)
     if importlib.util.find_spec("torch") is None:
         raise ValueError(
             f"{path}: PyTorch checkpoints need PyTorch (the train extra); inference runs the .onnx copy that "

@@ -196,21 +196,12 @@ def _truth_rects(truth):
 
 
 def _pixels_reference(prob, reach, stride, motion):
-    """(x, y, v) of the pixels :meth:`blurfit._Problem.pixels` selects, by numpy and OpenCV:
-    the grid's tests as whole arrays, the block means by cv2.blur of the grid's crop."""
+    """(x, y, v) of the pixels :meth:`blurfit._Problem.pixels` selects on its grid, by numpy
+    and OpenCV: the grid's tests as whole arrays, the block means by cv2.blur of the grid's
+    crop."""
     import cv2
 
-    h, w = prob.gray.shape
-    forms, boxes = [], []
-    for c, Q in prob.cqs:
-        lam, V = np.linalg.eigh(Q)
-        a = 1 / np.sqrt(lam)
-        forms.append((c, (V / (a + reach) ** 2) @ V.T))
-        boxes.append((c[0] - a[0] - reach, c[1] - a[0] - reach, c[0] + a[0] + reach, c[1] + a[0] + reach))
-    b = np.array(boxes)
-    x0, y0 = int(max(np.floor(b[:, 0].min()), 0)), int(max(np.floor(b[:, 1].min()), 0))
-    x0, y0 = x0 + (-x0) % stride, y0 + (-y0) % stride
-    x1, y1 = int(min(np.ceil(b[:, 2].max()), w - 1)), int(min(np.ceil(b[:, 3].max()), h - 1))
+    forms, (x0, y0, x1, y1) = prob.grid(reach, stride)  # the grid's extent is pixels()'s own
     yy, xx = np.mgrid[y0 : y1 + 1 : stride, x0 : x1 + 1 : stride]
     inside = np.zeros(xx.shape, bool)
     for c, Qx in forms:
