@@ -46,9 +46,7 @@ def _masked_stat(x: np.ndarray, mask: np.ndarray, q: float, empty: float) -> np.
 
 @compiled
 def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
-    """Per row of ``x``, the median (q < 0) or the linear q-th percentile of the masked-in
-    entries, as numpy computes them from the sorted values (found by selection); ``empty``
-    for none."""
+    """Per row of ``x``, :func:`sorted_stat` of the masked-in entries; ``empty`` for none."""
     buf = np.empty(x.shape[1])
     for k in range(x.shape[0]):
         n = 0
@@ -56,19 +54,22 @@ def _row_stats(x, mask, q, empty, out):  # pragma: no cover - compiled
             if mask[k, i]:
                 buf[n] = x[k, i]
                 n += 1
-        if n == 0:
-            out[k] = empty
-            continue
-        if q < 0:
-            out[k] = _median(buf, n)
-            continue
-        pos = (n - 1) * (q / 100.0)
-        lo = int(np.floor(pos))
-        t = pos - lo
-        a = _select(buf, n, lo)  # then buf[lo + 1:n] holds the larger values
-        b = buf[lo + 1 : n].min() if lo + 1 < n else a
-        d = b - a
-        out[k] = b - d * (1 - t) if t >= 0.5 else a + d * t  # numpy's lerp
+        out[k] = sorted_stat(buf, n, q) if n else empty
+
+
+@compiled
+def sorted_stat(buf, n, q):  # pragma: no cover - compiled
+    """The median (q < 0) or the linear q-th percentile of buf[:n] (n > 0), as numpy
+    computes them from the sorted values (found by selection, reordering buf)."""
+    if q < 0:
+        return _median(buf, n)
+    pos = (n - 1) * (q / 100.0)
+    lo = int(np.floor(pos))
+    t = pos - lo
+    a = _select(buf, n, lo)  # then buf[lo + 1:n] holds the larger values
+    b = buf[lo + 1 : n].min() if lo + 1 < n else a
+    d = b - a
+    return b - d * (1 - t) if t >= 0.5 else a + d * t  # numpy's lerp
 
 
 # --- per-ray kernels (compiled) ------------------------------------------------------------------

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import warnings
 
-import cv2
 import numpy as np
 
-from .edges import masked_median, masked_percentile
+from .edges import masked_median, masked_percentile, sorted_stat
 from .geometry import layout_affine
+from .jit import compiled
 from .marker import Marker
 
 _MARKER = Marker()  # the default marker
@@ -43,14 +43,18 @@ def _evidence_points(marker: Marker) -> dict:
     i, j = np.nonzero(np.triu((d > 0) & (d < 1.01 * step)))
     outside = circle(1.3 * R)
     to_grid = np.linalg.norm(outside[:, :, None] - grid[None, None], axis=3)  # (3, _ANGLES, G)
+    inner, band = circle(0.35 * r), np.stack([circle(r + 0.3 * (R - r)), circle(r + 0.7 * (R - r))], 2)  # (3, _ANGLES, 2, 2)
     return {
-        "inner": circle(0.35 * r),
-        "band": np.stack([circle(r + 0.3 * (R - r)), circle(r + 0.7 * (R - r))], 2),  # (3, _ANGLES, 2, 2)
+        "inner": inner,
+        "band": band,
         "outside": outside,
         "plate": grid,
         "pairs": (i, j),
         "nearest": to_grid.argmin(2),
         "linked": to_grid.min(2) < 0.8 * R,
+        # All of them, as ring_evidence's compiled pass takes them: inner, the band's two
+        # circles, outside (3 x _ANGLES each), then the plate.
+        "points": np.concatenate([z.reshape(-1, 2) for z in (inner, band[:, :, 0], band[:, :, 1], outside, grid)]),
     }
 
 
@@ -102,43 +106,29 @@ def ring_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None 
     """
     marker = marker or _MARKER
     zones = _zones(marker)
+    A, t = _affine(triples, marker)
+    out = np.empty(len(A), np.float32)
+    i, j = zones["pairs"]
+    _ring_evidence_kernel(
+        _image(image), A, t, zones["points"], zones["inner"].shape[1], i, j, zones["nearest"], zones["linked"], int(min_pairs), out
+    )
+    return out
+
+
+def _affine(triples: np.ndarray, marker: Marker) -> tuple[np.ndarray, np.ndarray]:
+    """Per triple of ring centres (T, 3, 2), the affine map from the marker's layout (mm)
+    to the image: (A (T, 2, 2), t (T, 2))."""
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
+    A = np.ascontiguousarray(layout_affine(P, L))
+    return A, np.ascontiguousarray(P[:, 0] - A @ L[0])
+
+
+def _image(image: np.ndarray) -> np.ndarray:
     img = np.ascontiguousarray(image, np.float32)
-    A = layout_affine(P, L)
-    t = P[:, 0] - A @ L[0]
-
-    def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
-        return _sample(img, np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,)))
-
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
-        factors = _evidence_factors(sample, zones, min_pairs)
-    return np.prod([np.clip(np.nan_to_num(f, nan=0.0), 0, 1) for f in factors], axis=0)
-
-
-def _step(a, b):
-    """The relative difference of two paper samples."""
-    return np.abs(a - b) / (np.fmax(a, b) + _EPS)
-
-
-def _evidence_factors(sample, zones: dict, min_pairs: int) -> list:
-    """:func:`ring_evidence`'s four factors (T,) each (band contrast, plate smoothness, no
-    ring brighter inside, each ring on the plate), NaN where undecided; ``sample`` maps
-    marker points (..., 2) mm to image values (T, ...), NaN outside the image."""
-    inner, outside, plate = sample(zones["inner"]), sample(zones["outside"]), sample(zones["plate"])  # (T, 3, A) ×2, (T, G)
-    i, j = zones["pairs"]
-    steps = _step(plate[:, i], plate[:, j])  # (T, pairs)
-    rough = np.where(np.isfinite(steps).sum(1) >= min_pairs, _nanpercentile(steps, 75), 0.0)
-    link = np.where(zones["linked"], _step(outside, plate[:, zones["nearest"]]), np.nan)
-    off_plate = np.nan_to_num(np.nanmax(_nanmedian(link), axis=1), nan=0.0)  # no link in the image: no test
-    return [
-        # Band contrast along each ray: the brighter band sample against the brighter of core and outside.
-        _nanmedian(1 - sample(zones["band"]).max(-1) / (np.fmax(inner, outside) + _EPS)).min(1),
-        1 - 4 * rough,
-        1 - 2 * np.clip(_nanmedian((inner - outside) / (outside + _EPS)), 0, None).max(1),
-        1 - off_plate,
-    ]
+    if img.ndim != 2:
+        raise ValueError(f"ring evidence needs a (H, W) gray image, got shape {img.shape}")
+    return img
 
 
 _EPS = 2.0 / 255  # a couple of grey levels: dark images are not divided by ~0
@@ -155,15 +145,128 @@ def _nanpercentile(x: np.ndarray, q: float) -> np.ndarray:
     return masked_percentile(x, ~np.isnan(x), q, empty=np.nan).astype(x.dtype)
 
 
-def _sample(img: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Bilinear samples of ``img`` at image points ``q`` (..., 2); NaN outside the image."""
+def _sample(img: np.ndarray, A: np.ndarray, t: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Bilinear samples (T, ...) of ``img`` at the marker points ``pts`` (..., 2) mm mapped
+    by each triple's affine map (A, t); NaN outside the image."""
+    flat = np.ascontiguousarray(pts, np.float64).reshape(-1, 2)
+    out = np.empty((len(A), len(flat)), np.float32)
+    _affine_samples(img, A, t, flat, out)
+    return out.reshape((len(A),) + pts.shape[:-1])
+
+
+@compiled
+def _affine_samples(img, A, t, pts, out):  # pragma: no cover - compiled
+    """out[k, p]: ``img`` at the point pts[p] (mm) mapped by triple k's affine map, NaN
+    outside the image (:func:`_bilinear`)."""
     h, w = img.shape
-    flat = q.reshape(-1, 2).astype(np.float32)
-    n, cols = len(flat), 4096  # remap's maps are at most 32767 wide: rows of 4096
-    grid = np.pad(flat, ((0, -n % cols), (0, 0))).reshape(-1, cols, 2)
-    v = cv2.remap(img, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()[:n]
-    inside = (flat[:, 0] >= 0) & (flat[:, 0] <= w - 1) & (flat[:, 1] >= 0) & (flat[:, 1] <= h - 1)
-    return np.where(inside, v, np.nan).reshape(q.shape[:-1])
+    for k in range(A.shape[0]):
+        for p in range(pts.shape[0]):
+            # numpy's einsum order: the two products summed, then the shift; as float32 coordinates.
+            x = np.float32(A[k, 0, 0] * pts[p, 0] + A[k, 0, 1] * pts[p, 1] + t[k, 0])
+            y = np.float32(A[k, 1, 0] * pts[p, 0] + A[k, 1, 1] * pts[p, 1] + t[k, 1])
+            out[k, p] = _bilinear(img, x, y) if 0 <= x <= w - 1 and 0 <= y <= h - 1 else np.float32(np.nan)
+
+
+@compiled
+def _bilinear(img, x, y):  # pragma: no cover - compiled
+    """The bilinear value of ``img`` at (x, y) (float32, inside the image) as OpenCV's remap
+    gives it: along x on both rows, then along y, each a fused multiply-add in float32 (the
+    exact product in float64, rounded once), the last row and column repeated."""
+    h, w = img.shape
+    x0, y0 = int(np.floor(x)), int(np.floor(y))
+    ax, ay = x - np.float32(x0), y - np.float32(y0)
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    p00, p01, p10, p11 = img[y0, x0], img[y0, x1], img[y1, x0], img[y1, x1]
+    top = np.float32(np.float64(ax) * np.float64(p01 - p00) + np.float64(p00))
+    bottom = np.float32(np.float64(ax) * np.float64(p11 - p10) + np.float64(p10))
+    return np.float32(np.float64(ay) * np.float64(bottom - top) + np.float64(top))
+
+
+_F1, _F2, _F4 = np.float32(1.0), np.float32(2.0), np.float32(4.0)
+_EPS32 = np.float32(_EPS)
+_NAN32 = np.float32(np.nan)
+
+
+@compiled
+def _step32(a, b):  # pragma: no cover - compiled
+    """The relative difference of two paper samples (float32; NaN where either is)."""
+    return abs(a - b) / (max(a, b) + _EPS32) if a == a and b == b else _NAN32
+
+
+@compiled
+def _nan_stat32(buf, n, q):  # pragma: no cover - compiled
+    """:func:`~markerpose.edges.sorted_stat` of buf[:n] as float32; NaN for none."""
+    return np.float32(sorted_stat(buf, n, q)) if n else _NAN32
+
+
+@compiled
+def _unit32(f):  # pragma: no cover - compiled
+    """A factor clipped to [0, 1], NaN as 0."""
+    return min(max(f, np.float32(0.0)), _F1) if f == f else np.float32(0.0)
+
+
+@compiled
+def _ring_evidence_kernel(img, A, t, pts, n_ang, pi, pj, nearest, linked, min_pairs, out):  # pragma: no cover - compiled
+    """:func:`ring_evidence` of each triple (its affine map A[k], t[k]) into ``out``, in
+    numpy's float32 arithmetic operation for operation (the medians and the percentile
+    in float64). ``pts``: the zones' points, mm, in the order of :func:`_evidence_points`'
+    "points"."""
+    ring = 3 * n_ang  # points per zone of the rings
+    s = np.empty((1, pts.shape[0]), np.float32)
+    buf = np.empty(max(n_ang, len(pi)))
+    for k in range(A.shape[0]):
+        _affine_samples(img, A[k : k + 1], t[k : k + 1], pts, s)
+        v = s[0]
+        inner, band0, band1, outside, plate = v[:ring], v[ring : 2 * ring], v[2 * ring : 3 * ring], v[3 * ring : 4 * ring], v[4 * ring :]
+        # Band contrast along each ray: the brighter band sample against the brighter of core and outside.
+        contrast, brighter, off_plate = np.float32(np.inf), np.float32(-np.inf), _NAN32
+        for r in range(3):
+            n = 0
+            for a in range(n_ang):
+                i = r * n_ang + a
+                b = max(band0[i], band1[i]) if band0[i] == band0[i] and band1[i] == band1[i] else _NAN32
+                c = inner[i] if outside[i] != outside[i] else (outside[i] if inner[i] != inner[i] else max(inner[i], outside[i]))
+                x = _F1 - b / (c + _EPS32)
+                if x == x:
+                    buf[n] = x
+                    n += 1
+            m = _nan_stat32(buf, n, -1.0)
+            contrast = _NAN32 if m != m or contrast != contrast else min(contrast, m)  # numpy's min: NaN wins
+            # No ring brighter inside than just outside.
+            n = 0
+            for a in range(n_ang):
+                i = r * n_ang + a
+                x = (inner[i] - outside[i]) / (outside[i] + _EPS32)
+                if x == x:
+                    buf[n] = x
+                    n += 1
+            m = _nan_stat32(buf, n, -1.0)
+            m = max(m, np.float32(0.0)) if m == m else m
+            brighter = _NAN32 if m != m or brighter != brighter else max(brighter, m)
+            # Each ring on the plate: the step from the paper outside it to the nearest plate sample.
+            n = 0
+            for a in range(n_ang):
+                i = r * n_ang + a
+                if linked[r, a]:
+                    x = _step32(outside[i], plate[nearest[r, a]])
+                    if x == x:
+                        buf[n] = x
+                        n += 1
+            m = _nan_stat32(buf, n, -1.0)
+            if m == m:
+                off_plate = m if off_plate != off_plate else max(off_plate, m)
+        # Plate smoothness: the 75th percentile of the steps between neighbouring plate samples.
+        n = 0
+        for q in range(len(pi)):
+            x = _step32(plate[pi[q]], plate[pj[q]])
+            if x == x:
+                buf[n] = x
+                n += 1
+        rough = _nan_stat32(buf, n, 75.0) if n >= min_pairs else np.float32(0.0)
+        off_plate = off_plate if off_plate == off_plate else np.float32(0.0)  # no link in the image: no test
+        f = _unit32(contrast) * _unit32(_F1 - _F4 * rough)
+        f = f * _unit32(_F1 - _F2 * brighter)
+        out[k] = f * _unit32(_F1 - off_plate)
 
 
 def plate_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None = None) -> np.ndarray:
@@ -185,12 +288,11 @@ def plate_evidence(image: np.ndarray, triples: np.ndarray, marker: Marker | None
     zones = _zones(marker)
     P = np.asarray(triples, np.float64).reshape(-1, 3, 2)
     L = marker.centers2d
-    A = layout_affine(P, L)
-    t = P[:, 0] - A @ L[0]
-    img = np.ascontiguousarray(image, np.float32)
+    A, t = _affine(P, marker)
+    img = _image(image)
 
     def sample(pts):  # pts (..., 2) mm → (T, ...) image values, NaN outside the image
-        return _sample(img, np.einsum("tij,...j->t...i", A, pts) + t.reshape((-1,) + (1,) * (pts.ndim - 1) + (2,)))
+        return _sample(img, A, t, pts)
 
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN medians: rings cut by the border
@@ -239,4 +341,11 @@ def _plate_level(values: np.ndarray, pts: np.ndarray, centers: np.ndarray, fallb
     return level, np.where(few, 0.0, spread)
 
 
-__all__ = ["plate_evidence", "ring_evidence"]
+def warm_up() -> None:
+    """Compile this module's loops (or load them from numba's cache) before a stream's first frame."""
+    tri = (_MARKER.centers2d + 20.0)[None]
+    ring_evidence(np.zeros((64, 64), np.float32), tri)
+    plate_evidence(np.zeros((64, 64), np.float32), tri)
+
+
+__all__ = ["plate_evidence", "ring_evidence", "warm_up"]

@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import evidence
 from .decode import CELL, ID_MODES, decode, peaks
 from .decode import default_conf as decode_defaults
 from .evidence import ring_evidence
@@ -122,8 +123,10 @@ def _quarter(gray, table, out):  # pragma: no cover - compiled
 
 
 def warm_up() -> None:
-    """Compile this module's loop (or load it from numba's cache) before a stream's first frame."""
+    """Compile this module's loops and the ring evidence's (or load them from numba's cache)
+    before a stream's first frame."""
     to_input(np.zeros((32, 32), np.uint8), (8, 8))
+    evidence.warm_up()
 
 
 def input_scale(shape: tuple, size=INPUT_SIZE) -> np.ndarray:

@@ -449,15 +449,7 @@ def test_second_look_finds_a_distant_marker():
 
 
 # --- ring evidence (verify) ------------------------------------------------------------------
-def _drawn_rings(img, centers, outer, inner, ring_value, inside_value):
-    import cv2
-
-    for x, y in centers:
-        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(round(outer * 16)), ring_value, -1, cv2.LINE_AA, shift=4)
-        cv2.circle(img, (int(round(x * 16)), int(round(y * 16))), int(round(inner * 16)), inside_value, -1, cv2.LINE_AA, shift=4)
-
-
-def test_ring_evidence_tells_the_printed_marker_from_ring_decoys():
+def test_ring_evidence_tells_the_printed_marker_from_ring_decoys(drawn_rings):
     """The marker's triple (black bands on one white plate) scores high; the same triangle
     of rings drawn straight on a dark background (no plate), a triple whose order puts the
     rings' sizes wrong, and a triple over plain clutter score low."""
@@ -472,9 +464,9 @@ def test_ring_evidence_tells_the_printed_marker_from_ring_decoys():
     x0, y0, x1, y1 = m.plate
     cv2.fillConvexPoly(img, np.round(to_img([[x0, y0], [x1, y0], [x1, y1], [x0, y1]]) * 16).astype(np.int32), 0.85, cv2.LINE_AA, shift=4)
     marker = to_img(m.centers2d)
-    _drawn_rings(img, marker, m.outer_radius * s, m.inner_radius * s, 0.08, 0.85)
+    drawn_rings(img, marker, m.outer_radius * s, m.inner_radius * s, 0.08, 0.85)
     decoys = marker + [170, 80]  # the same triangle of rings, but on the dark background
-    _drawn_rings(img, decoys, m.outer_radius * s, m.inner_radius * s, 0.05, 0.8)
+    drawn_rings(img, decoys, m.outer_radius * s, m.inner_radius * s, 0.05, 0.8)
     rng = np.random.default_rng(0)
     img = np.clip(img + rng.normal(0, 0.01, img.shape), 0, 1).astype(np.float32)
     ev = evidence_mod.ring_evidence(img, np.stack([marker, decoys, marker[[0, 2, 1]], marker + [180, -40]]), m)
