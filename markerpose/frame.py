@@ -139,6 +139,11 @@ class Frame:
         self.fits_left, self.max_fits = int(fits), int(fits)
         self.blur_fits = classical.FitBudget(blur_fits)
 
+    @property
+    def spent(self) -> bool:
+        """Whether the cold detection's budget is spent (no hypothesis may be refined)."""
+        return self.fits_left is not None and self.fits_left <= 0
+
     def spend(self) -> bool:
         """Charge one refined hypothesis to the budget: False (with the reason) once it is
         spent; True without a budget."""

@@ -110,8 +110,8 @@ class NeuralDetector(Detector):
         self.start_budget(frame)
         cand = None
         for zoom in self.proposer.looks():  # layout triples, best first, until one fits a plate
-            if cand is not None and not self.proposer.worth_second_look([cand]):
-                break
+            if cand is not None and (frame.spent or not self.proposer.worth_second_look([cand])):
+                break  # the first look spent the budget, or shows no marker a second look could resolve
             cand = frame.timed("propose", self.proposer.candidates, [gray], zoom, None if cand is None else [cand], frame.looked)[0]
             for pts, s in self.layout_triples(frame, gray, cand, zoom):
                 found = self.fit(frame, [gray], [cam], [(pts, s)])

@@ -42,8 +42,9 @@ class StereoDetector(NeuralDetector):
         cand = None
         for zoom in self.proposer.looks():
             # The second look resolves rings too small for the first; where the first already
-            # fitted one view's rings to the plate, resolution is not what failed.
-            if cand is not None and (frame.plate_seen or not self.proposer.worth_second_look(cand)):
+            # fitted one view's rings to the plate, resolution is not what failed, and where
+            # the first spent the budget, none of its hypotheses could be refined.
+            if cand is not None and (frame.plate_seen or frame.spent or not self.proposer.worth_second_look(cand)):
                 return
             look = self.look(frame, zoom, cand)
             cand = frame.unclaimed(look)

@@ -61,6 +61,32 @@ def test_an_unknown_detector_names_the_known_ones(rig):
         mp.MarkerPose(rig, detector="truth")
 
 
+def test_no_second_look_once_the_first_spent_the_budget(rig, monkeypatch):
+    """A pair no pose explains (the bench's first pair, its left view twice) whose first
+    look's hypotheses spend the work budget without fitting a view to the plate: the second
+    look is not taken (none of its hypotheses could be refined), and the outcome and its
+    reason are those of a detector that takes it."""
+    from markerpose.detectors.stereo import StereoDetector
+    from markerpose.experiments.bench import _pairs
+    from markerpose.frame import Frame
+
+    left = _pairs(1, 0)[2][0].images[0]
+    looks, real = [], StereoDetector.look
+
+    def counted(self, frame, zoom, previous):
+        looks.append(zoom)
+        return real(self, frame, zoom, previous)
+
+    monkeypatch.setattr(StereoDetector, "look", counted)
+    tracker = mp.MarkerPose(rig)
+    assert tracker.estimate(left, left) is None and looks == [1.0]
+    why = tracker.why
+    monkeypatch.setattr(Frame, "spent", property(lambda self: False))
+    looks.clear()
+    assert tracker.estimate(left, left) is None and looks == [1.0, 2.0]
+    assert tracker.why == why
+
+
 def test_no_second_look_where_a_view_already_fitted_the_plate(rig, monkeypatch):
     """A pair no pose explains (the left view given twice: the rings miss each other's
     epipolar lines), whose rings a view resolved and fitted to the plate at the first look:
