@@ -669,10 +669,10 @@ def test_a_tracker_is_compiled_before_its_first_frame():
     code = """
 import numba
 import markerpose as mp
-from markerpose import blurfit, camera, classical, edges, geometry, keypoints, rigcheck
-inner = ("_select", "_normal", "_median", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve",
+from markerpose import blurfit, camera, classical, edges, evidence, geometry, keypoints, rigcheck
+inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve",
          "distort_point", "undistort_point", "_undistort_pairs", "_least_singular_vector", "triangulate_ideal", "_ideal", "_symmetric_drop")  # called only from other kernels, compiled into them
-kernels = [v for m in (edges, camera, geometry, blurfit, classical, rigcheck, keypoints) for name, v in vars(m).items()
+kernels = [v for m in (edges, camera, geometry, blurfit, classical, rigcheck, keypoints, evidence) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)
 rig = mp.StereoRig.default()
