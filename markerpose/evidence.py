@@ -171,7 +171,8 @@ def _affine_samples(img, A, t, pts, out):  # pragma: no cover - compiled
 def _bilinear(img, x, y):  # pragma: no cover - compiled
     """The bilinear value of ``img`` at (x, y) (float32, inside the image) as OpenCV's remap
     gives it: along x on both rows, then along y, each a fused multiply-add in float32 (the
-    exact product in float64, rounded once), the last row and column repeated."""
+    product exact in float64, the sum rounded to float32: the fused value but for rare
+    double roundings), the last row and column repeated."""
     h, w = img.shape
     x0, y0 = int(np.floor(x)), int(np.floor(y))
     ax, ay = x - np.float32(x0), y - np.float32(y0)
