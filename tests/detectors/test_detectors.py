@@ -61,16 +61,10 @@ def test_an_unknown_detector_names_the_known_ones(rig):
         mp.MarkerPose(rig, detector="truth")
 
 
-def test_no_second_look_once_the_first_spent_the_budget(rig, monkeypatch):
-    """A pair no pose explains (the bench's first pair, its left view twice) whose first
-    look's hypotheses spend the work budget without fitting a view to the plate: the second
-    look is not taken (none of its hypotheses could be refined), and the outcome and its
-    reason are those of a detector that takes it."""
+def _counted_looks(monkeypatch) -> list:
+    """The zooms of the stereo detector's stage-1 looks, in order, from now on."""
     from markerpose.detectors.stereo import StereoDetector
-    from markerpose.experiments.bench import _pairs
-    from markerpose.frame import Frame
 
-    left = _pairs(1, 0)[2][0].images[0]
     looks, real = [], StereoDetector.look
 
     def counted(self, frame, zoom, previous):
@@ -78,6 +72,19 @@ def test_no_second_look_once_the_first_spent_the_budget(rig, monkeypatch):
         return real(self, frame, zoom, previous)
 
     monkeypatch.setattr(StereoDetector, "look", counted)
+    return looks
+
+
+def test_no_second_look_once_the_first_spent_the_budget(rig, monkeypatch):
+    """A pair no pose explains (the bench's first pair, its left view twice) whose first
+    look's hypotheses spend the work budget without fitting a view to the plate: the second
+    look is not taken (none of its hypotheses could be refined), and the outcome and its
+    reason are those of a detector that takes it."""
+    from markerpose.experiments.bench import _pairs
+    from markerpose.frame import Frame
+
+    left = _pairs(1, 0)[2][0].images[0]
+    looks = _counted_looks(monkeypatch)
     tracker = mp.MarkerPose(rig)
     assert tracker.estimate(left, left) is None and looks == [1.0]
     why = tracker.why
@@ -92,17 +99,10 @@ def test_no_second_look_where_a_view_already_fitted_the_plate(rig, monkeypatch):
     epipolar lines), whose rings a view resolved and fitted to the plate at the first look:
     the second look, for rings too small to resolve, is not taken (one look, not two); and
     ``plate_seen`` is each child frame's own, a tool at a time."""
-    from markerpose.detectors.stereo import StereoDetector
     from markerpose.frame import Frame
 
     left = render_stereo(rig, look_at_pose([10, -5, 600], 20, 40, 15), seed=4).images[0]
-    looks, real = [], StereoDetector.look
-
-    def counted(self, frame, zoom, previous):
-        looks.append(zoom)
-        return real(self, frame, zoom, previous)
-
-    monkeypatch.setattr(StereoDetector, "look", counted)
+    looks = _counted_looks(monkeypatch)
     tracker = mp.MarkerPose(rig)
     assert tracker.estimate(left, left) is None and "epipolar" in tracker.why
     assert looks == [1.0]
