@@ -380,6 +380,7 @@ class _Problem:
         self.freeze = False  # keep the derivatives of the next model computed with them ...
         self.frozen = None  # ... here, and give those instead of computing them again
         self.smooth = _tangent_smooth(smooth)  # the lines' smoothing near the tangents
+        self.njev = 0  # model evaluations with derivatives
 
     def grid(self, reach, stride=1):
         """Per ring (centre, the form of its outer ellipse widened by ``reach`` px), and the
@@ -484,6 +485,7 @@ class _Problem:
             disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
             disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
         _add_disks(self.x, self.y, disks, theta, L, sigma, full, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
+        self.njev += full
         if not jac:
             return R, None
         if self.frozen is not None:
@@ -513,9 +515,6 @@ class _Problem:
         if not _levels_and_normals(R, J, self.xs, self.ys, self.v, self.w, self.noise, bool(jac), res, beta, H, g):
             raise np.linalg.LinAlgError("the levels' normal equations are singular")
         return res, beta, ((H, g) if jac else None)
-
-    def residual(self, p, keep=False):
-        return self.evaluate(p, keep=keep)[0]
 
 
 _NO_J = np.zeros((1, 1))  # the derivatives' place where none are asked for
@@ -689,46 +688,195 @@ def _robust_lm(prob, p, conf):
     Gauss-Newton step on the weighted cost by the normal equations (few parameters, many
     pixels). Returns (parameters, number of model evaluations, gave up): it gives up, with
     the parameters where it stopped, when a centre went farther than conf["max_move"]
-    (a start that missed the rings)."""
-    f2 = conf["loss_scale"] ** 2
-    start = prob.centers(p).copy()
-    r = prob.residual(p, keep=True)  # its derivatives: the first iteration's
+    (a start that missed the rings).
+
+    The loop runs in one compiled call (:func:`_lm_kernel`), outside Python's lock, so that
+    a pair's two fits run side by side; it leaves ``prob``'s robust weights, its kept model
+    and its frozen derivatives as the model's own evaluations would."""
+    frozen = prob.frozen
+    out = _lm_kernel(
+        prob.x, prob.y, prob.xs, prob.ys, prob.v, prob.w, prob.noise, np.asarray(p, np.float64), prob.k, prob.rho**2,
+        prob.scale**2, block_offset(prob.box) if prob.block else 0.0, prob.smooth, float(conf["loss_scale"]) ** 2,
+        int(conf["max_iter"]), float(conf["jac_move"]), float(conf["ftol"]), float(conf["xtol"]), float(conf["center_tol"]),
+        float(conf["max_move"] or 0.0), frozen is not None, _NO_J if frozen is None else frozen, bool(prob.freeze),
+    )  # fmt: skip
+    status, p, nfev, njev, gave_up, kept, frozen, has_frozen, freeze = out
+    prob.njev += njev
+    if status == _BAD_START:
+        raise ValueError("the start is outside the model's range")
+    if status == _SINGULAR:
+        raise np.linalg.LinAlgError("the levels' normal equations are singular")
+    prob._kept = kept if kept[0].shape[0] else None
+    prob.frozen, prob.freeze = (frozen if has_frozen else None), freeze
+    return p, nfev, gave_up
+
+
+_OK, _BAD_START, _SINGULAR = 0, 1, 2  # :func:`_lm_kernel`'s outcomes
+
+
+@compiled
+def _model_kernel(p, k, rho2, scale2, h, kap, x, y, full, R, J):  # pragma: no cover - compiled
+    """:meth:`_Problem.model` at ``p`` into the zeroed ``R`` and (with ``full``) ``J``, in the
+    same arithmetic (:meth:`_Problem.unpack`, :func:`_add_disks`); False where ``p`` is
+    outside the model's range (a blur length or sigma beyond e^+-12 px, a form that is not
+    positive definite), where the model raises ValueError."""
+    if not (abs(p[-2]) < 12 and abs(p[-1]) < 12):
+        return False
+    theta, L, sigma = p[-3], math.exp(p[-2]), math.exp(p[-1])
+    u0, u1 = math.cos(theta), math.sin(theta)
+    Lc = max(L, 0.05)
+    rows = np.empty((2 * k, 14))
+    for j in range(k):
+        q = p[7 * j : 7 * j + 7]
+        a00, a01, a11 = q[2] / scale2, q[3] / scale2, q[4] / scale2
+        if not (a00 > 0 and a00 * a11 - a01 * a01 > 0):
+            return False
+        for m in range(2):  # the outer disk, then the white one (centre c + d, form Q / rho^2)
+            inner = m == 1
+            c0, c1 = (q[0] + q[5], q[1] + q[6]) if inner else (q[0], q[1])
+            f = rho2 if inner else 1.0
+            q00, q01, q11 = a00 / f, a01 / f, a11 / f
+            sign, col_d, sq = (-1.0, 7 * j + 5, rho2 * scale2) if inner else (1.0, -1, scale2)
+            det = q00 * q11 - q01 * q01
+            ext0 = math.sqrt(q11 / det) + abs(u0) * 0.5 * Lc + 6.0 * sigma + h
+            ext1 = math.sqrt(q00 / det) + abs(u1) * 0.5 * Lc + 6.0 * sigma + h
+            r = rows[2 * j + m]
+            r[0], r[1], r[2], r[3], r[4], r[5], r[6] = c0, c1, q00, q01, q11, ext0, ext1
+            r[7], r[8], r[9], r[10], r[11], r[12], r[13] = sign, 7 * j, col_d, 7 * k, sq, L, sigma
+    _disks_kernel(x, y, rows, u0, u1, Lc, sigma, h, kap, full, R, J)
+    return True
+
+
+@compiled
+def _centre_step(step, k):  # pragma: no cover - compiled
+    """The largest |coordinate| of the rings' centre moves in ``step``."""
+    m = 0.0
+    for j in range(k):
+        m = max(m, abs(step[7 * j]), abs(step[7 * j + 1]))
+    return m
+
+
+@compiled
+def _lm_kernel(
+    x,
+    y,
+    xs,
+    ys,
+    v,
+    w,
+    noise,
+    p,
+    k,
+    rho2,
+    scale2,
+    h,
+    kap,
+    f2,
+    max_iter,
+    jac_move,
+    ftol,
+    xtol,
+    center_tol,
+    max_move,
+    has_frozen,
+    frozen,
+    freeze,
+):  # pragma: no cover - compiled
+    """:func:`_robust_lm`'s loop: (outcome, parameters, model evaluations, those with
+    derivatives, gave up, the kept model
+    (parameters, values, derivatives; empty parameters: none), frozen derivatives, whether
+    they hold, whether the next derivatives are to be frozen). The robust weights are
+    updated in ``w``. Each step is numpy's solve of the damped normal equations (the same
+    LAPACK routine), the costs its dot product, so the iterates are those of the loop in
+    numpy."""
+    N, P = len(x), 7 * k + 3
+    nojac = np.zeros((1, 1))
+    no_kept = (np.zeros(0), np.zeros(0), np.zeros((1, 1)))
+    start = np.empty((k, 2))
+    for j in range(k):
+        start[j, 0], start[j, 1] = p[7 * j], p[7 * j + 1]
+    beta = np.empty(6)
+    H, g = np.empty((P, P)), np.empty(P)
+    no_H, no_g = np.empty((1, 1)), np.empty(1)  # the normal equations' place where none are asked for
+    # The start's model with its derivatives (the first iteration's), and its residuals.
+    R = np.zeros(N)
+    J = np.zeros((N, P)) if not has_frozen else np.zeros((1, P))
+    njev = int(not has_frozen)
+    if not _model_kernel(p, k, rho2, scale2, h, kap, x, y, not has_frozen, R, J):
+        return _BAD_START, p, 1, njev, False, no_kept, frozen, has_frozen, freeze
+    if has_frozen:
+        J = frozen
+    elif freeze:
+        frozen, has_frozen, freeze = J, True, False
+    kept_p, kept_R, kept_J = p.copy(), R, J
+    r = np.empty(N)
+    if not _levels_and_normals(R, nojac, xs, ys, v, w, noise, False, r, beta, no_H, no_g):
+        return _SINGULAR, p, 1, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
     lam, nfev = 1e-3, 1
-    for _ in range(conf["max_iter"]):
-        prob.w = 1 / (1 + r * r / f2)
-        r, _, (H, g) = prob.evaluate(p, jac=True)
-        E = float(prob.w @ (r * r))
+    for _ in range(max_iter):
+        for i in range(N):
+            w[i] = 1 / (1 + r[i] * r[i] / f2)
+        # The iterate's model is the kept one: the start's, or the accepted trial's.
+        r = np.empty(N)
+        if not _levels_and_normals(kept_R, kept_J, xs, ys, v, w, noise, True, r, beta, H, g):
+            return _SINGULAR, p, nfev, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
+        E = np.dot(w, r * r)
         D = np.diag(H).copy()
-        D[D <= 0] = 1.0
+        for a in range(P):
+            if D[a] <= 0:
+                D[a] = 1.0
         nfev += 1
         while True:
-            step = np.linalg.solve(H + lam * np.diag(D), -g)
+            A = H + lam * np.diag(D)
+            ok = np.all(np.isfinite(A)) and np.all(np.isfinite(g))
+            step = np.linalg.solve(A, -g) if ok else np.full(P, np.nan)
             trial = p + step
-            if prob.frozen is not None and np.abs(prob.centers(step)).max() > conf["jac_move"]:
-                prob.frozen, prob.freeze = None, True  # derivatives frozen this far away would be stale: anew at the trial
-            try:
-                rt = prob.residual(trial, keep=True)  # accepted, it is the next iterate
-                Et = float(prob.w @ (rt * rt))
-            except ValueError:  # the step left the valid ellipses
-                Et = np.inf
+            if has_frozen and _centre_step(step, k) > jac_move:
+                has_frozen, freeze = False, True  # derivatives frozen this far away would be stale: anew at the trial
+            Et = np.inf
+            if np.array_equal(kept_p, trial):
+                Rt, valid = kept_R, True
+            else:
+                Rt = np.zeros(N)
+                Jt = np.zeros((N, P)) if not has_frozen else np.zeros((1, P))
+                valid = _model_kernel(trial, k, rho2, scale2, h, kap, x, y, not has_frozen, Rt, Jt)
+                njev += not has_frozen
+                if valid:
+                    if has_frozen:
+                        Jt = frozen
+                    elif freeze:
+                        frozen, has_frozen, freeze = Jt, True, False
+                    kept_p, kept_R, kept_J = trial.copy(), Rt, Jt  # accepted, it is the next iterate
+            rt = np.empty(N)
+            if valid:
+                if not _levels_and_normals(Rt, nojac, xs, ys, v, w, noise, False, rt, beta, no_H, no_g):
+                    return _SINGULAR, p, nfev, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
+                Et = np.dot(w, rt * rt)
             nfev += 1
             if Et < E:
                 break
             lam *= 10
             if lam > 1e8:
-                return p, nfev, False
-        small = (
-            E - Et <= conf["ftol"] * E
-            or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
-            or np.abs(prob.centers(step)).max() <= conf["center_tol"]
-        )
+                return _OK, p, nfev, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
+        small = E - Et <= ftol * E or _centre_step(step, k) <= center_tol
+        if not small:
+            small = True
+            for a in range(P):
+                if not abs(step[a]) <= xtol * (abs(p[a]) + xtol):
+                    small = False
+                    break
         p, r = trial, rt
-        if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
-            return p, nfev, True
+        if max_move:
+            far = 0.0
+            for j in range(k):
+                dx, dy = p[7 * j] - start[j, 0], p[7 * j + 1] - start[j, 1]
+                far = max(far, math.sqrt(dx * dx + dy * dy))
+            if far > max_move:
+                return _OK, p, nfev, njev, True, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
         lam = max(lam / 10, 1e-7)
         if small:
             break
-    return p, nfev, False
+    return _OK, p, nfev, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
 
 
 def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
@@ -748,6 +896,7 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
         dict with ``cqs`` (list of (centre, Q)), ``theta`` (rad), ``length`` and
         ``sigma`` (px), ``center_covs`` ((k, 2, 2) the centres' covariances, px^2), ``rms`` (residual RMS in noise sigmas of the block means), ``contrast`` (ring
         level minus paper level at the marker's middle, grey levels), ``nfev`` and
+        ``njev`` (the model's evaluations, and those with derivatives), and
         ``gave_up``: True when a centre went farther than ``max_move`` from its start and
         the fit stopped there (its ellipses are where it stopped, not a fit); or None when
         too few pixels are usable or the fit fails.
@@ -790,27 +939,59 @@ def fit_blurred_rings(gray, cqs, rho, noise=2.0, conf=None, plate=None):
 
 def _coarse_motion(prob, base, c):
     """The start parameters ``base`` with the (theta, log L) of least cost on the coarse
-    grid of motion directions and lengths (conf["grid_search"]), on the current pixels."""
+    grid of motion directions and lengths (conf["grid_search"]), on the current pixels.
+    The lines are bare (no smoothing near the tangents): a coarse choice, cheaper, does."""
 
-    def cost(th, L):
+    def best(cands):
+        """The first (cost, parameters) of least cost among the (theta, L) ``cands``, each
+        costed in one compiled call."""
+        th = np.array([t for t, _ in cands], np.float64)
+        logL = np.array([np.log(L) for _, L in cands], np.float64)
+        costs = _motion_costs(
+            prob.x, prob.y, prob.xs, prob.ys, prob.v, prob.w, prob.noise, base, prob.k, prob.rho**2, prob.scale**2, th, logL
+        )
+        if np.isnan(costs).any():
+            raise ValueError("blur length or sigma out of range")
+        if np.isinf(costs).any():
+            raise np.linalg.LinAlgError("the levels' normal equations are singular")
+        i = int(np.argmin(costs))
         p = base.copy()
-        p[-3], p[-2] = th, np.log(L)
-        r = prob.residual(p)
-        return float(r @ r), p
+        p[-3], p[-2] = th[i], logL[i]
+        return float(costs[i]), p
 
     angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
-    smooth, prob.smooth = prob.smooth, 0.0  # a coarse choice: the bare lines, cheaper, do
-    try:
-        if c["grid_search"] == "full":
-            best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
+    prob._kept = None
+    if c["grid_search"] == "full":
+        return best([(th, L) for th in angles for L in lengths])[1]
+    # The direction shows at any length near the true one; the length then at that direction.
+    middle = sorted(lengths)[len(lengths) // 2]
+    first = best([(th, middle) for th in angles])
+    rest = [L for L in lengths if L != middle]
+    if not rest:
+        return first[1]
+    second = best([(first[1][-3], L) for L in rest])
+    return second[1] if second[0] < first[0] else first[1]
+
+
+@compiled
+def _motion_costs(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths):  # pragma: no cover - compiled
+    """The residuals' sum of squares of the model (bare lines, the samples' centres) at
+    ``base`` with each (theta, log L) of ``thetas``, ``log_lengths``; NaN where the model
+    is out of range; inf where the levels' fit is singular."""
+    N, P = len(x), 7 * k + 3
+    out = np.empty(len(thetas))
+    p = base.copy()
+    nojac, no_H, no_g, beta = np.zeros((1, 1)), np.empty((1, 1)), np.empty(1), np.empty(6)
+    for n in range(len(thetas)):
+        p[-3], p[-2] = thetas[n], log_lengths[n]
+        R, r = np.zeros(N), np.empty(N)
+        if not _model_kernel(p, k, rho2, scale2, 0.0, 0.0, x, y, False, R, np.zeros((1, P))):
+            out[n] = np.nan
+        elif not _levels_and_normals(R, nojac, xs, ys, v, w, noise, False, r, beta, no_H, no_g):
+            out[n] = np.inf
         else:
-            # The direction shows at any length near the true one; the length then at that direction.
-            middle = sorted(lengths)[len(lengths) // 2]
-            best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
-            best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
-    finally:
-        prob.smooth, prob._kept = smooth, None
-    return best[1]
+            out[n] = np.dot(r, r)
+    return out
 
 
 def _fit_pixels(prob, motion, c):
@@ -885,6 +1066,7 @@ def _fit_result(prob, p, nfev, gave_up):
         "rms": float(np.sqrt(np.mean(r * r))),
         "contrast": float(beta[3]),
         "nfev": nfev,
+        "njev": prob.njev,
         "gave_up": gave_up,
     }
 
@@ -907,4 +1089,7 @@ def warm_up() -> None:
             _levels_and_normals(
                 z, J, z, z, z, z + 1, 1.0, J is not _NO_J, np.empty(8), np.empty(6), np.empty((J.shape[1],) * 2), np.empty(J.shape[1])
             )
+        p = np.array([0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, np.log(0.8)])
+        _lm_kernel(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, 0.0, 0.5, 9.0, 1, 0.01, 1e-4, 1e-4, 0.002, 0.0, False, _NO_J, False)
+        _motion_costs(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, np.zeros(1), np.zeros(1))
         _WARM = True

@@ -288,26 +288,18 @@ def test_frozen_derivatives_and_a_sparser_search_end_where_the_exact_fit_does(bl
     rig, img, truth = blurred_view
     gray = C.to_gray(img)
     start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
-    add_disks, strides = blurfit._add_disks, []
-    counts = {}
-
-    def counted(x, y, disks, theta, L, sigma, jac, *a, **k):
-        counts[jac] = counts.get(jac, 0) + 1
-        return add_disks(x, y, disks, theta, L, sigma, jac, *a, **k)
-
+    strides = []
     pixels = blurfit._Problem.pixels
-    monkeypatch.setattr(blurfit, "_add_disks", counted)
     monkeypatch.setattr(
         blurfit._Problem, "pixels", lambda self, reach, stride=1, motion=None: strides.append(stride) or pixels(self, reach, stride, motion)
     )
     fits, jacs = {}, {}
     for name, conf in {"default": {}, "exact": {"jac_once_length": np.inf, "grid_stride_frac": 0.0}}.items():
-        counts.clear()
-        fits[name] = np.array([c for c, _ in blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf)["cqs"]])
-        jacs[name] = counts.get(True, 0)
+        fit = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf)
+        fits[name], jacs[name] = np.array([c for c, _ in fit["cqs"]]), fit["njev"]
     assert strides[0] > 4 and strides[2] == 4  # the rings' minor semi-axes are over 25 px
     assert np.abs(fits["default"] - fits["exact"]).max() < 2e-3
-    assert jacs["default"] < jacs["exact"], jacs
+    assert 0 < jacs["default"] < jacs["exact"], jacs
     assert np.linalg.norm(fits["default"] - truth.outer_centers, axis=1).max() < 0.1
 
 
@@ -315,20 +307,116 @@ def test_the_search_along_the_axes_agrees_with_the_full_grid(blurred_view, monke
     rig, img, truth = blurred_view
     gray = C.to_gray(img)
     start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
-    looked = []
-    residual = blurfit._Problem.residual
-    monkeypatch.setattr(blurfit._Problem, "residual", lambda self, p, keep=False: (looked.append(keep), residual(self, p, keep))[1])
+    costed = []
+    costs = blurfit._motion_costs
+    monkeypatch.setattr(blurfit, "_motion_costs", lambda *a: (costed.append(len(a[-1])), costs(*a))[1])
     fits = {}
     for search in ("full", "axes"):
-        looked.clear()
+        costed.clear()
         fits[search] = blurfit.fit_blurred_rings(gray, start, RHO, C.noise_sigma(gray), conf={"grid_search": search})
-        fits[search + " grid"] = looked.index(True)  # the grid's costs come before the fit's start (with derivatives)
+        fits[search + " grid"] = sum(costed)  # the (direction, length) pairs costed
     assert fits["full grid"] == 8 * 3 and fits["axes grid"] == 8 + 2
     a, b = (np.array([c for c, _ in fits[k]["cqs"]]) for k in ("full", "axes"))
     assert np.abs(a - b).max() < 0.01
     assert fits["axes"]["length"] == pytest.approx(fits["full"]["length"], abs=0.05)
     with pytest.raises(ValueError, match="grid_search"):
         blurfit.fit_blurred_rings(gray, start, RHO, 2.0, conf={"grid_search": "random"})
+
+
+def _numpy_lm(prob, p, conf):
+    """The robust Levenberg-Marquardt loop of :func:`blurfit._robust_lm` written with the
+    problem's own numpy methods: the reference of the compiled loop."""
+    f2 = conf["loss_scale"] ** 2
+    start = prob.centers(p).copy()
+    r = prob.evaluate(p, keep=True)[0]
+    lam, nfev = 1e-3, 1
+    for _ in range(conf["max_iter"]):
+        prob.w = 1 / (1 + r * r / f2)
+        r, _, (H, g) = prob.evaluate(p, jac=True)
+        E = float(prob.w @ (r * r))
+        D = np.diag(H).copy()
+        D[D <= 0] = 1.0
+        nfev += 1
+        while True:
+            step = np.linalg.solve(H + lam * np.diag(D), -g)
+            trial = p + step
+            if prob.frozen is not None and np.abs(prob.centers(step)).max() > conf["jac_move"]:
+                prob.frozen, prob.freeze = None, True
+            try:
+                rt = prob.evaluate(trial, keep=True)[0]
+                Et = float(prob.w @ (rt * rt))
+            except ValueError:
+                Et = np.inf
+            nfev += 1
+            if Et < E:
+                break
+            lam *= 10
+            if lam > 1e8:
+                return p, nfev, False
+        small = (
+            E - Et <= conf["ftol"] * E
+            or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
+            or np.abs(prob.centers(step)).max() <= conf["center_tol"]
+        )
+        p, r = trial, rt
+        if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
+            return p, nfev, True
+        lam = max(lam / 10, 1e-7)
+        if small:
+            break
+    return p, nfev, False
+
+
+@pytest.mark.parametrize(
+    "conf",
+    [
+        {},
+        {"jac_once_length": np.inf},
+        {"jac_once_length": 1.0, "jac_move": 1e-3},
+        {"block_fit": False, "tangent_smooth": 0.0},
+        {"max_move": 0.5},
+    ],
+)
+def test_the_compiled_fit_is_the_numpy_loop(blurred_view, monkeypatch, conf):
+    """The compiled optimiser (:func:`blurfit._lm_kernel`) and coarse search
+    (:func:`blurfit._motion_costs`) against their numpy writing: the same steps (model
+    evaluations, derivatives frozen and taken anew, giving up) to round-off, and the same
+    state left for the covariances (the robust weights, the kept model)."""
+    _, img, truth = blurred_view
+    gray = C.to_gray(img)
+    start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
+    noise = C.noise_sigma(gray)
+    compiled = blurfit.fit_blurred_rings(gray, start, RHO, noise, conf)
+    costs = []
+
+    def numpy_costs(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths):
+        prob = blurfit._Problem(gray, start, RHO, noise)
+        prob.x, prob.y, prob.xs, prob.ys, prob.v, prob.w, prob.noise, prob.smooth = x, y, xs, ys, v, w, noise, 0.0
+        out = []
+        for th, lL in zip(thetas, log_lengths):
+            p = base.copy()
+            p[-3], p[-2] = th, lL
+            r = prob.evaluate(p)[0]
+            out.append(float(r @ r))
+        costs.append((out, costs_kernel(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths)))
+        return np.array(out)
+
+    costs_kernel = blurfit._motion_costs
+    monkeypatch.setattr(blurfit, "_motion_costs", numpy_costs)
+    monkeypatch.setattr(blurfit, "_robust_lm", _numpy_lm)
+    reference = blurfit.fit_blurred_rings(gray, start, RHO, noise, conf)
+    assert len(costs) == 2
+    for ref, got in costs:
+        np.testing.assert_allclose(got, ref, rtol=1e-12)
+    assert compiled["nfev"] == reference["nfev"] and compiled["gave_up"] == reference["gave_up"]
+    assert compiled["njev"] == reference["njev"] > 0
+    a, b = (np.array([np.r_[c, Q.ravel()] for c, Q in f["cqs"]]) for f in (compiled, reference))
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(compiled["center_covs"], reference["center_covs"], rtol=1e-7)
+    for key in ("theta", "length", "sigma", "rms", "contrast"):
+        assert compiled[key] == pytest.approx(reference[key], rel=1e-9, abs=1e-12), key
+    if conf.get("max_move"):
+        assert compiled["gave_up"]  # started 1 px off: the bound is met, and the loop says so
 
 
 def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view):
@@ -670,7 +758,7 @@ def test_a_tracker_is_compiled_before_its_first_frame():
 import numba
 import markerpose as mp
 from markerpose import blurfit, camera, classical, edges, evidence, geometry, keypoints, rigcheck
-inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve",
+inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve", "_model_kernel", "_centre_step",
          "distort_point", "undistort_point", "_undistort_pairs", "_least_singular_vector", "triangulate_ideal", "_ideal", "_symmetric_drop")  # called only from other kernels, compiled into them
 kernels = [v for m in (edges, camera, geometry, blurfit, classical, rigcheck, keypoints, evidence) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
