@@ -801,9 +801,10 @@ def _lm_kernel(
     # The start's model with its derivatives (the first iteration's), and its residuals.
     R = np.zeros(N)
     J = np.zeros((N, P)) if not has_frozen else np.zeros((1, P))
-    njev = int(not has_frozen)
+    njev = 0
     if not _model_kernel(p, k, rho2, scale2, h, kap, x, y, not has_frozen, R, J):
         return _BAD_START, p, 1, njev, False, no_kept, frozen, has_frozen, freeze
+    njev += not has_frozen
     if has_frozen:
         J = frozen
     elif freeze:
@@ -840,8 +841,8 @@ def _lm_kernel(
                 Rt = np.zeros(N)
                 Jt = np.zeros((N, P)) if not has_frozen else np.zeros((1, P))
                 valid = _model_kernel(trial, k, rho2, scale2, h, kap, x, y, not has_frozen, Rt, Jt)
-                njev += not has_frozen
                 if valid:
+                    njev += not has_frozen
                     if has_frozen:
                         Jt = frozen
                     elif freeze:
@@ -942,56 +943,57 @@ def _coarse_motion(prob, base, c):
     grid of motion directions and lengths (conf["grid_search"]), on the current pixels.
     The lines are bare (no smoothing near the tangents): a coarse choice, cheaper, does."""
 
-    def best(cands):
-        """The first (cost, parameters) of least cost among the (theta, L) ``cands``, each
-        costed in one compiled call."""
+    def costed(cands):
+        """(cost, parameters) of each (theta, L) of ``cands``, costed in one compiled call;
+        the model's errors raised as its own evaluation raises them, at the first."""
         th = np.array([t for t, _ in cands], np.float64)
         logL = np.array([np.log(L) for _, L in cands], np.float64)
-        costs = _motion_costs(
+        costs, status = _motion_costs(
             prob.x, prob.y, prob.xs, prob.ys, prob.v, prob.w, prob.noise, base, prob.k, prob.rho**2, prob.scale**2, th, logL
         )
-        if np.isnan(costs).any():
+        if status == _BAD_START:
             raise ValueError("blur length or sigma out of range")
-        if np.isinf(costs).any():
+        if status == _SINGULAR:
             raise np.linalg.LinAlgError("the levels' normal equations are singular")
-        i = int(np.argmin(costs))
-        p = base.copy()
-        p[-3], p[-2] = th[i], logL[i]
-        return float(costs[i]), p
+        out = []
+        for t, lL, cost in zip(th, logL, costs):
+            p = base.copy()
+            p[-3], p[-2] = t, lL
+            out.append((float(cost), p))
+        return out
+
+    def cost(t):
+        return t[0]
 
     angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
     prob._kept = None
     if c["grid_search"] == "full":
-        return best([(th, L) for th in angles for L in lengths])[1]
+        return min(costed([(th, L) for th in angles for L in lengths]), key=cost)[1]
     # The direction shows at any length near the true one; the length then at that direction.
     middle = sorted(lengths)[len(lengths) // 2]
-    first = best([(th, middle) for th in angles])
-    rest = [L for L in lengths if L != middle]
-    if not rest:
-        return first[1]
-    second = best([(first[1][-3], L) for L in rest])
-    return second[1] if second[0] < first[0] else first[1]
+    best = min(costed([(th, middle) for th in angles]), key=cost)
+    return min([best] + costed([(best[1][-3], L) for L in lengths if L != middle]), key=cost)[1]
 
 
 @compiled
 def _motion_costs(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths):  # pragma: no cover - compiled
     """The residuals' sum of squares of the model (bare lines, the samples' centres) at
-    ``base`` with each (theta, log L) of ``thetas``, ``log_lengths``; NaN where the model
-    is out of range; inf where the levels' fit is singular."""
+    ``base`` with each (theta, log L) of ``thetas``, ``log_lengths``, and the outcome: the
+    costs stop at the first (theta, L) where the model is out of range or the levels' fit is
+    singular (:func:`_lm_kernel`'s outcomes)."""
     N, P = len(x), 7 * k + 3
-    out = np.empty(len(thetas))
+    out = np.full(len(thetas), np.nan)
     p = base.copy()
     nojac, no_H, no_g, beta = np.zeros((1, 1)), np.empty((1, 1)), np.empty(1), np.empty(6)
     for n in range(len(thetas)):
         p[-3], p[-2] = thetas[n], log_lengths[n]
         R, r = np.zeros(N), np.empty(N)
         if not _model_kernel(p, k, rho2, scale2, 0.0, 0.0, x, y, False, R, np.zeros((1, P))):
-            out[n] = np.nan
-        elif not _levels_and_normals(R, nojac, xs, ys, v, w, noise, False, r, beta, no_H, no_g):
-            out[n] = np.inf
-        else:
-            out[n] = np.dot(r, r)
-    return out
+            return out, _BAD_START
+        if not _levels_and_normals(R, nojac, xs, ys, v, w, noise, False, r, beta, no_H, no_g):
+            return out, _SINGULAR
+        out[n] = np.dot(r, r)
+    return out, _OK
 
 
 def _fit_pixels(prob, motion, c):

@@ -323,6 +323,30 @@ def test_the_search_along_the_axes_agrees_with_the_full_grid(blurred_view, monke
         blurfit.fit_blurred_rings(gray, start, RHO, 2.0, conf={"grid_search": "random"})
 
 
+def _numpy_coarse(prob, base, c):
+    """The coarse search of :func:`blurfit._coarse_motion` written with the problem's numpy
+    methods, one evaluation per (theta, L), the first of least cost kept (Python's min)."""
+
+    def cost(th, L):
+        p = base.copy()
+        p[-3], p[-2] = th, np.log(L)
+        r = prob.evaluate(p)[0]
+        return float(r @ r), p
+
+    angles, lengths = np.arange(c["grid_angles"]) * np.pi / c["grid_angles"], c["grid_lengths"]
+    smooth, prob.smooth = prob.smooth, 0.0
+    try:
+        if c["grid_search"] == "full":
+            best = min((cost(th, L) for th in angles for L in lengths), key=lambda t: t[0])
+        else:
+            middle = sorted(lengths)[len(lengths) // 2]
+            best = min((cost(th, middle) for th in angles), key=lambda t: t[0])
+            best = min([best] + [cost(best[1][-3], L) for L in lengths if L != middle], key=lambda t: t[0])
+    finally:
+        prob.smooth, prob._kept = smooth, None
+    return best[1]
+
+
 def _numpy_lm(prob, p, conf):
     """The robust Levenberg-Marquardt loop of :func:`blurfit._robust_lm` written with the
     problem's own numpy methods: the reference of the compiled loop."""
@@ -375,6 +399,7 @@ def _numpy_lm(prob, p, conf):
         {"jac_once_length": 1.0, "jac_move": 1e-3},
         {"block_fit": False, "tangent_smooth": 0.0},
         {"max_move": 0.5},
+        {"grid_search": "full"},
     ],
 )
 def test_the_compiled_fit_is_the_numpy_loop(blurred_view, monkeypatch, conf):
@@ -387,27 +412,15 @@ def test_the_compiled_fit_is_the_numpy_loop(blurred_view, monkeypatch, conf):
     start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
     noise = C.noise_sigma(gray)
     compiled = blurfit.fit_blurred_rings(gray, start, RHO, noise, conf)
-    costs = []
+    searched = []
 
-    def numpy_costs(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths):
-        prob = blurfit._Problem(gray, start, RHO, noise)
-        prob.x, prob.y, prob.xs, prob.ys, prob.v, prob.w, prob.noise, prob.smooth = x, y, xs, ys, v, w, noise, 0.0
-        out = []
-        for th, lL in zip(thetas, log_lengths):
-            p = base.copy()
-            p[-3], p[-2] = th, lL
-            r = prob.evaluate(p)[0]
-            out.append(float(r @ r))
-        costs.append((out, costs_kernel(x, y, xs, ys, v, w, noise, base, k, rho2, scale2, thetas, log_lengths)))
-        return np.array(out)
+    def numpy_search(prob, base, c):
+        searched.append((prob, base))
+        return _numpy_coarse(prob, base, c)
 
-    costs_kernel = blurfit._motion_costs
-    monkeypatch.setattr(blurfit, "_motion_costs", numpy_costs)
+    monkeypatch.setattr(blurfit, "_coarse_motion", numpy_search)
     monkeypatch.setattr(blurfit, "_robust_lm", _numpy_lm)
     reference = blurfit.fit_blurred_rings(gray, start, RHO, noise, conf)
-    assert len(costs) == 2
-    for ref, got in costs:
-        np.testing.assert_allclose(got, ref, rtol=1e-12)
     assert compiled["nfev"] == reference["nfev"] and compiled["gave_up"] == reference["gave_up"]
     assert compiled["njev"] == reference["njev"] > 0
     a, b = (np.array([np.r_[c, Q.ravel()] for c, Q in f["cqs"]]) for f in (compiled, reference))
@@ -417,6 +430,48 @@ def test_the_compiled_fit_is_the_numpy_loop(blurred_view, monkeypatch, conf):
         assert compiled[key] == pytest.approx(reference[key], rel=1e-9, abs=1e-12), key
     if conf.get("max_move"):
         assert compiled["gave_up"]  # started 1 px off: the bound is met, and the loop says so
+    # The coarse grid's costs (on the fit's pixels and weights, left in the problem).
+    prob, base = searched[0]
+    th, L = np.arange(8) * np.pi / 8, np.array([6.0, 14.0, 26.0, np.exp(12.5)])
+    costs, status = blurfit._motion_costs(
+        prob.x,
+        prob.y,
+        prob.xs,
+        prob.ys,
+        prob.v,
+        prob.w,
+        prob.noise,
+        base,
+        prob.k,
+        prob.rho**2,
+        prob.scale**2,
+        th,
+        np.log(L[th.argsort() % 4]),
+    )
+    prob.smooth, prob.block, prob._kept = 0.0, False, None  # the search's model: bare lines at the samples' centres
+    for t, lL, cost in zip(th, np.log(L[th.argsort() % 4]), costs):
+        p = base.copy()
+        p[-3], p[-2] = t, lL
+        if lL > 12:  # out of the model's range: the costs stop there, as the model raises
+            with pytest.raises(ValueError):
+                prob.evaluate(p)
+            assert status == blurfit._BAD_START and np.isnan(cost)
+            break
+        r = prob.evaluate(p)[0]
+        assert cost == pytest.approx(float(r @ r), rel=1e-12)
+    else:
+        pytest.fail("the out-of-range length was not reached")
+
+
+def test_a_nan_pixel_fails_the_fit_without_raising(blurred_view):
+    """A float32 image with a NaN beside a ring: the coarse search's costs are NaN (no
+    error), and the fit then finds its levels singular: None, as the numpy loop gave."""
+    _, img, truth = blurred_view
+    gray = C.to_gray(img).astype(np.float32)
+    cqs = [geo.rect_to_cq(r) for r in _truth_rects(truth)]
+    c = cqs[0][0]
+    gray[int(c[1]), int(c[0])] = np.nan
+    assert blurfit.fit_blurred_rings(np.ascontiguousarray(gray), cqs, RHO, 2.0) is None
 
 
 def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view):
