@@ -469,22 +469,13 @@ class _Problem:
         kept = self._kept
         if kept is not None and np.array_equal(kept[0], p):
             return kept[1], kept[2]
-        if not np.all(np.abs(p[-2:]) < 12):  # blur length and sigma beyond e^±12 px: no image
-            raise ValueError("blur length or sigma out of range")
-        rings, theta, L, sigma = self.unpack(p)
         N, k = len(self.v), self.k
         R = np.zeros(N)
         full = jac and self.frozen is None
         J = np.zeros((N, 7 * k + 3) if full else (1, 7 * k + 3))
-        # Per ring the outer disk minus the white disk (centre c + d, form Q / rho^2); the
-        # derivatives go to the ring's columns (c, Q, d) and the shared (theta, log L, log sigma).
-        disks = []
-        for j, (c, Q, d) in enumerate(rings):
-            if not (Q[0, 0] > 0 and Q[0, 0] * Q[1, 1] - Q[0, 1] * Q[1, 0] > 0):
-                raise ValueError("ellipse form not positive definite")
-            disks.append((c, Q, 1.0, (7 * j, -1, 7 * k), (self.scale**2, L, sigma)))
-            disks.append((c + d, Q / self.rho**2, -1.0, (7 * j, 7 * j + 5, 7 * k), (self.rho**2 * self.scale**2, L, sigma)))
-        _add_disks(self.x, self.y, disks, theta, L, sigma, full, R, J, block_offset(self.box) if self.block else 0.0, self.smooth)
+        h = block_offset(self.box) if self.block else 0.0
+        if not _model_kernel(np.asarray(p, np.float64), k, self.rho**2, self.scale**2, h, self.smooth, self.x, self.y, full, R, J):
+            raise ValueError("blur length or sigma out of range (beyond e^±12 px), or an ellipse form not positive definite")
         self.njev += full
         if not jac:
             return R, None
@@ -716,10 +707,12 @@ _OK, _BAD_START, _SINGULAR = 0, 1, 2  # :func:`_lm_kernel`'s outcomes
 
 @compiled
 def _model_kernel(p, k, rho2, scale2, h, kap, x, y, full, R, J):  # pragma: no cover - compiled
-    """:meth:`_Problem.model` at ``p`` into the zeroed ``R`` and (with ``full``) ``J``, in the
-    same arithmetic (:meth:`_Problem.unpack`, :func:`_add_disks`); False where ``p`` is
-    outside the model's range (a blur length or sigma beyond e^+-12 px, a form that is not
-    positive definite), where the model raises ValueError."""
+    """The rings' summed blurred indicator at the points (x, y) into the zeroed ``R`` and
+    (with ``full``) its derivatives into ``J`` (:meth:`_Problem.model`; its parameters as
+    :meth:`_Problem.unpack` reads them): per ring the outer disk minus the white disk (centre
+    c + d, form Q / rho^2), the derivatives to the ring's columns (c, Q, d) and the shared
+    (theta, log L, log sigma). False where ``p`` is outside the model's range (a blur
+    length or sigma beyond e^+-12 px, a form that is not positive definite)."""
     if not (abs(p[-2]) < 12 and abs(p[-1]) < 12):
         return False
     theta, L, sigma = p[-3], math.exp(p[-2]), math.exp(p[-1])
@@ -1092,6 +1085,8 @@ def warm_up() -> None:
                 z, J, z, z, z, z + 1, 1.0, J is not _NO_J, np.empty(8), np.empty(6), np.empty((J.shape[1],) * 2), np.empty(J.shape[1])
             )
         p = np.array([0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, np.log(0.8)])
+        for full in (True, False):
+            _model_kernel(p, 1, 0.25, 1.0, 0.0, 0.5, z, z, full, np.zeros(8), np.zeros((8, 10) if full else (1, 10)))
         _lm_kernel(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, 0.0, 0.5, 9.0, 1, 0.01, 1e-4, 1e-4, 0.002, 0.0, False, _NO_J, False)
         _motion_costs(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, np.zeros(1), np.zeros(1))
         _WARM = True

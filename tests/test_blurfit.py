@@ -474,6 +474,28 @@ def test_a_nan_pixel_fails_the_fit_without_raising(blurred_view):
     assert blurfit.fit_blurred_rings(np.ascontiguousarray(gray), cqs, RHO, 2.0) is None
 
 
+@pytest.mark.parametrize("block", [False, True])
+def test_the_problems_derivatives_match_finite_differences(blurred_view, block):
+    """The whole problem's model (every ring's outer and white disks, the white disk's
+    offset, the shared motion and sigma, in the fit's parametrisation): each column of its
+    derivatives against central differences of its values, at the samples' centres and as
+    the blocks' means."""
+    _, img, truth = blurred_view
+    prob = blurfit._Problem(C.to_gray(img), [geo.rect_to_cq(r) for r in _truth_rects(truth)], RHO, 2.0, box=3)
+    assert prob.pixels(6.0, stride=3, motion=(np.radians(70), 30.0))
+    prob.block = block
+    p = prob.start()
+    p[-3], p[-2] = np.radians(68), np.log(22.0)
+    p[5:7] = 0.3, -0.2  # the first white disk off its ring's centre
+    _, J = prob.model(p, True)
+    for a in range(len(p)):
+        e = np.zeros(len(p))
+        e[a] = 1e-5
+        prob._kept = None
+        numeric = (prob.model(p + e)[0] - prob.model(p - e)[0]) / 2e-5
+        assert np.linalg.norm(J[:, a] - numeric) < 0.06 * np.linalg.norm(numeric) + 1e-9, a
+
+
 def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view):
     """evaluate() forms H and g without the variable-projection Jacobian Jr: they equal
     Jr^T W Jr and Jr^T W r computed from Jr itself, under arbitrary robust weights."""
@@ -813,7 +835,7 @@ def test_a_tracker_is_compiled_before_its_first_frame():
 import numba
 import markerpose as mp
 from markerpose import blurfit, camera, classical, edges, evidence, geometry, keypoints, rigcheck
-inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve", "_model_kernel", "_centre_step",
+inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve", "_centre_step",
          "distort_point", "undistort_point", "_undistort_pairs", "_least_singular_vector", "triangulate_ideal", "_ideal", "_symmetric_drop")  # called only from other kernels, compiled into them
 kernels = [v for m in (edges, camera, geometry, blurfit, classical, rigcheck, keypoints, evidence) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
