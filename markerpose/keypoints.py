@@ -51,9 +51,18 @@ def layer_widths(width: float = 1.0, stem_width: float | None = None) -> tuple[t
     return enc, max(16, int(round(PAPER_HEAD * width)))
 
 
-def build_network(width: float = 1.0, stem_width: float | None = None):
+STEMS = ("pool", "strided")  # how the encoder halves the input the first time (build_network)
+
+
+def build_network(width: float = 1.0, stem_width: float | None = None, stem: str = "pool"):
     """The SuperPoint-like network (torch ``nn.Module``), paper widths times ``width``
     (the first four convolutions times ``stem_width`` when given; see :func:`layer_widths`).
+
+    ``stem``: "pool", the paper's two 3x3 convolutions at full resolution then a 2x2
+    max-pool; or "strided" (ours), one 4x4 convolution of stride 2 to twice the first
+    width, then a 3x3 one to the second at half resolution: features of the same shape
+    and centres with no layer at full resolution, whose work dominates a narrow
+    network's time.
 
     Input: (B, 1, H, W) float in [0, 1], H and W multiples of 8.
     Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits. Weights channels-last.
@@ -61,16 +70,27 @@ def build_network(width: float = 1.0, stem_width: float | None = None):
     import torch
     from torch import nn
 
+    if stem not in STEMS:
+        raise ValueError(f"stem must be one of {STEMS}, got {stem!r}")
     enc, head = layer_widths(width, stem_width)
 
-    def conv(cin, cout, k=3):
-        return [nn.Conv2d(cin, cout, k, padding=k // 2, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
+    def conv(cin, cout, k=3, stride=1, pad=None):
+        pad = k // 2 if pad is None else pad
+        return [nn.Conv2d(cin, cout, k, stride, pad, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)]
 
     class SuperPointLike(nn.Module):
         def __init__(self):
             super().__init__()
             layers, cin = [], 1
             for i, c in enumerate(enc):
+                if stem != "pool" and i == 0:
+                    # Output cell j covers input pixels 2j-1..2j+2: centred where the pool's
+                    # cell is. The identity keeps the later layers' indices (and so the
+                    # state-dict keys) those of the pooled network's.
+                    layers += conv(1, 2 * c, 4, 2, 1) + conv(2 * c, enc[1]) + [nn.Identity()]
+                    cin = enc[1]
+                if stem != "pool" and i < 2:
+                    continue
                 layers += conv(cin, c)
                 cin = c
                 if i % 2 == 1 and i < 7:  # 2x2 max-pool after every two convs, three pools
@@ -78,7 +98,7 @@ def build_network(width: float = 1.0, stem_width: float | None = None):
             self.encoder = nn.Sequential(*layers)
             self.det_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, CELL * CELL + 1, 1))
             self.id_head = nn.Sequential(*conv(cin, head), nn.Conv2d(head, 4, 1))
-            self.width, self.stem_width = width, stem_width
+            self.width, self.stem_width, self.stem = width, stem_width, stem
 
         def forward(self, x: torch.Tensor):
             f = self.encoder(x)
@@ -87,6 +107,12 @@ def build_network(width: float = 1.0, stem_width: float | None = None):
     # Channels-last: the convolutions run faster on the CPU, in training and inference,
     # with the same outputs to ~1e-6.
     return SuperPointLike().to(memory_format=torch.channels_last)
+
+
+def network_for(meta: dict):
+    """:func:`build_network` for a checkpoint's or weights file's ``width``, ``stem_width``
+    and ``stem`` (absent: "pool", the paper's)."""
+    return build_network(float(meta["width"]), meta.get("stem_width"), meta.get("stem", "pool"))
 
 
 def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
@@ -247,11 +273,8 @@ class KeypointNet:
         backend: str = "onnxruntime",
         stack_views: bool = False,
     ):
-        def build(meta):
-            return build_network(float(meta["width"]), meta.get("stem_width"))
-
         self.runner, meta, self.path = load_network(
-            weights, "keypoints", build, threads, device, required=("state_dict", "width"), backend=backend, stack_views=stack_views
+            weights, "keypoints", network_for, threads, device, required=("state_dict", "width"), backend=backend, stack_views=stack_views
         )
         if "width" not in meta:
             raise ValueError(f"{self.path} is not a markerpose keypoints model: no 'width' in its metadata")
@@ -262,6 +285,7 @@ class KeypointNet:
         self.conf = self.decode_conf(conf, stereo)
         self.conf["width"] = float(meta["width"])
         self.conf["stem_width"] = meta.get("stem_width")
+        self.conf["stem"] = meta.get("stem", "pool")
         self.marker = marker or _MARKER
         # The input's height: the paper's 240 whatever the image (a 1280x1024 image squeezed
         # by 4.27 in y and 4 in x), or, isotropic, the image's own aspect at 320 wide (an
@@ -459,6 +483,7 @@ __all__ = [
     "INPUT_SIZE",
     "KeypointNet",
     "build_network",
+    "network_for",
     "check_second_look",
     "input_scale",
     "layer_widths",

@@ -525,7 +525,8 @@ def quantize_onnx(src: str | Path, dest: str | Path, batches: list) -> Path:
     in [0, 1]); the input's range is [0, 1] whatever the batches hold. The operators that
     produce the network's outputs stay float32: quantized logits lose the resolution that
     ranks stage 1's candidates (a small marker's rings among them); so do the narrow ones
-    (:data:`INT8_MIN_CHANNELS`), where int8 runs slower. The markerpose
+    (:data:`INT8_MIN_CHANNELS`) and those reading the one-channel input, where int8 runs
+    slower. The markerpose
     metadata is kept, with ``int8`` (the number of calibration inputs) added. Needs
     ``onnx`` (the train extra) to make; the result runs without it, on ONNX Runtime (or
     OpenVINO)."""
@@ -582,6 +583,9 @@ def _quantize_qdq(pre: Path, dest: Path, batches: list) -> None:
 
     outputs = {o.name for o in graph.output}
     last = [n.name for n in graph.node if outputs & set(n.output)]
+    # Those that read the input stay float32 too: on one grey channel an int8 convolution
+    # has too little to multiply per pixel to repay its quantize and dequantize steps.
+    first = [n.name for n in graph.node if name in n.input]
     narrow = _narrow_nodes(graph)
     pinned = {name: [{"rmin": np.float32(0.0), "rmax": np.float32(1.0)}]}
     quantize_static(
@@ -592,7 +596,7 @@ def _quantize_qdq(pre: Path, dest: Path, batches: list) -> None:
         per_channel=True,
         activation_type=QuantType.QUInt8,
         weight_type=QuantType.QInt8,
-        nodes_to_exclude=last + narrow,
+        nodes_to_exclude=last + first + narrow,
         extra_options={"TensorQuantOverrides": pinned},
     )
 

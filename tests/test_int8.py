@@ -23,11 +23,11 @@ def _frames():
         yield render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
 
 
-@pytest.mark.parametrize("stem", ["keypoints", "keypoints-mid"])
+@pytest.mark.parametrize("stem", ["keypoints", "keypoints-mid", "keypoints-fast"])
 def test_int8_stage1_finds_float32s_candidates(stem):
     """The quantized network's candidates near each ring centre are within a fraction of
-    a pixel of the float32 network's, with scores within 0.1 (the standard network and the
-    default's mid one)."""
+    a pixel of the float32 network's, with scores within 0.1 (the standard, mid and fast
+    networks)."""
     f32, i8 = KeypointNet(nets.default_weights(stem)), KeypointNet(nets.int8_weights(stem))
     for frame in _frames():
         grays = [np.asarray(im) for im in frame.images]
@@ -130,12 +130,14 @@ def test_quantize_onnx_keeps_the_metadata_and_refuses_what_it_cannot_quantize(tm
         nets.quantizable_meta(tmp_path / "none.onnx")
 
 
-def test_the_narrow_layers_stay_float32():
-    """The shipped int8 copy of the default's network keeps float32 where int8 runs slower
-    (outputs under nets.INT8_MIN_CHANNELS channels: its stem at full and half resolution)
-    and for the logits; every wider convolution takes int8 weights."""
+@pytest.mark.parametrize("stem, n_float, n_int8", [("keypoints-mid", 4 + 2, 6), ("keypoints-fast", 4 + 2, 6)])
+def test_the_narrow_layers_stay_float32(stem, n_float, n_int8):
+    """The shipped int8 copies of the mid and fast networks keep float32 where int8 runs
+    slower (outputs under nets.INT8_MIN_CHANNELS channels: the stem; the convolution that
+    reads the one-channel input) and for the logits; every other convolution takes int8
+    weights."""
     onnx = pytest.importorskip("onnx")
-    model = onnx.load(str(nets.int8_weights("keypoints-mid")))
+    model = onnx.load(str(nets.int8_weights(stem)))
     inits = {i.name: i for i in model.graph.initializer}
     produced = {o: n for n in model.graph.node for o in n.output}
     kinds = {}
@@ -152,6 +154,7 @@ def test_the_narrow_layers_stay_float32():
     for n in model.graph.node:
         if n.op_type == "Conv":
             kind, channels = kinds[n.name]
-            float32 = channels < nets.INT8_MIN_CHANNELS or bool(set(n.output) & outputs)
+            reads_input = model.graph.input[0].name in n.input
+            float32 = channels < nets.INT8_MIN_CHANNELS or reads_input or bool(set(n.output) & outputs)
             assert kind == ("float" if float32 else "int8"), (n.name, kind, channels)
-    assert sum(k == "float" for k, _ in kinds.values()) == 4 + 2 and sum(k == "int8" for k, _ in kinds.values()) == 6
+    assert sum(k == "float" for k, _ in kinds.values()) == n_float and sum(k == "int8" for k, _ in kinds.values()) == n_int8

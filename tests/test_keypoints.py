@@ -47,6 +47,29 @@ def test_stem_width_sets_the_first_four_convolutions_only():
     assert kp.layer_widths(0.25) == kp.layer_widths(0.25, None) == ((16, 16, 16, 16, 32, 32, 32, 32), 64)
 
 
+def test_strided_stem_halves_once_with_the_pooled_networks_shapes_and_keys():
+    """The strided stem: one 4x4 stride-2 convolution to twice the first width and a 3x3 to
+    the second, no layer at full resolution; the same outputs' shapes, and every layer after
+    the stem under the same key and shape as in the pooled network (what distillation
+    copies from the teacher)."""
+    pooled, strided = kp.build_network(0.375, 0.125), kp.build_network(0.375, 0.125, "strided")
+    convs = [m for m in strided.encoder if isinstance(m, torch.nn.Conv2d)]
+    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs[:2]] == [(1, 16, (4, 4), (2, 2)), (16, 8, (3, 3), (1, 1))]
+    assert _conv_widths(strided)[2:] == _conv_widths(pooled)[2:] == [8, 8, 48, 48, 48, 48]
+    assert sum(isinstance(m, torch.nn.MaxPool2d) for m in strided.encoder) == 2
+    with torch.inference_mode():
+        x = torch.rand(2, 1, 256, 320)
+        assert [t.shape for t in strided.eval()(x)] == [t.shape for t in pooled.eval()(x)]
+        assert strided.encoder[:7](x).shape == pooled.encoder[:7](x).shape == (2, 8, 128, 160)
+    a, b = pooled.state_dict(), strided.state_dict()
+    differ = {k for k in b if k not in a or a[k].shape != b[k].shape}
+    assert differ == {"encoder.0.weight", "encoder.1.weight", "encoder.1.bias", "encoder.1.running_mean", "encoder.1.running_var", "encoder.3.weight"}
+    assert kp.network_for({"width": 0.375, "stem_width": 0.125}).stem == "pool"
+    assert kp.network_for({"width": 0.375, "stem_width": 0.125, "stem": "strided"}).stem == "strided"
+    with pytest.raises(ValueError, match="stem must be one of"):
+        kp.build_network(0.375, stem="conv")
+
+
 # --- targets and decoding ------------------------------------------------------------------
 def _logits_from_targets(det, ids, sharp=20.0):
     """Ideal network outputs for given cell targets (ignored cells → background)."""

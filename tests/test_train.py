@@ -157,6 +157,51 @@ def test_training_loop_checkpoints_and_resumes(tmp_path):
     np.testing.assert_array_equal(onnx_net.det_logits(x), onnx_net.logits(x)[0])
 
 
+def test_distillation_starts_from_the_teacher_and_fits_the_new_stem_to_its_features(tmp_path):
+    """--teacher: the student takes the teacher's widths and every weight whose shape
+    agrees; the stem stage moves only the stem, towards the teacher's stem features; the
+    run exports a network that loads with its strided stem, ONNX and PyTorch agreeing."""
+    torch = pytest.importorskip("torch")
+    from markerpose import keypoints as kp
+    from markerpose.nets import default_weights, load_checkpoint
+    from markerpose.train import keypoints as tk
+
+    teacher_path = default_weights("keypoints-mid").with_suffix(".pt")
+    c = {**tk.default_conf, "teacher": teacher_path, "stem": "strided", "stem_steps": 40, "device": "cpu"}
+    teacher = tk._teacher(c)
+    assert (c["width"], c["stem_width"]) == (load_checkpoint(teacher_path, "keypoints")["width"], load_checkpoint(teacher_path, "keypoints")["stem_width"])
+    torch.manual_seed(0)
+    net = kp.build_network(c["width"], c["stem_width"], "strided")
+    rng = np.random.default_rng(0)
+    x = torch.from_numpy(tk.generate(4, seed=5, workers=1)["image"].astype(np.float32) / 255.0)[:, None]
+
+    def inputs(rng):
+        return (x for _ in range(10))
+
+    net.eval()
+    with torch.no_grad():
+        target = teacher.encoder[:7](x)
+        before = torch.nn.functional.mse_loss(net.encoder[:7](x), target).item()
+    tk._start_from_teacher(net, teacher, c, inputs)
+    net.eval()
+    with torch.no_grad():
+        after = torch.nn.functional.mse_loss(net.encoder[:7](x), target).item()
+    assert after < 0.6 * before
+    mine, theirs = net.state_dict(), teacher.state_dict()
+    for k, v in theirs.items():
+        if not k.startswith(("encoder.0.", "encoder.1.", "encoder.3.", "encoder.4.")):
+            assert torch.equal(mine[k], v), k  # the layers after the stem: the teacher's, untouched
+    # One short run end to end: the widths are the teacher's, whatever the conf says.
+    conf = {"teacher": teacher_path, "stem": "strided", "stem_steps": 4, "epochs": 1, "train_size": 16, "val_size": 8, "batch_size": 8, "workers": 1}
+    best = tk.main(conf, tmp_path / "run", data_dir=tmp_path / "data")
+    slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8, negatives=16)
+    a, b = kp.KeypointNet(slim), kp.KeypointNet(slim.with_suffix(".onnx"))
+    assert a.conf["stem"] == b.conf["stem"] == "strided" and a.conf["width"] == c["width"]
+    im = rng.random((2, 256, 320), np.float32)
+    for u, v in zip(a.logits(im), b.logits(im)):
+        np.testing.assert_allclose(u, v, atol=1e-4)
+
+
 def test_training_window_keeps_the_marker_and_shifts_its_points():
     from markerpose.train.keypoints import crop
 

@@ -32,7 +32,7 @@ from ..settings import choice, flag, number, path
 # markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx). "standard" is the paper's
 # layers at half their widths (a quarter in the first four), "mid" at three eighths (an
 # eighth), "lite" at a quarter (an eighth).
-NETWORKS = {"mid": "keypoints-mid", "standard": "keypoints", "lite": "keypoints-lite"}
+NETWORKS = {"mid": "keypoints-mid", "standard": "keypoints", "lite": "keypoints-lite", "fast": "keypoints-fast"}
 # The paper's configuration and the ablations from it towards ours keep the network and
 # the input they were measured with.
 PAPER_NETWORK = {"network": "standard", "input": "paper", "int8": False}

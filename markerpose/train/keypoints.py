@@ -35,6 +35,14 @@ from .scenes import sample
 default_conf = {
     "width": 1.0,  # network width multiplier (1.0 = the paper's)
     "stem_width": None,  # multiplier of the first four convolutions (None: ``width``)
+    "stem": "pool",  # how the encoder first halves the input (keypoints.STEMS)
+    # Distillation (None: train on the labels): a stage-1 weights file (.pt) whose outputs
+    # the network learns instead of the labels; it takes the teacher's widths, starts from
+    # the teacher's weights where the shapes agree, and first fits its stem alone to the
+    # teacher's stem features for ``stem_steps`` batches (a new stem in a trained network).
+    "teacher": None,
+    "stem_steps": 600,
+    "stem_lr": 3e-3,
     "lr": 1e-4,  # Adam learning rate (the paper's)
     "schedule": "constant",  # "constant" (paper) or "cosine" decay to 0 over the run
     "epochs": 10,
@@ -536,8 +544,9 @@ def main(
         )
         train = {k: np.concatenate([train[k], steep[k]]) for k in train}
     val = cached(data_dir / f"kp_val_{c['val_size']}.npz", n=c["val_size"], seed=1, workers=c["workers"], desc="render val")
-    net = kp.build_network(c["width"], c["stem_width"]).to(c["device"])
     dev = c["device"]
+    teacher = _teacher(c) if c["teacher"] else None
+    net = kp.build_network(c["width"], c["stem_width"], c["stem"]).to(dev)
     w = c["background_weight"]
     ce_loc = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0] * 64 + [w], device=dev), ignore_index=-100)
     ce_id = torch.nn.CrossEntropyLoss(weight=torch.tensor([1.0, 1.0, 1.0, w], device=dev), ignore_index=-100)
@@ -545,11 +554,24 @@ def main(
     def batches(rng):
         return _batches(train, epoch_order(train, rng, c["small_boost"]), rng, c["batch_size"], c["window"], c["loader_workers"])
 
+    def as_input(im):
+        return torch.from_numpy(im.astype(np.float32) / 255.0)[:, None].to(dev)
+
     def loss_fn(net, im, det, ids):
-        d_logits, i_logits = net(torch.from_numpy(im.astype(np.float32) / 255.0)[:, None].to(dev))
-        l_loc = ce_loc(d_logits, torch.from_numpy(det).to(dev))
-        l_id = ce_id(i_logits, torch.from_numpy(ids).to(dev))
+        x = as_input(im)
+        d_logits, i_logits = net(x)
+        if teacher is not None:  # the teacher's distributions per cell, not the labels
+            with torch.no_grad():
+                d_t, i_t = teacher(x)
+            l_loc = _soft_ce(d_logits, d_t)
+            l_id = _soft_ce(i_logits, i_t)
+        else:
+            l_loc = ce_loc(d_logits, torch.from_numpy(det).to(dev))
+            l_id = ce_id(i_logits, torch.from_numpy(ids).to(dev))
         return c["lambda_loc"] * l_loc + c["lambda_id"] * l_id, {"loc": l_loc.item(), "id": l_id.item()}
+
+    if teacher is not None and not (resume and (Path(out_dir) / "last.pt").is_file()):
+        _start_from_teacher(net, teacher, c, lambda rng: (as_input(b[0]) for b in batches(rng)))
 
     def describe(m):
         return (
@@ -568,8 +590,62 @@ def main(
         Path(out_dir),
         resume,
         describe,
-        extra={"width": c["width"], "stem_width": c["stem_width"]},
+        extra={"width": c["width"], "stem_width": c["stem_width"], "stem": c["stem"]},
     )
+
+
+def _teacher(c: dict):
+    """The distillation's teacher (eval mode, frozen); sets ``c``'s widths to its own."""
+    from ..nets import load_checkpoint
+
+    ck = load_checkpoint(c["teacher"], "keypoints", required=("state_dict", "width"))
+    teacher = kp.network_for(ck).to(c["device"]).eval()
+    teacher.load_state_dict(ck["state_dict"])
+    for p in teacher.parameters():
+        p.requires_grad_(False)
+    c["width"], c["stem_width"] = float(ck["width"]), ck.get("stem_width")
+    return teacher
+
+
+def _soft_ce(logits, teacher_logits):
+    """Cross-entropy of ``logits`` against the teacher's softmax over the classes (dim 1),
+    averaged over the cells."""
+    import torch
+
+    return -(torch.softmax(teacher_logits, 1) * torch.log_softmax(logits, 1)).sum(1).mean()
+
+
+def _start_from_teacher(net, teacher, c: dict, inputs) -> None:
+    """``net`` takes the teacher's weights where the shapes agree, then its stem (the
+    layers up to the first halving, which differ) alone learns the teacher's stem
+    features: ``c["stem_steps"]`` batches of ``inputs(rng)`` (epochs of it as needed),
+    Adam at ``c["stem_lr"]``, mean squared error."""
+    import torch
+
+    own, theirs = net.state_dict(), teacher.state_dict()
+    same = {k: v for k, v in theirs.items() if k in own and own[k].shape == v.shape}
+    net.load_state_dict(same, strict=False)
+    stem_len = next(i for i, m in enumerate(teacher.encoder) if isinstance(m, torch.nn.MaxPool2d)) + 1
+    stem, target = net.encoder[:stem_len], teacher.encoder[:stem_len]
+    opt = torch.optim.Adam(stem.parameters(), lr=c["stem_lr"])
+    net.train()
+    bar = tqdm(total=c["stem_steps"], desc="stem on the teacher's features", unit="batch")
+    epoch, run = 0, None
+    while bar.n < c["stem_steps"]:
+        for x in inputs(np.random.default_rng([c["seed"], 11, epoch])):
+            with torch.no_grad():
+                f = target(x)
+            loss = torch.nn.functional.mse_loss(stem(x), f)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            run = loss.item() if run is None else run + (loss.item() - run) / 50
+            bar.update()
+            bar.set_postfix(mse=f"{run:.5f}")
+            if bar.n >= c["stem_steps"]:
+                break
+        epoch += 1
+    bar.close()
 
 
 # False-positive budgets of the two operating points tuned at export, per view: a
@@ -611,9 +687,9 @@ def export(
 
     negatives = VAL_NEGATIVES if negatives is None else negatives
 
-    dest = export_checkpoint(checkpoint, dest, "keypoints", keep=("width", "stem_width"))
+    dest = export_checkpoint(checkpoint, dest, "keypoints", keep=("width", "stem_width", "stem"))
     slim = torch.load(dest, weights_only=True)
-    net = kp.build_network(slim["width"], slim.get("stem_width")).eval()
+    net = kp.network_for(slim).eval()
     net.load_state_dict(slim["state_dict"])
     fuse_batchnorm(net)
     val = validation_sets(data_dir, val_size, negatives)

@@ -152,7 +152,7 @@ def to_onnx(weights: str | Path, dest: str | Path | None = None) -> Path:
     ckpt = load_checkpoint(weights, kind)
     if kind == "keypoints":
         net, shape, outputs, dynamic = (
-            kp.build_network(float(ckpt["width"]), ckpt.get("stem_width")),
+            kp.network_for(ckpt),
             (1, 1, 240, 320),
             ("det", "ids"),
             True,
