@@ -54,7 +54,10 @@ def test_strided_stem_halves_once_with_the_pooled_networks_shapes_and_keys():
     copies from the teacher)."""
     pooled, strided = kp.build_network(0.375, 0.125), kp.build_network(0.375, 0.125, "strided")
     convs = [m for m in strided.encoder if isinstance(m, torch.nn.Conv2d)]
-    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs[:2]] == [(1, 16, (4, 4), (2, 2)), (16, 8, (3, 3), (1, 1))]
+    assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs[:2]] == [
+        (1, 16, (4, 4), (2, 2)),
+        (16, 8, (3, 3), (1, 1)),
+    ]
     assert _conv_widths(strided)[2:] == _conv_widths(pooled)[2:] == [8, 8, 48, 48, 48, 48]
     assert sum(isinstance(m, torch.nn.MaxPool2d) for m in strided.encoder) == 2
     with torch.inference_mode():
@@ -63,7 +66,14 @@ def test_strided_stem_halves_once_with_the_pooled_networks_shapes_and_keys():
         assert strided.encoder[:7](x).shape == pooled.encoder[:7](x).shape == (2, 8, 128, 160)
     a, b = pooled.state_dict(), strided.state_dict()
     differ = {k for k in b if k not in a or a[k].shape != b[k].shape}
-    assert differ == {"encoder.0.weight", "encoder.1.weight", "encoder.1.bias", "encoder.1.running_mean", "encoder.1.running_var", "encoder.3.weight"}
+    assert differ == {
+        "encoder.0.weight",
+        "encoder.1.weight",
+        "encoder.1.bias",
+        "encoder.1.running_mean",
+        "encoder.1.running_var",
+        "encoder.3.weight",
+    }
     assert kp.network_for({"width": 0.375, "stem_width": 0.125}).stem == "pool"
     assert kp.network_for({"width": 0.375, "stem_width": 0.125, "stem": "strided"}).stem == "strided"
     with pytest.raises(ValueError, match="stem must be one of"):

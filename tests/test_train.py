@@ -169,7 +169,10 @@ def test_distillation_starts_from_the_teacher_and_fits_the_new_stem_to_its_featu
     teacher_path = default_weights("keypoints-mid").with_suffix(".pt")
     c = {**tk.default_conf, "teacher": teacher_path, "stem": "strided", "stem_steps": 40, "device": "cpu"}
     teacher = tk._teacher(c)
-    assert (c["width"], c["stem_width"]) == (load_checkpoint(teacher_path, "keypoints")["width"], load_checkpoint(teacher_path, "keypoints")["stem_width"])
+    assert (c["width"], c["stem_width"]) == (
+        load_checkpoint(teacher_path, "keypoints")["width"],
+        load_checkpoint(teacher_path, "keypoints")["stem_width"],
+    )
     torch.manual_seed(0)
     net = kp.build_network(c["width"], c["stem_width"], "strided")
     rng = np.random.default_rng(0)
@@ -192,7 +195,16 @@ def test_distillation_starts_from_the_teacher_and_fits_the_new_stem_to_its_featu
         if not k.startswith(("encoder.0.", "encoder.1.", "encoder.3.", "encoder.4.")):
             assert torch.equal(mine[k], v), k  # the layers after the stem: the teacher's, untouched
     # One short run end to end: the widths are the teacher's, whatever the conf says.
-    conf = {"teacher": teacher_path, "stem": "strided", "stem_steps": 4, "epochs": 1, "train_size": 16, "val_size": 8, "batch_size": 8, "workers": 1}
+    conf = {
+        "teacher": teacher_path,
+        "stem": "strided",
+        "stem_steps": 4,
+        "epochs": 1,
+        "train_size": 16,
+        "val_size": 8,
+        "batch_size": 8,
+        "workers": 1,
+    }
     best = tk.main(conf, tmp_path / "run", data_dir=tmp_path / "data")
     slim = tk.export(best, tmp_path / "w.pt", data_dir=tmp_path / "data", val_size=8, negatives=16)
     a, b = kp.KeypointNet(slim), kp.KeypointNet(slim.with_suffix(".onnx"))

@@ -57,7 +57,18 @@ def cmd_train_keypoints(args):
     _train(
         keypoints,
         args,
-        ("width", "stem_width", "stem", "teacher", "stem_steps", "background_weight", "steep_size", "small_boost", "window", "loader_workers")
+        (
+            "width",
+            "stem_width",
+            "stem",
+            "teacher",
+            "stem_steps",
+            "background_weight",
+            "steep_size",
+            "small_boost",
+            "window",
+            "loader_workers",
+        )
         + _TRAIN_KEYS,
         data_dir=args.data,
         val_size=args.val_size,
@@ -109,7 +120,9 @@ def _register_keypoints(tsub) -> None:
         metavar="WEIGHTS",
         help="distil: learn the outputs of this stage-1 .pt file instead of the labels, with its widths, starting from its weights where the shapes agree",
     )
-    tk.add_argument("--stem-steps", type=int, default=600, help="with --teacher: batches that first fit the stem alone to the teacher's stem features")
+    tk.add_argument(
+        "--stem-steps", type=int, default=600, help="with --teacher: batches that first fit the stem alone to the teacher's stem features"
+    )
     tk.add_argument("--background-weight", type=float, default=0.01, help="weight of the background class in both losses (1 = plain CE)")
     tk.add_argument("--steep-size", type=int, default=0, help="extra rendered images of markers tilted 55-80° (cached)")
     tk.add_argument(
