@@ -83,13 +83,13 @@ def build_network(width: float = 1.0, stem_width: float | None = None, stem: str
             super().__init__()
             layers, cin = [], 1
             for i, c in enumerate(enc):
-                if stem != "pool" and i == 0:
-                    # Output cell j covers input pixels 2j-1..2j+2: centred where the pool's
-                    # cell is. The identity keeps the later layers' indices (and so the
-                    # state-dict keys) those of the pooled network's.
-                    layers += conv(1, 2 * c, 4, 2, 1) + conv(2 * c, enc[1]) + [nn.Identity()]
-                    cin = enc[1]
-                if stem != "pool" and i < 2:
+                if stem == "strided" and i < 2:
+                    if i == 1:
+                        # Output cell j covers input pixels 2j-1..2j+2: centred where the
+                        # pool's cell is. The identity keeps the later layers' indices (and
+                        # so the state-dict keys) those of the pooled network's.
+                        layers += conv(1, 2 * enc[0], 4, 2, 1) + conv(2 * enc[0], c) + [nn.Identity()]
+                        cin = c
                     continue
                 layers += conv(cin, c)
                 cin = c

@@ -168,11 +168,8 @@ def test_distillation_starts_from_the_teacher_and_fits_the_new_stem_to_its_featu
 
     teacher_path = default_weights("keypoints-mid").with_suffix(".pt")
     c = {**tk.default_conf, "teacher": teacher_path, "stem": "strided", "stem_steps": 40, "device": "cpu"}
-    teacher = tk._teacher(c)
-    assert (c["width"], c["stem_width"]) == (
-        load_checkpoint(teacher_path, "keypoints")["width"],
-        load_checkpoint(teacher_path, "keypoints")["stem_width"],
-    )
+    teacher, ck = tk._teacher(c), load_checkpoint(teacher_path, "keypoints")
+    assert (c["width"], c["stem_width"]) == (ck["width"], ck["stem_width"])
     torch.manual_seed(0)
     net = kp.build_network(c["width"], c["stem_width"], "strided")
     rng = np.random.default_rng(0)
