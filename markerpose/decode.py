@@ -19,6 +19,7 @@ import numpy as np
 
 from .evidence import plate_evidence
 from .geometry import layout_ratio, layout_ratios, signed_area, signed_areas, triple_orders
+from .jit import compiled
 from .marker import Marker
 
 ALIGN_MOVE_RULES = ("spacing", "nearest")  # when align_triple takes an alignment as slid onto a neighbour (see align_triple)
@@ -115,34 +116,118 @@ def nms(scores: np.ndarray, radius: int, threshold: float, k: int) -> np.ndarray
 def _best_apart(xs: np.ndarray, ys: np.ndarray, s: np.ndarray, radius: int, k: int) -> np.ndarray:
     """Local maxima (x, y, score), in the map's row-major order, best first without those
     within ``radius`` of a better one (a plateau's twins): (N, 3), N <= k."""
-    order = np.argsort(-s)
-    kept: list[tuple[float, float, float]] = []
-    r2 = radius**2
-    # Python numbers, not numpy scalars: the loop below is most of the time otherwise.
-    for x0, y0, s0 in zip(xs[order].tolist(), ys[order].tolist(), s[order].tolist()):
-        if all((x0 - x) ** 2 + (y0 - y) ** 2 > r2 for x, y, _ in kept):  # plateaus: drop maxima near a better one
-            kept.append((float(x0), float(y0), s0))
-        if len(kept) == k:
-            break
-    return np.array(kept, np.float64).reshape(-1, 3)
+    out = np.empty((k, 3))
+    n = _apart(np.asarray(xs, np.float64), np.asarray(ys, np.float64), np.asarray(s, np.float32), float(radius) ** 2, out)
+    return out[:n]
+
+
+@compiled
+def _apart(xs, ys, s, r2, out):  # pragma: no cover - compiled
+    """:func:`_best_apart` into ``out`` (k, 3); returns the rows kept. Equal scores keep
+    their row-major order (a stable sort)."""
+    n = 0
+    for i in np.argsort(-s, kind="mergesort"):
+        far = True
+        for m in range(n):
+            if (xs[i] - out[m, 0]) ** 2 + (ys[i] - out[m, 1]) ** 2 <= r2:
+                far = False
+                break
+        if far:
+            out[n, 0], out[n, 1], out[n, 2] = xs[i], ys[i], s[i]
+            n += 1
+            if n == len(out):
+                break
+    return n
 
 
 def _refine(scores: np.ndarray, cand: np.ndarray) -> np.ndarray:
     """Peaks (N, 3) moved to their 3x3 neighbourhood's score-weighted centroid (inside the
     map): a fraction of a pixel better than the peak."""
-    if not len(cand):
-        return cand
-    d = np.arange(-1, 2)
-    ys = cand[:, 1].astype(int)[:, None, None] + d[None, :, None]
-    xs = cand[:, 0].astype(int)[:, None, None] + d[None, None, :]
-    h, w = scores.shape
-    inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)  # outside the map weighs nothing
-    s = np.where(inside, scores[ys.clip(0, h - 1), xs.clip(0, w - 1)], 0.0)
-    total = s.sum((1, 2), dtype=np.float64)
-    out = cand.copy()
-    out[:, 0] = (s * xs).sum((1, 2)) / total
-    out[:, 1] = (s * ys).sum((1, 2)) / total
+    out = np.array(cand, np.float64)
+    if len(out):
+        _centroids(np.asarray(scores, np.float32), 0, out)
     return out
+
+
+@compiled
+def _centroids(scores, pad, cand):  # pragma: no cover - compiled
+    """:func:`_refine` in place on ``cand`` (N, 3), whose x, y are pixels of ``scores``
+    less ``pad`` on each side (outside the map weighs nothing)."""
+    h, w = scores.shape
+    for n in range(len(cand)):
+        y0, x0 = int(cand[n, 1]) + pad, int(cand[n, 0]) + pad
+        total = sx = sy = 0.0
+        for y in range(y0 - 1, y0 + 2):
+            for x in range(x0 - 1, x0 + 2):
+                if 0 <= y < h and 0 <= x < w:
+                    v = np.float64(scores[y, x])
+                    total += v
+                    sx += v * (x - pad)
+                    sy += v * (y - pad)
+        if total > 0:  # else a zero plateau (a threshold of 0): the peak stays
+            cand[n, 0], cand[n, 1] = sx / total, sy / total
+
+
+@compiled
+def _live_near(logits, bound):  # pragma: no cover - compiled
+    """(B, Hc, Wc) bool: the cells whose best centre logit less their "no centre" logit
+    reaches ``bound`` (float32, as the network's logits), and their 8 neighbours."""
+    b, ch, hc, wc = logits.shape
+    near = np.zeros((b, hc, wc), np.bool_)
+    for j in range(b):
+        m = logits[j, 0].copy()
+        for c in range(1, ch - 1):  # channel by channel: the logits' own memory order
+            for y in range(hc):
+                for x in range(wc):
+                    m[y, x] = max(m[y, x], logits[j, c, y, x])
+        for y in range(hc):
+            for x in range(wc):
+                if m[y, x] - logits[j, ch - 1, y, x] >= bound:
+                    near[j, max(y - 1, 0) : y + 2, max(x - 1, 0) : x + 2] = True
+    return near
+
+
+@compiled
+def _tops(m, y, x, radius):  # pragma: no cover - compiled
+    """Whether no value within ``radius`` (a square) of m[y, x] exceeds it."""
+    s = m[y, x]
+    for yy in range(y - radius, y + radius + 1):
+        for xx in range(x - radius, x + radius + 1):
+            if m[yy, xx] > s:
+                return False
+    return True
+
+
+@compiled
+def _cell_peaks(cells, bi, yi, xi, b, hc, wc, threshold, k, radius):  # pragma: no cover - compiled
+    """:func:`_sparse_peaks` from the softmax of the cells (N, 64) at (bi, yi, xi): per
+    image (B, k, 3) rows and (B,) how many."""
+    pad = max(radius, 1)
+    H, W = hc * CELL + 2 * pad, wc * CELL + 2 * pad
+    maps = np.zeros((b, H, W), np.float32)
+    for n in range(len(bi)):
+        for c in range(CELL * CELL):
+            maps[bi[n], yi[n] * CELL + c // CELL + pad, xi[n] * CELL + c % CELL + pad] = cells[n, c]
+    out = np.empty((b, k, 3))
+    counts = np.zeros(b, np.intp)
+    cap = len(cells) * CELL * CELL
+    at, xs, ys, ss = np.empty(cap, np.intp), np.empty(cap), np.empty(cap), np.empty(cap, np.float32)
+    for j in range(b):
+        m = maps[j]
+        n = 0
+        for q in range(len(bi)):  # the maxima of this image's cells ...
+            if bi[q] != j:
+                continue
+            for c in range(CELL * CELL):
+                y, x = yi[q] * CELL + c // CELL + pad, xi[q] * CELL + c % CELL + pad
+                if m[y, x] >= threshold and _tops(m, y, x, radius):
+                    at[n], xs[n], ys[n], ss[n] = y * W + x, x - pad, y - pad, m[y, x]
+                    n += 1
+        o = np.argsort(at[:n])  # ... in the map's row-major order, as nms's nonzero gives them
+        n = _apart(xs[o], ys[o], ss[o], float(radius) ** 2, out[j])
+        _centroids(m, pad, out[j, :n])
+        counts[j] = n
+    return out, counts
 
 
 def _sparse_peaks(det_logits: np.ndarray, threshold: float, k: int, radius: int) -> list[np.ndarray]:
@@ -154,34 +239,23 @@ def _sparse_peaks(det_logits: np.ndarray, threshold: float, k: int, radius: int)
     into a map that is zero elsewhere: every value a candidate is compared with or
     weighted by is the same to the bit, the values under ``threshold`` it leaves out never
     win a comparison, and so the rows are :func:`peaks`' own."""
-    logits = np.asarray(det_logits, np.float32)
+    logits = np.ascontiguousarray(det_logits, np.float32)
     b, _, hc, wc = logits.shape
     # The bound in float32 against the threshold's log, with a margin for its own rounding.
-    live = (logits[:, :-1].max(axis=1) - logits[:, -1]) >= np.float32(math.log(threshold) - 1e-3)
-    near = np.stack([cv2.dilate(v, _square(3)) for v in live.view(np.uint8)]).astype(bool)
-    bi, yi, xi = np.nonzero(near)
+    bi, yi, xi = np.nonzero(_live_near(logits, np.float32(math.log(threshold) - 1e-3)))
     p = np.ascontiguousarray(logits[bi, :, yi, xi].T)  # (65, N): reduced along axis 0, as score_maps does
     p -= p.max(axis=0, keepdims=True)
     np.exp(p, out=p)
     p /= p.sum(axis=0, keepdims=True)
-    cells = p[:-1].T  # (N, 64): channel dy * CELL + dx
-    pad = max(int(radius), 1)
-    H, W = hc * CELL + 2 * pad, wc * CELL + 2 * pad
-    dy, dx = np.divmod(np.arange(CELL * CELL), CELL)
-    rows, cols = yi[:, None] * CELL + dy + pad, xi[:, None] * CELL + dx + pad  # (N, 64) in the padded maps
-    maps = np.zeros((b, H, W), np.float32)
-    maps.reshape(-1)[(bi[:, None] * H + rows) * W + cols] = cells
-    d = np.arange(-radius, radius + 1)
-    out = []
-    for j in range(b):
-        above = (cells >= threshold) & (bi == j)[:, None]
-        ys, xs, s = rows[above], cols[above], cells[above]
-        order = np.argsort(ys * W + xs)  # the map's row-major order, as nms's nonzero gives them
-        ys, xs, s = ys[order], xs[order], s[order]
-        window = maps[j][ys[:, None, None] + d[None, :, None], xs[:, None, None] + d[None, None, :]]
-        top = s >= window.reshape(len(s), -1).max(axis=1) if len(s) else np.zeros(0, bool)
-        out.append(_refine(maps[j, pad:-pad, pad:-pad], _best_apart(xs[top] - pad, ys[top] - pad, s[top], radius, k)))
-    return out
+    cells = np.ascontiguousarray(p[:-1].T)  # (N, 64): channel dy * CELL + dx
+    out, counts = _cell_peaks(cells, bi, yi, xi, b, hc, wc, np.float32(threshold), int(k), int(radius))
+    return [out[j, : counts[j]].copy() for j in range(b)]
+
+
+def warm_up() -> None:
+    """Compile this module's loops (or load them from numba's cache)."""
+    _sparse_peaks(np.zeros((1, CELL * CELL + 1, 2, 2), np.float32), 0.01, 2, 2)
+    _refine(np.ones((4, 4), np.float32), np.ones((1, 3)))
 
 
 def peaks(det_logits: np.ndarray, threshold: float, k: int, nms_radius: int = 4) -> list[np.ndarray]:

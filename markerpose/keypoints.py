@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import decode as _decode
 from . import evidence
 from .decode import CELL, ID_MODES, decode, peaks
 from .decode import default_conf as decode_defaults
@@ -149,9 +150,10 @@ def _quarter(gray, table, out):  # pragma: no cover - compiled
 
 
 def warm_up() -> None:
-    """Compile this module's loops and the ring evidence's (or load them from numba's cache)
+    """Compile this module's loops, the candidates' and the ring evidence's (or load them from numba's cache)
     before a stream's first frame."""
     to_input(np.zeros((32, 32), np.uint8), (8, 8))
+    _decode.warm_up()
     evidence.warm_up()
 
 

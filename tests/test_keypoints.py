@@ -224,6 +224,18 @@ def test_nms_keeps_separated_maxima():
     np.testing.assert_array_equal(out[:, :2], [[10, 10], [50, 30]])
 
 
+def test_nms_breaks_ties_in_the_maps_order_and_keeps_a_zero_plateaus_peak():
+    """Equal maxima come best first in the map's row-major order (a stable sort, whatever
+    their number); a peak on a plateau of zeros (threshold 0) stays where it is."""
+    s = np.zeros((60, 200), np.float32)
+    s[5::10, 5::10] = 0.5  # 120 equal maxima
+    s[33, 77] = 0.5
+    out = dec.nms(s, 2, 0.1, 200)
+    ys, xs = np.nonzero(s >= 0.5)
+    np.testing.assert_array_equal(out[:, :2], np.c_[xs, ys])
+    assert dec._refine(np.zeros((8, 8), np.float32), np.array([[3.0, 4.0, 0.0]])).tolist() == [[3.0, 4.0, 0.0]]
+
+
 def test_peaks_of_a_batch_are_each_images_candidates_at_their_3x3_centroids():
     """decode.peaks (one softmax for a batch) gives what candidates gives image by image,
     each peak at the score-weighted centroid of its 3x3 neighbourhood inside the map
