@@ -417,26 +417,35 @@ def test_inconsistent_pairs_are_rejected_cheaply(rig, monkeypatch):
         assert len(calls) <= 2, len(calls)
 
 
-def test_evidence_gates_spare_an_inconsistent_pair_the_costly_fits(rig, monkeypatch):
+@pytest.mark.parametrize("network", ["mid", "fast"])
+def test_evidence_gates_spare_an_inconsistent_pair_the_costly_fits(rig, monkeypatch, network):
     """The right view given as both views: the matched triples are ring-like clutter. With
-    the evidence gates no blurred-ring fit runs on them and the masks are not consulted
-    for them; without the gates both happen. Either way no pose."""
+    the evidence gates no blurred-ring fit and no EllipSegNet mask runs on them, whatever
+    stage 1's network (the fast one's points imply rings small enough for the mask gate's
+    small-ring clause, which needs a hold in another view); without the gates both
+    happen. Either way no pose."""
     from markerpose import blurfit
     from markerpose.experiments.bench import _pairs
+    from markerpose.stages import refine
 
     right = _pairs(2, 0)[2][1].images[1]
-    calls = {"blur": 0}
-    real = blurfit.fit_blurred_rings
+    calls = {"blur": 0, "masks": 0}
+    real, masks = blurfit.fit_blurred_rings, refine.Refiner._from_masks
 
     def counted(*a, **k):
         calls["blur"] += 1
         return real(*a, **k)
 
+    def counted_masks(*a, **k):
+        calls["masks"] += 1
+        return masks(*a, **k)
+
     monkeypatch.setattr(blurfit, "fit_blurred_rings", counted)
-    gated = mp.MarkerPose(rig)
-    assert gated.estimate(right, right) is None and calls["blur"] == 0
-    ungated = mp.MarkerPose(rig, match={"blur_min_evidence": 0, "mask_min_evidence": 0})
-    assert ungated.estimate(right, right) is None and calls["blur"] > 0
+    monkeypatch.setattr(refine.Refiner, "_from_masks", counted_masks)
+    gated = mp.MarkerPose(rig, propose={"network": network})
+    assert gated.estimate(right, right) is None and calls == {"blur": 0, "masks": 0}
+    ungated = mp.MarkerPose(rig, propose={"network": network}, match={"blur_min_evidence": 0, "mask_min_evidence": 0})
+    assert ungated.estimate(right, right) is None and calls["blur"] > 0 and calls["masks"] > 0
 
 
 def test_look_inputs_are_kept_for_the_current_frames_only(rig):

@@ -27,8 +27,8 @@ from .base import NeuralDetector
 MASK_GATE_MIN_PX = 16.0  # ring diameter in stage 1's input from which the mask gate applies
 
 
-def _NO_MASKS(gray, points) -> bool:  # a mask gate that refuses every view
-    return False
+def _NO_MASKS(grays, points, views) -> list:  # a mask gate that refuses every view
+    return []
 
 
 class StereoDetector(NeuralDetector):
@@ -195,9 +195,15 @@ class StereoDetector(NeuralDetector):
 
     def gates(self, frame: Frame, zoom: float) -> tuple:
         """The refine stage's evidence gates (blur, mask) for hypotheses of the look ``zoom``
-        (:meth:`~markerpose.stages.refine.Refiner.__call__`). The mask gate passes rings
-        under ``MASK_GATE_MIN_PX`` across in the look's input: stage 1 places those too far
-        off, relative to their size, for the evidence at its points to tell."""
+        (:meth:`~markerpose.stages.refine.Refiner.__call__`).
+
+        The mask gate keeps a view whose ring evidence reaches ``mask_min_evidence``, and one
+        whose rings are under ``MASK_GATE_MIN_PX`` across in the look's input (stage 1 places
+        those too far off, relative to their size, for the evidence at its points to tell)
+        where the hypothesis has a hold in another view: its rings fitted from the layout
+        there, or its evidence passed. A triple with no evidence in any view is clutter
+        matched across the views (one view given twice matches its own clutter), not worth
+        the masks in either."""
         m = self.conf["match"]
 
         def evidence(gray, pts):
@@ -206,11 +212,13 @@ class StereoDetector(NeuralDetector):
         def small(gray, pts):
             return ring_diameter(pts, self.marker) * look_size(zoom)[0] / gray.shape[1] < MASK_GATE_MIN_PX
 
+        def mask(grays, points, views):
+            seen = [k for k in views if bool(evidence(grays[k], points[k][0]) >= m["mask_min_evidence"])]
+            held = bool(seen) or any(p is not None and k not in views for k, p in enumerate(points))
+            return [k for k in views if k in seen or (held and small(grays[k], points[k][0]))]
+
         blur = (lambda gray, pts: bool(evidence(gray, pts) >= m["blur_min_evidence"])) if m["blur_min_evidence"] else None
-        mask = (
-            (lambda gray, pts: small(gray, pts) or bool(evidence(gray, pts) >= m["mask_min_evidence"])) if m["mask_min_evidence"] else None
-        )
-        return blur, mask
+        return blur, (mask if m["mask_min_evidence"] else None)
 
     def transferred(self, frame: Frame, cand: list, zoom: float) -> Iterator[list[Detection]]:
         """Recover a marker one camera sees too steeply for stage 1 to place its rings within

@@ -143,10 +143,11 @@ class Refiner:
         """Per view, the Detection near (points (3, 2), score), or None where None is given.
 
         ``frame``: the call's context (the images' noise, the budget of blurred-ring fits).
-        Gates, tests ``(gray, points (3, 2)) -> bool`` (None: none): ``blur_gate``, that a
+        Gates (None: none): ``blur_gate``, a test ``(gray, points (3, 2)) -> bool`` that a
         view's rings must pass before their blurred-ring fit (:class:`~markerpose.classical.BlurLimits`);
-        ``mask_gate``, that a view's points must pass to go on to EllipSegNet's masks when
-        the layout's seeds did not fit (a decoy's triple is not worth the network's cost).
+        ``mask_gate``, ``(grays, points, views) -> views``: which of the views whose layout
+        seeds did not fit go on to EllipSegNet's masks (a decoy's triple is not worth the
+        network's cost).
         """
         conf, limits = self.classical, classical.BlurLimits(frame.blur_fits, blur_gate)
         if self.net is not None:
@@ -190,12 +191,14 @@ class Refiner:
     def _ellipsegnet(self, frame: Frame, grays: list, cameras: list, points: list, limits, mask_gate=None) -> list:
         """:meth:`__call__` with EllipSegNet: with ``layout_seed``, the edges fitted from the
         layout's ellipses first; EllipSegNet's masks for the views where they did not fit
-        (and that pass ``mask_gate``)."""
+        (those of them that ``mask_gate`` keeps)."""
         seen = [k for k, f in enumerate(points) if f is not None]
         out = [None] * len(grays)
         if self.edge_refit and self.conf["layout_seed"]:
             self._from_layout(frame, grays, cameras, points, seen, limits, out)
-            seen = [k for k in seen if out[k] is None and (mask_gate is None or mask_gate(grays[k], points[k][0]))]
+            seen = [k for k in seen if out[k] is None]
+            if seen and mask_gate is not None:
+                seen = mask_gate(grays, points, seen)
             if not seen:
                 return out
         self._from_masks(frame, grays, cameras, points, seen, limits, out)
