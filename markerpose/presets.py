@@ -45,7 +45,7 @@ PRESETS: dict[str, dict] = {
 }
 
 ABOUT: dict[str, str] = {
-    "default": "ours: stage-1 candidates (the mid network at the image's aspect, int8 in its wide layers) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
+    "default": "ours: stage-1 candidates (the fast network at the image's aspect, int8 in its wide layers) of both views matched by the marker's 3D shape, the rings' edges fitted from the "
     "ellipses the three points predict (EllipSegNet's masks where that fails), blurred-ring fit (of the sampled blocks' means), plate check, "
     "perspective-bias correction, rigid pose; a second look at twice the input's size when nothing is found",
     "paper": "the paper's MarkerPose: ring IDs from the ID head, EllipSegNet on fixed 120 px patches with cv2.fitEllipse, "
@@ -55,7 +55,7 @@ ABOUT: dict[str, str] = {
     "default-float32": "default with stage 1's network in float32 throughout (the former default)",
     "default-bf16": "default with the networks in bfloat16 on OpenVINO (the openvino extra): faster on CPUs with AMX",
     "default-lite": "default with the lite stage-1 network (a quarter of the paper's widths, an eighth in the first four "
-    "convolutions; the default's mid network has three eighths)",
+    "convolutions; the default's fast network has three eighths)",
 }
 
 ORDER = tuple(PRESETS)  # the order reports list them in

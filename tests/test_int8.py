@@ -72,7 +72,7 @@ def test_int8_needs_the_shipped_weights_and_falls_back_to_float32_where_there_is
     for module in (nets, configs, propose):
         monkeypatch.setattr(module, "int8_weights", lambda kind: missing)
     assert "default" in configs.available()
-    assert mp.MarkerPose(rig).detector.proposer.net.path == nets.default_weights("keypoints-mid")
+    assert mp.MarkerPose(rig).detector.proposer.net.path == nets.default_weights("keypoints-fast")
     with pytest.raises(ValueError, match="no int8 copy"):
         mp.MarkerPose(rig, propose={"int8": True})
     with pytest.raises(ValueError, match="not found.*--int8 SRC DEST"):

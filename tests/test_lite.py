@@ -19,22 +19,26 @@ needs_lite = pytest.mark.skipif(not propose.network_weights("lite").is_file(), r
 
 @needs_lite
 def test_the_three_networks_give_the_same_poses():
-    """Stage 1 only proposes: the edge fit places the centres, so where the default's mid
-    network (in float32), default-lite and the former default's network find the marker the
-    poses agree to 1e-3 mm; each runs its own file, the mid one between the other two in size."""
+    """Stage 1 only proposes: the edge fit places the centres, so where the default's fast
+    network (in float32), default-lite and the former default's networks (mid, standard)
+    find the marker the poses agree to 1e-3 mm; each runs its own file, the lite one the
+    narrowest, the fast one as wide as the mid one from which it is distilled."""
     rig = mp.StereoRig.default()
     ref, lite = mp.MarkerPose(rig, preset="default-float32"), mp.MarkerPose(rig, preset="default-lite")
     former = configs.build("default-standard-net", rig)
-    nets = ref.detector.proposer.net, lite.detector.proposer.net, former.detector.proposer.net
-    assert [n.path for n in nets] == [propose.network_weights(k) for k in ("mid", "lite", "standard")]
-    assert nets[1].conf["width"] < nets[0].conf["width"] < nets[2].conf["width"]
-    assert nets[1].conf["stem_width"] == nets[0].conf["stem_width"] < nets[2].conf["stem_width"]
+    mid = configs.build("default-mid-net", rig, propose={"int8": False})
+    trackers = (ref, lite, former, mid)
+    nets = [tr.detector.proposer.net for tr in trackers]
+    assert [n.path for n in nets] == [propose.network_weights(k) for k in ("fast", "lite", "standard", "mid")]
+    assert nets[1].conf["width"] < nets[0].conf["width"] == nets[3].conf["width"] < nets[2].conf["width"]
+    assert nets[1].conf["stem_width"] == nets[0].conf["stem_width"] == nets[3].conf["stem_width"] < nets[2].conf["stem_width"]
+    assert nets[0].conf["stem"] == "strided" and nets[3].conf["stem"] == "pool"
     assert nets[0].isotropic and nets[1].isotropic and not nets[2].isotropic
     for seed, pose in enumerate(POSES):
         frame = render_stereo(rig, look_at_pose(pose, 20 + 10 * seed, 40, 30 * seed), imaging=Imaging(alpha=0.6), seed=seed)
-        a, b, c = (tr.estimate(*frame.images) for tr in (ref, lite, former))
-        assert a is not None and b is not None and c is not None
-        assert np.linalg.norm(a.t - b.t) < 1e-3 and np.linalg.norm(a.t - c.t) < 1e-3
+        a, *others = (tr.estimate(*frame.images) for tr in trackers)
+        assert a is not None and all(o is not None for o in others)
+        assert all(np.linalg.norm(a.t - o.t) < 1e-3 for o in others)
         assert np.linalg.norm(a.t - frame.T_left_marker[:3, 3]) < 0.05
 
 

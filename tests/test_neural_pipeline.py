@@ -201,6 +201,9 @@ def test_transfer_recovers_a_marker_seen_at_75_degrees(rig):
     assert mp.MarkerPose(rig, propose=look, match={**strict, "transfer_min_evidence": 1.01}).estimate(*f.images) is None
 
 
+MID_FLOAT32 = {"network": "mid"}  # over default-float32: the stage 1 these regressions were found with
+
+
 def _steep_blurred_pair(rig):
     """Held-out blur pair 316: the marker's pose and the rendered pair (54° tilt, 25 px of blur)."""
     R = np.array([[-0.0867, 0.6504, -0.7546], [0.9381, -0.2017, -0.2816], [-0.3353, -0.7324, -0.5926]])
@@ -215,16 +218,17 @@ def test_transfer_fits_the_predicted_ellipses_under_25_px_of_blur(rig, monkeypat
     # view's rings 7-30 px off (the pair is completed, or transferred, from the left view's
     # pose: test below). The left view's pose predicts the right view's ellipses to
     # a fraction of a pixel; refined at the predicted centres instead (the former way), the
-    # right view's rings slide onto their neighbours' blur and the pair is lost. Stage 1 in
-    # float32: its int8 copy, the default's, finds no triple in this pair's left view.
+    # right view's rings slide onto their neighbours' blur and the pair is lost. Stage 1 is
+    # the mid network in float32 (MID_FLOAT32): its int8 copy finds no triple in this
+    # pair's left view, and the fast network's points land elsewhere.
     T, f = _steep_blurred_pair(rig)
-    est = mp.MarkerPose(rig, preset="default-float32").estimate(*f.images)
+    est = mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32).estimate(*f.images)
     assert est is not None
     assert np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
     from markerpose.detectors import stereo
 
     monkeypatch.setattr(stereo, "ring_ellipses", lambda *a: [None] * 3)  # no predicted ellipses
-    assert mp.MarkerPose(rig, preset="default-float32").estimate(*f.images) is None
+    assert mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32).estimate(*f.images) is None
 
 
 def test_a_triple_refined_in_one_view_is_completed_by_its_pose(rig, monkeypatch):
@@ -232,15 +236,15 @@ def test_a_triple_refined_in_one_view_is_completed_by_its_pose(rig, monkeypatch)
     # are 7-16 px off; the left view's rings refine, the right view's c1 does not. The left
     # view's plate pose completes the pair on the spot, without the transfer fallback;
     # without the completion the budget of hypotheses is spent before the transfer runs
-    # (stage 1 in float32, as above).
+    # (stage 1: the mid network in float32, as above).
     from markerpose.detectors import stereo
 
     T, f = _steep_blurred_pair(rig)
     monkeypatch.setattr(stereo.StereoDetector, "transferred", lambda *a: iter(()))
-    est = mp.MarkerPose(rig, preset="default-float32").estimate(*f.images)
+    est = mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32).estimate(*f.images)
     assert est is not None and np.linalg.norm(est.t - T[:3, 3]) < 0.1  # mm
     monkeypatch.setattr(stereo.StereoDetector, "completed", lambda *a: iter(()))
-    tracker = mp.MarkerPose(rig, preset="default-float32")
+    tracker = mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32)
     assert tracker.estimate(*f.images) is None and "not refined in the right view" in tracker.why
 
 
@@ -501,8 +505,9 @@ def test_windowed_looks_find_what_the_whole_input_gives(rig, tracker):
 def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
     # The views swapped: no triple matches strictly, every fit is the transfer's. By default
     # its fits stop where the layout's seeds do not fit (the masks cost most of such a
-    # pair's time and found no held-out pair); transfer_masks=True lets them go on (stage 1
-    # in float32, whose candidates here reach fits the layout's seeds do not serve).
+    # pair's time and found no held-out pair); transfer_masks=True lets them go on (stage 1:
+    # the mid network in float32, whose candidates here reach fits the layout's seeds do
+    # not serve).
     from markerpose.experiments.bench import _pairs
     from markerpose.stages import refine
 
@@ -511,5 +516,8 @@ def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
     masks = refine.Refiner._from_masks
     monkeypatch.setattr(refine.Refiner, "_from_masks", lambda self, *a: (calls.append(1), masks(self, *a))[1])
     left, right = frame.images
-    assert mp.MarkerPose(rig, preset="default-float32").estimate(right, left) is None and not calls
-    assert mp.MarkerPose(rig, preset="default-float32", match={"transfer_masks": True}).estimate(right, left) is None and calls
+    assert mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32).estimate(right, left) is None and not calls
+    assert (
+        mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32, match={"transfer_masks": True}).estimate(right, left) is None
+        and calls
+    )

@@ -38,9 +38,9 @@ ABLATIONS: dict[str, tuple[dict, str]] = {
         {"propose": _PAPER_NET},
         "default with the former default's stage 1: the standard network at the paper's 320x240 input",
     ),
-    "default-fast-net": (
-        {"propose": {"network": "fast"}},
-        "default with the fast stage-1 network: the mid network distilled onto a stem of one 4x4 stride-2 convolution",
+    "default-mid-net": (
+        {"propose": {"network": "mid"}},
+        "default with the former default's stage-1 network: the mid one, from which the fast one is distilled (its stem at full resolution)",
     ),
     # the default with one part switched off or replaced
     "default-no-transfer": ({"match": {"transfer": False}}, "default without the transfer fallback"),

@@ -31,14 +31,15 @@ from ..settings import choice, flag, number, path
 # The shipped stage-1 networks, by the name propose's "network" takes: the file stem in
 # markerpose/weights/ (NAME.onnx, NAME.pt, NAME-int8.onnx). "standard" is the paper's
 # layers at half their widths (a quarter in the first four), "mid" at three eighths (an
-# eighth), "lite" at a quarter (an eighth).
+# eighth), "lite" at a quarter (an eighth); "fast" is the mid network distilled onto a stem with
+# no layer at full resolution (keypoints.build_network's "strided").
 NETWORKS = {"mid": "keypoints-mid", "standard": "keypoints", "lite": "keypoints-lite", "fast": "keypoints-fast"}
 # The paper's configuration and the ablations from it towards ours keep the network and
 # the input they were measured with.
 PAPER_NETWORK = {"network": "standard", "input": "paper", "int8": False}
 
 default_conf = {
-    "network": "mid",  # neural: which shipped stage-1 network (NETWORKS) ...
+    "network": "fast",  # neural: which shipped stage-1 network (NETWORKS) ...
     "weights": None,  # ... or this weights file (None: the shipped network)
     "int8": None,  # neural: the shipped network's int8 copy (ours; float32 in its narrow layers and its
     #                 logits): True, False (float32), or None: where one is shipped, no weights are

@@ -79,13 +79,14 @@ def test_no_second_look_once_the_first_spent_the_budget(rig, monkeypatch):
     """A pair no pose explains (the bench's first pair, its left view twice) whose first
     look's hypotheses spend the work budget without fitting a view to the plate: the second
     look is not taken (none of its hypotheses could be refined), and the outcome and its
-    reason are those of a detector that takes it."""
+    reason are those of a detector that takes it. (The mid stage-1 network's candidates:
+    with them this pair's first look spends the budget.)"""
     from markerpose.experiments.bench import _pairs
     from markerpose.frame import Frame
 
     left = _pairs(1, 0)[2][0].images[0]
     looks = _counted_looks(monkeypatch)
-    tracker = mp.MarkerPose(rig)
+    tracker = mp.MarkerPose(rig, propose={"network": "mid"})
     assert tracker.estimate(left, left) is None and looks == [1.0]
     why = tracker.why
     monkeypatch.setattr(Frame, "spent", property(lambda self: False))

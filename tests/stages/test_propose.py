@@ -202,12 +202,18 @@ def test_stack_views_refuses_a_wide_stem_and_a_stacked_copy(tmp_path):
 
 @needs_nets
 @pytest.mark.parametrize("wide", [True, False])
-def test_the_default_stacks_the_views_on_cpus_with_avx512(monkeypatch, wide):
+def test_the_mid_network_stacks_the_views_on_cpus_with_avx512(monkeypatch, wide):
+    """The mid network's shipped stacked copy runs the pair on CPUs with AVX-512 (or when
+    asked); the fast network, whose first layer is 16 channels wide, has none and runs
+    the views as a batch whatever the CPU."""
     monkeypatch.setattr(propose, "wide_vectors", lambda: wide)
-    stage = propose.NeuralProposer(dict(propose.default_conf), mp.Marker(), "stereo")
+    mid = {**propose.default_conf, "network": "mid"}
+    stage = propose.NeuralProposer(mid, mp.Marker(), "stereo")
     assert stage.net.locator.stacked == wide
-    forced = propose.NeuralProposer({**propose.default_conf, "stack_views": True}, mp.Marker(), "stereo")
+    forced = propose.NeuralProposer({**mid, "stack_views": True}, mp.Marker(), "stereo")
     assert forced.net.locator.stacked
+    fast = propose.NeuralProposer({**propose.default_conf, "stack_views": True}, mp.Marker(), "stereo")
+    assert propose.default_conf["network"] == "fast" and not fast.net.locator.stacked
 
 
 def test_stack_views_setting_is_checked():
