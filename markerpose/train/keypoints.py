@@ -596,11 +596,11 @@ def main(
 
 def _teacher(c: dict):
     """The distillation's teacher (eval mode, frozen); sets ``c``'s widths to its own."""
-    from ..nets import load_checkpoint
+    from ..nets import load_checkpoint, load_weights
 
     ck = load_checkpoint(c["teacher"], "keypoints", required=("state_dict", "width"))
     teacher = kp.network_for(ck).to(c["device"]).eval()
-    teacher.load_state_dict(ck["state_dict"])
+    load_weights(teacher, ck["state_dict"], c["teacher"])
     for p in teacher.parameters():
         p.requires_grad_(False)
     c["width"], c["stem_width"] = float(ck["width"]), ck.get("stem_width")
