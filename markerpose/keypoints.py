@@ -52,7 +52,7 @@ def layer_widths(width: float = 1.0, stem_width: float | None = None) -> tuple[t
     return enc, max(16, int(round(PAPER_HEAD * width)))
 
 
-STEMS = ("pool", "strided")  # how the encoder halves the input the first time (build_network)
+STEMS = ("pool", "strided", "pointwise")  # how the encoder halves the input the first time (build_network)
 
 
 def build_network(width: float = 1.0, stem_width: float | None = None, stem: str = "pool"):
@@ -63,7 +63,9 @@ def build_network(width: float = 1.0, stem_width: float | None = None, stem: str
     max-pool; or "strided" (ours), one 4x4 convolution of stride 2 to twice the first
     width, then a 3x3 one to the second at half resolution: features of the same shape
     and centres with no layer at full resolution, whose work dominates a narrow
-    network's time.
+    network's time; or "pointwise" (ours), the same with a 1x1 convolution in place of
+    the 3x3 one, which was the costliest layer left in the narrow networks' stems (the
+    two 3x3 convolutions after it widen the view again).
 
     Input: (B, 1, H, W) float in [0, 1], H and W multiples of 8.
     Output: (det (B, 65, H/8, W/8), ids (B, 4, H/8, W/8)) logits. Weights channels-last.
@@ -84,12 +86,13 @@ def build_network(width: float = 1.0, stem_width: float | None = None, stem: str
             super().__init__()
             layers, cin = [], 1
             for i, c in enumerate(enc):
-                if stem == "strided" and i < 2:
+                if stem != "pool" and i < 2:
                     if i == 1:
                         # Output cell j covers input pixels 2j-1..2j+2: centred where the
                         # pool's cell is. The identity keeps the later layers' indices (and
                         # so the state-dict keys) those of the pooled network's.
-                        layers += conv(1, 2 * enc[0], 4, 2, 1) + conv(2 * enc[0], c) + [nn.Identity()]
+                        k = 1 if stem == "pointwise" else 3
+                        layers += conv(1, 2 * enc[0], 4, 2, 1) + conv(2 * enc[0], c, k) + [nn.Identity()]
                         cin = c
                     continue
                 layers += conv(cin, c)
@@ -412,6 +415,18 @@ class KeypointNet:
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
             return self._candidates_near(images, threshold, k, zoom, r, near, window, kept)
+        halves = (self.locator if self.locator is not None else self.runner).halves
+        if halves is not None and len(images) == 2 and len({self.look_size(zoom, g.shape) for g in images}) == 1:
+            # A pair's two views, each on its own thread from its image to its candidates:
+            # the input, the network's half and the decoding of one view run beside the
+            # other's, with no wait between the steps.
+            def view(j):
+                small, scale = self._input(images[j], zoom, kept)
+                cand = peaks(halves[j](small[None, None])[0], threshold, k, r)[0]
+                cand[:, :2] = to_full(cand[:, :2], scale)
+                return cand
+
+            return list(_WORKER.both(lambda: view(0), lambda: view(1)))
         det, _, scales, _ = self._forward(images, zoom, kept, ids=False)
         out = []
         found = peaks(det, threshold, k, r) if isinstance(det, np.ndarray) else [peaks(d[None], threshold, k, r)[0] for d in det]

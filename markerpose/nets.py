@@ -114,9 +114,13 @@ class Runner:
     """A network ready for inference: ``runner(x)`` with x (B, 1, H, W) float32 → tuple of
     float32 outputs. ``backend`` is "onnxruntime", "openvino", "openvino-bf16" or "torch"."""
 
-    def __init__(self, fn: Callable, backend: str, stacked: bool = False):
+    def __init__(self, fn: Callable, backend: str, stacked: bool = False, halves: tuple | None = None):
         self._fn, self.backend = fn, backend
         self.stacked = stacked  # batches of two run by the weights' stacked copy (stack_views)
+        # Where a batch runs as two halves at once (two sessions, each on its share of the
+        # threads): each half's runner, (x -> outputs, x -> outputs), so that a caller can
+        # run each half with its own work before and after it on the half's thread.
+        self.halves = halves
 
     def __call__(self, x: np.ndarray) -> tuple:
         return self._fn(np.ascontiguousarray(x, np.float32))
@@ -188,6 +192,9 @@ def _onnx_runner(path: Path, kind: str, threads: int | None, stacked: Path | Non
     halves = (session(n // 2), session(n - n // 2)) if n >= 2 else None
     worker = Worker()
 
+    def half(h):
+        return lambda x: tuple(h.run(None, {name: np.ascontiguousarray(x, np.float32)}))
+
     def run(x):
         if pair is not None and len(x) == 2:
             return tuple(pair.run(None, {name: x.reshape(1, 2, *x.shape[2:])}))
@@ -197,7 +204,8 @@ def _onnx_runner(path: Path, kind: str, threads: int | None, stacked: Path | Non
         first, second = worker.both(lambda: halves[0].run(None, {name: x[:k]}), lambda: halves[1].run(None, {name: x[k:]}))
         return tuple(np.concatenate(both) for both in zip(first, second))
 
-    return Runner(run, "onnxruntime", stacked=pair is not None), meta
+    split = tuple(half(h) for h in halves) if halves is not None and pair is None else None
+    return Runner(run, "onnxruntime", stacked=pair is not None, halves=split), meta
 
 
 BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run

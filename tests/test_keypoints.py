@@ -47,16 +47,17 @@ def test_stem_width_sets_the_first_four_convolutions_only():
     assert kp.layer_widths(0.25) == kp.layer_widths(0.25, None) == ((16, 16, 16, 16, 32, 32, 32, 32), 64)
 
 
-def test_strided_stem_halves_once_with_the_pooled_networks_shapes_and_keys():
-    """The strided stem: one 4x4 stride-2 convolution to twice the first width and a 3x3 to
-    the second, no layer at full resolution; the same outputs' shapes, and every layer after
-    the stem under the same key and shape as in the pooled network (what distillation
-    copies from the teacher)."""
-    pooled, strided = kp.build_network(0.375, 0.125), kp.build_network(0.375, 0.125, "strided")
+@pytest.mark.parametrize("stem, second", [("strided", (3, 3)), ("pointwise", (1, 1))])
+def test_strided_stems_halve_once_with_the_pooled_networks_shapes_and_keys(stem, second):
+    """The strided stems: one 4x4 stride-2 convolution to twice the first width and a 3x3
+    ("strided") or 1x1 ("pointwise") one to the second, no layer at full resolution; the
+    same outputs' shapes, and every layer after the stem under the same key and shape as
+    in the pooled network (what distillation copies from the teacher)."""
+    pooled, strided = kp.build_network(0.375, 0.125), kp.build_network(0.375, 0.125, stem)
     convs = [m for m in strided.encoder if isinstance(m, torch.nn.Conv2d)]
     assert [(c.in_channels, c.out_channels, c.kernel_size, c.stride) for c in convs[:2]] == [
         (1, 16, (4, 4), (2, 2)),
-        (16, 8, (3, 3), (1, 1)),
+        (16, 8, second, (1, 1)),
     ]
     assert _conv_widths(strided)[2:] == _conv_widths(pooled)[2:] == [8, 8, 48, 48, 48, 48]
     assert sum(isinstance(m, torch.nn.MaxPool2d) for m in strided.encoder) == 2
@@ -75,7 +76,7 @@ def test_strided_stem_halves_once_with_the_pooled_networks_shapes_and_keys():
         "encoder.3.weight",
     }
     assert kp.network_for({"width": 0.375, "stem_width": 0.125}).stem == "pool"
-    assert kp.network_for({"width": 0.375, "stem_width": 0.125, "stem": "strided"}).stem == "strided"
+    assert kp.network_for({"width": 0.375, "stem_width": 0.125, "stem": stem}).stem == stem
     with pytest.raises(ValueError, match="stem must be one of"):
         kp.build_network(0.375, stem="conv")
 

@@ -48,11 +48,10 @@ def test_estimate_all_finds_each_tool_at_its_pose(several, scene, tools):
 
 def test_one_stage1_look_serves_every_tool(rig, tools, scene, monkeypatch):
     calls = []
-    for name in ("logits", "det_logits"):  # the whole network, its detector head alone
-        run = getattr(KeypointNet, name)
-        monkeypatch.setattr(KeypointNet, name, lambda self, batch, run=run: (calls.append(len(batch)), run(self, batch))[1])
+    run = KeypointNet.candidates
+    monkeypatch.setattr(KeypointNet, "candidates", lambda self, images, *a, **k: (calls.append(len(images)), run(self, images, *a, **k))[1])
     assert len(mp.MarkerPose(rig, markers=tools).estimate_all(*scene.images)) == 3
-    assert calls == [2]  # one look, both views in one batch, for the three tools
+    assert calls == [2]  # one look at both views for the three tools
 
 
 def test_the_tools_first_cold_hypotheses_are_refined_in_one_batch(rig, tools, scene, monkeypatch):

@@ -112,8 +112,8 @@ def _register_keypoints(tsub) -> None:
     tk.add_argument(
         "--stem",
         default="pool",
-        choices=["pool", "strided"],
-        help="how the encoder first halves the input: pool (the paper's two 3x3 convolutions and a max-pool) or strided (one 4x4 convolution of stride 2, then a 3x3 at half resolution)",
+        choices=["pool", "strided", "pointwise"],
+        help="how the encoder first halves the input: pool (the paper's two 3x3 convolutions and a max-pool), strided (one 4x4 convolution of stride 2, then a 3x3 at half resolution) or pointwise (the same with a 1x1 in place of the 3x3)",
     )
     tk.add_argument(
         "--teacher",

@@ -255,3 +255,27 @@ def test_a_worker_asked_from_its_own_thread_runs_both_in_turn():
     worker = Worker()
     inner = worker.submit(lambda: worker.both(lambda: 1, lambda: 2)).result(timeout=10)
     assert inner == (1, 2) and worker.both(lambda: "a", lambda: "b") == ("a", "b")
+
+
+@needs_nets
+def test_a_pairs_views_go_from_image_to_candidates_each_on_its_own_half(rig, monkeypatch):
+    """Where ONNX Runtime runs a batch as two halves, a pair's two views each go from their
+    image to their candidates on one half (and one thread): the candidates are the batch's,
+    at both looks."""
+    net = kp.KeypointNet(propose.network_weights("fast"), stereo=True, threads=2)
+    runner = net.locator if net.locator is not None else net.runner
+    assert runner.halves is not None
+    f = render_stereo(rig, look_at_pose([10, -20, 650], 30, 45, 20), imaging=Imaging(alpha=0.7), seed=9)
+    views = [np.asarray(v) for v in f.images]
+    ran = []
+    counted = tuple((lambda x, h=h, j=j: ran.append(j) or h(x)) for j, h in enumerate(runner.halves))
+    for zoom in (1.0, 2.0):
+        ran.clear()
+        monkeypatch.setattr(runner, "halves", counted)
+        split = net.candidates(views, 0.01, 16, zoom)
+        assert sorted(ran) == [0, 1]
+        monkeypatch.setattr(runner, "halves", None)  # the batch, run whole
+        batch = net.candidates(views, 0.01, 16, zoom)
+        assert len(split) == 2 and all(len(c) >= 3 for c in split)
+        for a, b in zip(split, batch):
+            np.testing.assert_array_equal(a, b)
