@@ -17,6 +17,7 @@ needs torch; the decoding is numpy.
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -439,22 +440,36 @@ class KeypointNet:
         sizes = [self.look_size(zoom, g.shape) for g in images]
         scales = [input_scale(g.shape, wh) for g, wh in zip(images, sizes)]
         size = 2 * window
-        crops, where = [], []  # the windows' inputs; (image, x0, y0) of each
-        for j, (g, s, pts, (W, H)) in enumerate(zip(images, scales, near, sizes)):
-            if min(H, W) < size:  # a small input: the whole of it
-                crops.append(self._input(g, zoom, kept)[0])
-                where.append((j, 0, 0))
+        where = []  # (image, x0, y0, whole) of each window; whole: a small input, all of it
+        for j, (s, pts, (W, H)) in enumerate(zip(scales, near, sizes)):
+            if min(H, W) < size:
+                where.append((j, 0, 0, True))
                 continue
             for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, (H, W), window):
-                crops.append(self._window(g, zoom, x0, y0, size, kept))
-                where.append((j, x0, y0))
+                where.append((j, x0, y0, False))
+
+        def crop(n):
+            j, x0, y0, whole = where[n]
+            return self._input(images[j], zoom, kept)[0] if whole else self._window(images[j], zoom, x0, y0, size, kept)
+
+        def found_in(idx, run):
+            return peaks(run(np.stack([crop(n) for n in idx])[:, None])[0], threshold, k, r)
+
         found = [[] for _ in images]
-        shapes = sorted({c.shape for c in crops})
+        shapes = sorted({tuple(sizes[j][::-1]) if whole else (size, size) for j, _, _, whole in where})
+        halves = (self.locator if self.locator is not None else self.runner).halves
         for shape in shapes:  # one batch per window size (one size unless an image is small)
-            idx = [n for n, c in enumerate(crops) if c.shape == shape]
-            det = self.det_logits(np.stack([crops[n] for n in idx]))
-            for n, cand in zip(idx, peaks(det, threshold, k, r)):
-                j, x0, y0 = where[n]
+            idx = [n for n, (j, _, _, whole) in enumerate(where) if (tuple(sizes[j][::-1]) if whole else (size, size)) == shape]
+            if halves is not None and len(idx) >= 2:  # each half's windows cut, run and decoded on its own thread
+                h = len(idx) // 2
+                first, second = _WORKER.both(
+                    functools.partial(found_in, idx[:h], halves[0]), functools.partial(found_in, idx[h:], halves[1])
+                )
+                cands = [*first, *second]
+            else:
+                cands = found_in(idx, lambda x: (self.det_logits(x[:, 0]),))
+            for n, cand in zip(idx, cands):
+                j, x0, y0, _ = where[n]
                 cand[:, :2] += (x0, y0)
                 found[j].append(cand)
         out = []

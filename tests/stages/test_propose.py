@@ -279,3 +279,25 @@ def test_a_pairs_views_go_from_image_to_candidates_each_on_its_own_half(rig, mon
         assert len(split) == 2 and all(len(c) >= 3 for c in split)
         for a, b in zip(split, batch):
             np.testing.assert_array_equal(a, b)
+
+
+@needs_nets
+def test_a_near_looks_windows_split_over_the_halves_give_the_batchs_candidates(rig, monkeypatch):
+    """Stage 1 looking only near points: where the windows run as two halves, each half's
+    windows are cut, run and decoded on its own thread; the candidates are those of the
+    windows run as one batch."""
+    net = kp.KeypointNet(propose.network_weights("fast"), stereo=True, threads=2)
+    runner = net.locator if net.locator is not None else net.runner
+    f = render_stereo(rig, look_at_pose([20, -15, 520], 30, 50, 70), imaging=Imaging(alpha=0.8), seed=31)
+    grays = [np.ascontiguousarray(im) for im in f.images]
+    near = [np.array([[640.0, 512.0], [300.0, 700.0]]), np.array([[600.0, 500.0]])]
+    ran = []
+    counted = tuple((lambda x, h=h, j=j: ran.append((j, len(x))) or h(x)) for j, h in enumerate(runner.halves))
+    for zoom, window in ((1.0, 48), (2.0, 64)):
+        ran.clear()
+        monkeypatch.setattr(runner, "halves", counted)
+        split = net.candidates(grays, 0.01, 16, zoom, near=near, window=window, kept=[])
+        assert sorted(j for j, _ in ran) == [0, 1] and sum(n for _, n in ran) >= 3
+        monkeypatch.setattr(runner, "halves", None)
+        batch = net.candidates(grays, 0.01, 16, zoom, near=near, window=window, kept=[])
+        assert len(split[0]) and all(np.array_equal(a, b) for a, b in zip(split, batch))
