@@ -416,7 +416,7 @@ class KeypointNet:
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
             return self._candidates_near(images, threshold, k, zoom, r, near, window, kept)
-        halves = (self.locator if self.locator is not None else self.runner).halves
+        halves = self._halves()
         if halves is not None and len(images) == 2 and len({self.look_size(zoom, g.shape) for g in images}) == 1:
             # A pair's two views, each on its own thread from its image to its candidates:
             # the input, the network's half and the decoding of one view run beside the
@@ -436,30 +436,35 @@ class KeypointNet:
             out.append(cand)
         return out
 
+    def _halves(self) -> tuple | None:
+        """The runner of stage 1's candidates as two halves, each on its own thread
+        (:attr:`markerpose.nets.Runner.halves`), or None where it runs whole."""
+        return (self.locator if self.locator is not None else self.runner).halves
+
     def _candidates_near(self, images, threshold, k, zoom, r, near, window, kept=None):
         sizes = [self.look_size(zoom, g.shape) for g in images]
         scales = [input_scale(g.shape, wh) for g, wh in zip(images, sizes)]
         size = 2 * window
-        where = []  # (image, x0, y0, whole) of each window; whole: a small input, all of it
+        where = []  # (image, x0, y0, the window's shape or None: a small input, all of it) of each window
         for j, (s, pts, (W, H)) in enumerate(zip(scales, near, sizes)):
             if min(H, W) < size:
-                where.append((j, 0, 0, True))
+                where.append((j, 0, 0, None))
                 continue
             for x0, y0 in _windows((np.asarray(pts, np.float64).reshape(-1, 2) + 0.5) / s - 0.5, (H, W), window):
-                where.append((j, x0, y0, False))
+                where.append((j, x0, y0, (size, size)))
+        shape_of = [(sizes[j][1], sizes[j][0]) if shape is None else shape for j, _, _, shape in where]
 
         def crop(n):
-            j, x0, y0, whole = where[n]
-            return self._input(images[j], zoom, kept)[0] if whole else self._window(images[j], zoom, x0, y0, size, kept)
+            j, x0, y0, shape = where[n]
+            return self._input(images[j], zoom, kept)[0] if shape is None else self._window(images[j], zoom, x0, y0, size, kept)
 
         def found_in(idx, run):
             return peaks(run(np.stack([crop(n) for n in idx])[:, None])[0], threshold, k, r)
 
         found = [[] for _ in images]
-        shapes = sorted({tuple(sizes[j][::-1]) if whole else (size, size) for j, _, _, whole in where})
-        halves = (self.locator if self.locator is not None else self.runner).halves
-        for shape in shapes:  # one batch per window size (one size unless an image is small)
-            idx = [n for n, (j, _, _, whole) in enumerate(where) if (tuple(sizes[j][::-1]) if whole else (size, size)) == shape]
+        halves = self._halves()
+        for shape in sorted(set(shape_of)):  # one batch per window size (one size unless an image is small)
+            idx = [n for n, sh in enumerate(shape_of) if sh == shape]
             if halves is not None and len(idx) >= 2:  # each half's windows cut, run and decoded on its own thread
                 h = len(idx) // 2
                 first, second = _WORKER.both(

@@ -195,17 +195,18 @@ def _onnx_runner(path: Path, kind: str, threads: int | None, stacked: Path | Non
     def half(h):
         return lambda x: tuple(h.run(None, {name: np.ascontiguousarray(x, np.float32)}))
 
+    parts = tuple(half(h) for h in halves) if halves is not None else None
+
     def run(x):
         if pair is not None and len(x) == 2:
             return tuple(pair.run(None, {name: x.reshape(1, 2, *x.shape[2:])}))
-        if len(x) < 2 or halves is None:
+        if len(x) < 2 or parts is None:
             return tuple(whole.run(None, {name: x}))
         k = len(x) // 2
-        first, second = worker.both(lambda: halves[0].run(None, {name: x[:k]}), lambda: halves[1].run(None, {name: x[k:]}))
+        first, second = worker.both(lambda: parts[0](x[:k]), lambda: parts[1](x[k:]))
         return tuple(np.concatenate(both) for both in zip(first, second))
 
-    split = tuple(half(h) for h in halves) if halves is not None and pair is None else None
-    return Runner(run, "onnxruntime", stacked=pair is not None, halves=split), meta
+    return Runner(run, "onnxruntime", stacked=pair is not None, halves=parts if pair is None else None), meta
 
 
 BACKENDS = ("onnxruntime", "openvino", "openvino-bf16")  # how ``.onnx`` weights run
