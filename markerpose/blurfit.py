@@ -89,7 +89,11 @@ default_conf: dict = {
     "max_iter": 30,  # Levenberg-Marquardt iterations at most
     "xtol": 1e-4,  # convergence: relative parameter change ...
     "ftol": 1e-4,  # ... or relative cost change ...
-    "center_tol": 0.002,  # ... or no centre moved more than this, px
+    "center_tol": 0.002,  # ... or no centre moved more than this, px ...
+    "center_predict": True,  # ... or would move more than this in the steps still to come,
+    #                          extrapolated from the last two as a geometric series (the steps
+    #                          shrink by a steady factor near the optimum: the step that
+    #                          would only confirm the tolerance is saved)
     "max_move": 0.0,  # give up once a centre is this far from its start, px (0: never)
     "loss_scale": 3.0,  # robust loss: residuals beyond this many noise sigmas count less
     "tangent_smooth": 0.5,  # near the ellipses' tangents along the motion, each of the three
@@ -690,6 +694,7 @@ def _robust_lm(prob, p, conf):
         prob.scale**2, block_offset(prob.box) if prob.block else 0.0, prob.smooth, float(conf["loss_scale"]) ** 2,
         int(conf["max_iter"]), float(conf["jac_move"]), float(conf["ftol"]), float(conf["xtol"]), float(conf["center_tol"]),
         float(conf["max_move"] or 0.0), frozen is not None, _NO_J if frozen is None else frozen, bool(prob.freeze),
+        bool(conf["center_predict"]),
     )  # fmt: skip
     status, p, nfev, njev, gave_up, kept, frozen, has_frozen, freeze = out
     prob.njev += njev
@@ -774,6 +779,7 @@ def _lm_kernel(
     has_frozen,
     frozen,
     freeze,
+    predict,
 ):  # pragma: no cover - compiled
     """:func:`_robust_lm`'s loop: (outcome, parameters, model evaluations, those with
     derivatives, gave up, the kept model
@@ -807,6 +813,7 @@ def _lm_kernel(
     if not _levels_and_normals(R, nojac, xs, ys, v, w, noise, False, r, beta, no_H, no_g):
         return _SINGULAR, p, 1, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
     lam, nfev = 1e-3, 1
+    last = np.inf  # the centres' move in the step before
     for _ in range(max_iter):
         for i in range(N):
             w[i] = 1 / (1 + r[i] * r[i] / f2)
@@ -852,7 +859,12 @@ def _lm_kernel(
             lam *= 10
             if lam > 1e8:
                 return _OK, p, nfev, njev, False, (kept_p, kept_R, kept_J), frozen, has_frozen, freeze
-        small = E - Et <= ftol * E or _centre_step(step, k) <= center_tol
+        move = _centre_step(step, k)
+        small = E - Et <= ftol * E or move <= center_tol
+        if predict and not small and move < last < np.inf:
+            q = move / last  # the steps' ratio: what remains is move q / (1 - q)
+            small = move * q <= center_tol * (1.0 - q)
+        last = move
         if not small:
             small = True
             for a in range(P):
@@ -1087,6 +1099,6 @@ def warm_up() -> None:
         p = np.array([0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, np.log(0.8)])
         for full in (True, False):
             _model_kernel(p, 1, 0.25, 1.0, 0.0, 0.5, z, z, full, np.zeros(8), np.zeros((8, 10) if full else (1, 10)))
-        _lm_kernel(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, 0.0, 0.5, 9.0, 1, 0.01, 1e-4, 1e-4, 0.002, 0.0, False, _NO_J, False)
+        _lm_kernel(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, 0.0, 0.5, 9.0, 1, 0.01, 1e-4, 1e-4, 0.002, 0.0, False, _NO_J, False, True)
         _motion_costs(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, np.zeros(1), np.zeros(1))
         _WARM = True

@@ -1468,10 +1468,16 @@ def _fit_passes(
     screen = np.full(K, not close)
     tol = c["refine_tol"]
     sparse = c["first_pass_spacing"] if not c["refine_first_tol"] else 0.0
-    # Edges wider than c["wide_edge_width"] of the minor semi-axis (rings the blurred-ring
-    # fit refits) stop after c["wide_edge_passes"] full passes: there each pass at best
-    # halves the error, and the model fit starts from wherever they leave the ellipse.
+    # Rings the blurred-ring fit refits stop early: there each pass at best halves the
+    # error, and the model fit starts from wherever they leave the ellipse. Edges wider than
+    # c["wide_edge_width"] of the minor semi-axis stop after c["wide_edge_passes"] full
+    # passes; motion blur's (c["motion_edges"]: (passes, widths' evenness at most, long
+    # blur's px and fraction of the minor semi-axis)), wide or long and uneven around the
+    # ring, after its fewer passes: the model is motion blur's, and its fit there settles
+    # where it would from a closer start, while on evenly wide edges (defocus) it misfits,
+    # and a closer start matters.
     wide_passes, wide_width = c.get("wide_edge_passes", 0), c.get("wide_edge_width", np.inf)
+    motion_passes, motion_even, long_px, long_width = c.get("motion_edges", (0, 0.0, np.inf, np.inf))
     passes = np.zeros(K, np.intp)
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
@@ -1514,7 +1520,9 @@ def _fit_passes(
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
         axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))  # (of the ellipses kept)
         move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(axes - _semi_axes(Q[g])).max(1)
-        wide = wdg > wide_width * axes.min(1)
+        minor = axes.min(1)
+        wide = wdg > wide_width * minor
+        motion = (evg <= motion_even) & (wide | ((wdg >= long_px) & (wdg >= long_width * minor)))
         for i in np.nonzero(okf)[0]:
             k = g[i]
             cen[k], Q[k] = cf[i], Qf[i]
@@ -1528,7 +1536,11 @@ def _fit_passes(
                 done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
             last[k] = move[i]
             passes[k] += 1
-            if done or (wide_passes and passes[k] >= wide_passes and wide[i]):
+            if (
+                done
+                or (wide_passes and passes[k] >= wide_passes and wide[i])
+                or (motion_passes and passes[k] >= motion_passes and motion[i])
+            ):
                 active[k] = False
     return found, width, shared, reached, even
 

@@ -30,6 +30,18 @@ def layout_affine(points: np.ndarray, layout: np.ndarray) -> np.ndarray:
     Returns (2, 2) or (T, 2, 2)."""
     P = np.asarray(points, np.float64)
     L = np.asarray(layout, np.float64)
+    if P.ndim == 2:  # one triple (every hypothesis refined asks for one): in floats, no array steps
+        (a0, a1), (b0, b1), (c0, c1) = L.tolist()
+        u0, u1, v0, v1 = b0 - a0, b1 - a1, c0 - a0, c1 - a1  # B = [[u0, v0], [u1, v1]]
+        det = u0 * v1 - v0 * u1
+        if det == 0:
+            raise np.linalg.LinAlgError("the layout's three points are collinear")
+        (p0, p1), (q0, q1), (r0, r1) = P.tolist()
+        d00, d01, d10, d11 = q0 - p0, r0 - p0, q1 - p1, r1 - p1  # D = [[d00, d01], [d10, d11]]
+        # D B^-1 with B^-1 = [[v1, -v0], [-u1, u0]] / det
+        return np.array(
+            [[(d00 * v1 - d01 * u1) / det, (d01 * u0 - d00 * v0) / det], [(d10 * v1 - d11 * u1) / det, (d11 * u0 - d10 * v0) / det]]
+        )
     B = np.column_stack([L[1] - L[0], L[2] - L[0]])
     return np.stack([P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :]], -1) @ np.linalg.inv(B)
 

@@ -353,7 +353,7 @@ def _numpy_lm(prob, p, conf):
     f2 = conf["loss_scale"] ** 2
     start = prob.centers(p).copy()
     r = prob.evaluate(p, keep=True)[0]
-    lam, nfev = 1e-3, 1
+    lam, nfev, last = 1e-3, 1, np.inf
     for _ in range(conf["max_iter"]):
         prob.w = 1 / (1 + r * r / f2)
         r, _, (H, g) = prob.evaluate(p, jac=True)
@@ -382,13 +382,31 @@ def _numpy_lm(prob, p, conf):
             or np.all(np.abs(step) <= conf["xtol"] * (np.abs(p) + conf["xtol"]))
             or np.abs(prob.centers(step)).max() <= conf["center_tol"]
         )
-        p, r = trial, rt
+        move = np.abs(prob.centers(step)).max()
+        if conf["center_predict"] and not small and move < last < np.inf:  # the steps to come, a geometric series
+            small = move * (move / last) / (1 - move / last) <= conf["center_tol"]
+        p, r, last = trial, rt, move
         if conf["max_move"] and np.linalg.norm(prob.centers(p) - start, axis=1).max() > conf["max_move"]:
             return p, nfev, True
         lam = max(lam / 10, 1e-7)
         if small:
             break
     return p, nfev, False
+
+
+def test_the_predicted_stop_saves_the_confirming_step(blurred_view):
+    """``center_predict``: the fit stops once the steps still to come, extrapolated from the
+    last two, fall under ``center_tol``: fewer model evaluations, the same centres to well
+    under that tolerance."""
+    _, img, truth = blurred_view
+    gray = C.to_gray(img)
+    start = [(c + np.array([0.8, -0.6]), Q) for c, Q in (geo.rect_to_cq(r) for r in _truth_rects(truth))]
+    noise = C.noise_sigma(gray)
+    fits = [blurfit.fit_blurred_rings(gray, start, RHO, noise, {"center_predict": p}) for p in (True, False)]
+    assert fits[0]["nfev"] < fits[1]["nfev"]
+    a, b = (np.array([c for c, _ in f["cqs"]]) for f in fits)
+    assert np.abs(a - b).max() < 0.5 * blurfit.default_conf["center_tol"]
+    assert np.linalg.norm(a - truth.outer_centers, axis=1).max() < 0.05
 
 
 @pytest.mark.parametrize(
@@ -400,6 +418,7 @@ def _numpy_lm(prob, p, conf):
         {"block_fit": False, "tangent_smooth": 0.0},
         {"max_move": 0.5},
         {"grid_search": "full"},
+        {"center_predict": False},
     ],
 )
 def test_the_compiled_fit_is_the_numpy_loop(blurred_view, monkeypatch, conf):
@@ -734,13 +753,57 @@ def test_blurred_rings_stop_their_edge_passes_early_and_keep_their_centres(blurr
     out = {}
     for passes in (0, 1, 2):
         calls.clear()
-        cen, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_edge_passes": passes})
+        conf = {"blur_fit_edge_passes": passes, "blur_fit_motion_passes": 0}  # wide edges' limit alone
+        cen, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf=conf)
         assert ok.all()
         out[passes] = (cen, len(calls))
     assert out[1][1] == 2 and out[2][1] == 3 and out[0][1] > 6, out  # the first, coarse pass and the full ones
     for passes in (1, 2):
         np.testing.assert_allclose(out[passes][0], out[0][0], atol=2e-3)
         assert np.linalg.norm(out[passes][0] - truth.outer_centers, axis=1).max() < 0.05
+
+
+def test_motion_blur_stops_the_edge_passes_where_the_blur_fit_takes_the_rings(blurred_view, monkeypatch):
+    """Edges under ``blur_fit_width`` but long motion blur (``blur_fit_long_*``: wide in px,
+    a good part of the ring, uneven around it) go to the blurred-ring fit as well, so their
+    edge passes stop after ``blur_fit_motion_passes``; where the widths are too even for that
+    rule (a stricter ``blur_fit_long_even``) the edge fit is kept and runs to convergence."""
+    from markerpose import edges
+
+    rig = StereoRig.default()
+    T = synth.look_at_pose([0, 0, 650], 20, 40, 10)
+    img, truth = synth.render_view(rig.left, T, imaging=synth.Imaging(alpha=0.6, motion_blur=18, motion_angle=30), seed=2)
+    rects = _truth_rects(truth)
+    calls, edge_points = [], edges.edge_points
+
+    def spy(*a, **k):
+        out = edge_points(*a, **k)
+        calls.append((out[4] / edges._semi_axes(a[3]).min(1), out[4], out[7]))  # widths / minor, widths px, evenness
+        return out
+
+    monkeypatch.setattr(edges, "edge_points", spy)
+    cen, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
+    ratio, px, even = calls[-1]
+    assert np.all((0.3 < ratio) & (ratio < 0.4)) and px.min() > 7.5 and even.max() < 0.6, calls[-1]  # the long-blur rule's case
+    assert ok.all() and len(calls) == 2  # the coarse pass and one full one
+    assert np.linalg.norm(cen - truth.outer_centers, axis=1).max() < 0.05
+    calls.clear()
+    _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_long_even": 0.4})
+    assert ok.all() and len(calls) > 2
+    # Edges wider than blur_fit_width take blur_fit_motion_passes where uneven as motion
+    # blur's, but blur_fit_edge_passes where even enough to be, say, a soft focus, which the
+    # model's box misfits (here: the 25 px blur's edges, with blur_fit_long_even under
+    # their evenness).
+    rig, img, truth = blurred_view
+    counts = []
+    for conf in ({}, {"blur_fit_long_even": 0.3}):
+        calls.clear()
+        _, ok, _ = C.refine_ellipses(img, _truth_rects(truth), camera=rig.left, conf=conf)
+        ratio, _, even = calls[-1]
+        assert ok.all() and ratio.min() > 0.4 and 0.3 < even.min() < 0.6, calls[-1]
+        counts.append(len(calls))
+    # (a ring whose edges are less even than the rest stops a pass later)
+    assert counts[0] <= 2 + C.default_conf["blur_fit_motion_passes"] < counts[1] == 1 + C.default_conf["blur_fit_edge_passes"], counts
 
 
 def test_a_fitted_ellipses_lens_correction_is_the_edge_fits_on_sharp_rings():

@@ -21,6 +21,7 @@ classical detector's own triples are refined by :meth:`Refiner.triple`.
 from __future__ import annotations
 
 import copy
+import math
 
 import numpy as np
 
@@ -181,11 +182,13 @@ class Refiner:
         them takes each ring's circle to an ellipse (perspective across the plate is small);
         None for a degenerate triple."""
         marker = self.marker if marker is None else marker
-        A = layout_affine(np.asarray(points, np.float64), marker.centers2d)
-        M = A @ A.T * marker.outer_radius**2  # the ellipse x = p + A r u, |u| = 1
-        if not (np.all(np.isfinite(M)) and np.linalg.det(M) > 1e-9):
+        (a, b), (c, d) = layout_affine(np.asarray(points, np.float64), marker.centers2d).tolist()
+        r2 = marker.outer_radius**2
+        m00, m01, m11 = (a * a + b * b) * r2, (a * c + b * d) * r2, (c * c + d * d) * r2  # M = A A^T r^2: x = p + A r u, |u| = 1
+        det = m00 * m11 - m01 * m01
+        if not (math.isfinite(det) and det > 1e-9):
             return None
-        Q = np.linalg.inv(M)
+        Q = np.array([[m11, -m01], [-m01, m00]]) / det  # M^-1
         return [cq_to_rect(np.asarray(p, np.float64), Q) for p in points]
 
     def _ellipsegnet(self, frame: Frame, grays: list, cameras: list, points: list, limits, mask_gate=None) -> list:
