@@ -122,7 +122,9 @@ default_conf: dict = {
     "blur_fit_motion_passes": 1,  # ... or this many where those edges, or long blur's
     #                               (blur_fit_long_*), are uneven as motion blur's
     #                               (blur_fit_long_even): the model's own case, whose fit
-    #                               settles there from a rougher start (0: as wide edges)
+    #                               settles there from a rougher start (0: as wide edges) ...
+    "blur_fit_motion_coarse": True,  # ... the first of them the coarse pass (first_pass_*),
+    #                                  whose fit other wide edges discard
     "blur_fit_size_tol": 1.5,  # ... and only for three rings whose ellipses are the size their
     #                            spacing implies (area ratio within this factor squared): the
     #                            fit is costly on large decoy ellipses (seconds) and cannot help
@@ -676,7 +678,9 @@ def _refine_batch(
         c = {**c, "wide_edge_passes": c["blur_fit_edge_passes"], "wide_edge_width": c["blur_fit_width"]}
         if c["blur_fit_motion_passes"]:  # motion blur: wide edges, or long blur where that rule is on (_blur_fit_due)
             long_px = c["blur_fit_long_px"] if c["blur_fit_long_px"] > 0 else np.inf
-            c["motion_edges"] = (c["blur_fit_motion_passes"], c["blur_fit_long_even"], long_px, c["blur_fit_long_width"])
+            c["motion_edges"] = (
+                c["blur_fit_motion_passes"], c["blur_fit_long_even"], long_px, c["blur_fit_long_width"], c["blur_fit_motion_coarse"]
+            )  # fmt: skip
     outer = edges.refine_edges(
         grays,
         view,

@@ -1475,9 +1475,11 @@ def _fit_passes(
     # blur's px and fraction of the minor semi-axis)), wide or long and uneven around the
     # ring, after its fewer passes: the model is motion blur's, and its fit there settles
     # where it would from a closer start, while on evenly wide edges (defocus) it misfits,
-    # and a closer start matters.
+    # and a closer start matters. With motion_edges' last entry, the coarse pass's fit of
+    # such edges is kept as their first pass (other wide edges discard it: the full passes
+    # start from the seed).
     wide_passes, wide_width = c.get("wide_edge_passes", 0), c.get("wide_edge_width", np.inf)
-    motion_passes, motion_even, long_px, long_width = c.get("motion_edges", (0, 0.0, np.inf, np.inf))
+    motion_passes, motion_even, long_px, long_width, motion_coarse = c.get("motion_edges", (0, 0.0, np.inf, np.inf, False))
     passes = np.zeros(K, np.intp)
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
@@ -1510,19 +1512,20 @@ def _fit_passes(
         cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg, screen[g])
         nk, nm = keep.sum(1), M[go].sum(1)
         okf = fitted & (nk >= need[go])
+        axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))  # (of the ellipses fitted)
+        minor = axes.min(1)
+        wide = wdg > wide_width * minor
+        motion = (evg <= motion_even) & (wide | ((wdg >= long_px) & (wdg >= long_width * minor)))
         if coarse:
-            # Wide (blurred) edges need every ray: there the full passes start from the seed.
-            okf &= wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)
+            # Wide (blurred) edges need every ray, but for motion blur's the model fit follows.
+            okf &= (wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)) | (motion_coarse & motion)
+            axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))
         else:
             active[g[~okf]] = False
         screened = screen[g]
         screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
         # Largest displacement of the curve: centre shift plus change of the semi-axes.
-        axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))  # (of the ellipses kept)
         move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(axes - _semi_axes(Q[g])).max(1)
-        minor = axes.min(1)
-        wide = wdg > wide_width * minor
-        motion = (evg <= motion_even) & (wide | ((wdg >= long_px) & (wdg >= long_width * minor)))
         for i in np.nonzero(okf)[0]:
             k = g[i]
             cen[k], Q[k] = cf[i], Qf[i]

@@ -767,7 +767,9 @@ def test_motion_blur_stops_the_edge_passes_where_the_blur_fit_takes_the_rings(bl
     """Edges under ``blur_fit_width`` but long motion blur (``blur_fit_long_*``: wide in px,
     a good part of the ring, uneven around it) go to the blurred-ring fit as well, so their
     edge passes stop after ``blur_fit_motion_passes``; where the widths are too even for that
-    rule (a stricter ``blur_fit_long_even``) the edge fit is kept and runs to convergence."""
+    rule (a stricter ``blur_fit_long_even``) the edge fit is kept and runs to convergence.
+    The first of those passes is the coarse one (``blur_fit_motion_coarse``), whose fit
+    other wide edges discard: the model's fit settles from there as from a full pass."""
     from markerpose import edges
 
     rig = StereoRig.default()
@@ -782,11 +784,16 @@ def test_motion_blur_stops_the_edge_passes_where_the_blur_fit_takes_the_rings(bl
         return out
 
     monkeypatch.setattr(edges, "edge_points", spy)
-    cen, ok, _ = C.refine_ellipses(img, rects, camera=rig.left)
-    ratio, px, even = calls[-1]
-    assert np.all((0.3 < ratio) & (ratio < 0.4)) and px.min() > 7.5 and even.max() < 0.6, calls[-1]  # the long-blur rule's case
-    assert ok.all() and len(calls) == 2  # the coarse pass and one full one
-    assert np.linalg.norm(cen - truth.outer_centers, axis=1).max() < 0.05
+    centres = []
+    for coarse in (True, False):
+        calls.clear()
+        cen, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_motion_coarse": coarse})
+        ratio, px, even = calls[-1]
+        assert np.all((0.3 < ratio) & (ratio < 0.4)) and px.min() > 7.5 and even.max() < 0.6, calls[-1]  # the long-blur rule's case
+        assert ok.all() and len(calls) == (1 if coarse else 2)  # the coarse pass kept, or it and one full one
+        assert np.linalg.norm(cen - truth.outer_centers, axis=1).max() < 0.05
+        centres.append(cen)
+    assert np.abs(centres[0] - centres[1]).max() < 0.01
     calls.clear()
     _, ok, _ = C.refine_ellipses(img, rects, camera=rig.left, conf={"blur_fit_long_even": 0.4})
     assert ok.all() and len(calls) > 2
