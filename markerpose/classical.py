@@ -138,9 +138,8 @@ default_conf: dict = {
     "first_pass_spacing": 4.5,  # arc length between rays in the first pass where it may not
     #                             stop the fit (refine_first_tol 0: a seed that may be a pixel
     #                             or more off, which coarse rays move as far), px; 0: edge_spacing
-    "first_pass_max_width": 0.2,  # ... its fit not a pass where the edges are wider (10-90 %) than
-    #                               this fraction of the minor semi-axis (blur: every ray counts) ...
-    "first_pass_wide_start": True,  # ... but the full passes' start there (False: the seed)
+    "first_pass_max_width": 0.2,  # ... its fit discarded where the edges are wider (10-90 %) than
+    #                               this fraction of the minor semi-axis (blur: every ray counts)
     "outlier_k": 3.0,  # reject edge points beyond k robust sigmas from the fit
     "outlier_min_px": 0.15,  # ... but never tighter than this, px
     "rescreen_frac": 0.03,  # the next pass screens its points by least median again only after a

@@ -1517,14 +1517,8 @@ def _fit_passes(
         wide = wdg > wide_width * minor
         motion = (evg <= motion_even) & (wide | ((wdg >= long_px) & (wdg >= long_width * minor)))
         if coarse:
-            # Wide (blurred) edges need every ray: there the coarse fit is only the full
-            # passes' start (conf["first_pass_wide_start"]; else they start from the seed),
-            # but for motion blur's, which the model fit follows, it is their first pass.
-            counted = (wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)) | (motion_coarse & motion)
-            if c.get("first_pass_wide_start", False):
-                for i in np.nonzero(okf & ~counted)[0]:
-                    cen[g[i]], Q[g[i]] = cf[i], Qf[i]
-            okf &= counted
+            # Wide (blurred) edges need every ray, but for motion blur's the model fit follows.
+            okf &= (wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)) | (motion_coarse & motion)
             axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))
         else:
             active[g[~okf]] = False
