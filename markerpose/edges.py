@@ -1519,12 +1519,12 @@ def _fit_passes(
         if coarse:
             # Wide (blurred) edges need every ray, but for motion blur's the model fit follows.
             okf &= (wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)) | (motion_coarse & motion)
-            axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))
         else:
             active[g[~okf]] = False
         screened = screen[g]
         screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
-        # Largest displacement of the curve: centre shift plus change of the semi-axes.
+        # Largest displacement of the curve: centre shift plus change of the semi-axes (read
+        # for the ellipses kept only).
         move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(axes - _semi_axes(Q[g])).max(1)
         for i in np.nonzero(okf)[0]:
             k = g[i]
