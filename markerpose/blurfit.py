@@ -1021,16 +1021,18 @@ def _fit_pixels(prob, motion, c):
 MODEL_PX_PER_BLUR_PX = 0.001
 
 
-def _center_covs(prob, p) -> np.ndarray:
+def _center_covs(prob, p, r, normals) -> np.ndarray:
     """(k, 2, 2) covariances of the rings' centres, px^2: s^2 H^-1 of the robustly weighted
-    normal equations at ``p`` (the residuals in noise sigmas; s^2 their weighted variance,
-    so the image's own residuals set the scale) plus (:data:`MODEL_PX_PER_BLUR_PX` x the
-    fitted blur length) squared per axis, NaN where H is singular."""
+    normal equations ``normals`` = (H, g) at ``p`` (None: NaN), ``r`` the residuals there in
+    noise sigmas (s^2 their weighted variance, so the image's own residuals set the scale),
+    plus (:data:`MODEL_PX_PER_BLUR_PX` x the fitted blur length) squared per axis, NaN where
+    H is singular."""
+    if normals is None:
+        return np.full((prob.k, 2, 2), np.nan)
     try:
-        r, _, (H, _) = prob.evaluate(p, jac=True)
         s2 = float(prob.w @ (r * r)) / max(float(prob.w.sum()) - len(p) - 6, 1.0)  # the levels' six coefficients are fitted too
-        cov = s2 * _correlation_inflation(prob, np.sqrt(prob.w) * r) * np.linalg.inv(H)
-    except (np.linalg.LinAlgError, ValueError):
+        cov = s2 * _correlation_inflation(prob, np.sqrt(prob.w) * r) * np.linalg.inv(normals[0])
+    except np.linalg.LinAlgError:
         return np.full((prob.k, 2, 2), np.nan)
     idx = [np.array([7 * j, 7 * j + 1]) for j in range(prob.k)]
     L = float(prob.unpack(p)[2])
@@ -1044,25 +1046,49 @@ def _correlation_inflation(prob, r) -> float:
     less information than their number says. For a field correlated as a first-order
     process along each axis (lag-one correlations rho_x, rho_y of the residuals on the
     grid), the inflation is prod (1 + rho) / (1 - rho)."""
-    st = getattr(prob, "stride", 1)
-    ix = np.round((prob.x - prob.x.min()) / st).astype(np.intp)
-    iy = np.round((prob.y - prob.y.min()) / st).astype(np.intp)
+    st = float(getattr(prob, "stride", 1))
+    return _lag_inflation(prob.x, prob.y, st, np.ascontiguousarray(r, np.float64))
+
+
+@compiled
+def _lag_inflation(x, y, stride, r):  # pragma: no cover - compiled
+    """:func:`_correlation_inflation`'s kernel: the samples (x, y) placed on their grid of
+    ``stride`` px, and for each axis the lag-one correlation of ``r`` over the neighbouring
+    pairs where both are finite (an axis with fewer than ten such pairs is left out),
+    clipped to [0, 0.9]."""
+    x0, y0 = x.min(), y.min()
+    ix, iy = np.empty(len(x), np.intp), np.empty(len(x), np.intp)
+    for i in range(len(x)):
+        ix[i], iy[i] = round((x[i] - x0) / stride), round((y[i] - y0) / stride)
     grid = np.full((iy.max() + 1, ix.max() + 1), np.nan)
-    grid[iy, ix] = r
+    for i in range(len(x)):
+        grid[iy[i], ix[i]] = r[i]
+    ny, nx = grid.shape
     f = 1.0
-    for a, b in ((grid[:, 1:], grid[:, :-1]), (grid[1:], grid[:-1])):
-        both = np.isfinite(a) & np.isfinite(b)
-        if both.sum() < 10:
+    for axis in range(2):
+        sab, saa, sbb, n = 0.0, 0.0, 0.0, 0
+        for j in range(ny - axis):
+            for i in range(nx - 1 + axis):
+                a, b = grid[j + axis, i + 1 - axis], grid[j, i]
+                if np.isfinite(a) and np.isfinite(b):
+                    sab += a * b
+                    saa += a * a
+                    sbb += b * b
+                    n += 1
+        if n < 10:
             continue
-        rho = float(np.clip((a[both] * b[both]).sum() / max(np.sqrt((a[both] ** 2).sum() * (b[both] ** 2).sum()), 1e-300), 0.0, 0.9))
+        rho = min(max(sab / max(math.sqrt(saa * sbb), 1e-300), 0.0), 0.9)
         f *= (1 + rho) / (1 - rho)
     return f
 
 
 def _fit_result(prob, p, nfev, gave_up):
     """The result dict of :func:`fit_blurred_rings` for the fitted parameters ``p``."""
-    covs = _center_covs(prob, p)
-    r, beta, _ = prob.evaluate(p)
+    try:
+        r, beta, normals = prob.evaluate(p, jac=True)
+    except (np.linalg.LinAlgError, ValueError):  # no covariances; the residuals as the model gives them (or its error)
+        (r, beta, _), normals = prob.evaluate(p), None
+    covs = _center_covs(prob, p, r, normals)
     rings, theta, L, sigma = prob.unpack(p)
     return {
         "cqs": [(cen.copy(), Q) for cen, Q, _ in rings],
@@ -1101,4 +1127,5 @@ def warm_up() -> None:
             _model_kernel(p, 1, 0.25, 1.0, 0.0, 0.5, z, z, full, np.zeros(8), np.zeros((8, 10) if full else (1, 10)))
         _lm_kernel(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, 0.0, 0.5, 9.0, 1, 0.01, 1e-4, 1e-4, 0.002, 0.0, False, _NO_J, False, True)
         _motion_costs(z, z, z, z, z, z + 1, 1.0, p, 1, 0.25, 1.0, np.zeros(1), np.zeros(1))
+        _lag_inflation(z, z, 1.0, z)
         _WARM = True

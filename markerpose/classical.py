@@ -968,10 +968,11 @@ def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noise
     cores: they run mostly in compiled code and BLAS, outside Python's lock. Whether each
     view's fit runs (its gate, the budget) is decided in the views' order; every other fit
     that is due begins on the worker thread as soon as it is decided, so that the next
-    view's gate runs beside it, and the rest run here once all are decided."""
+    view's gate runs beside it, and the rest run here once all are decided. Each fit's
+    outcome (:func:`_blur_outcome`) is taken on the thread that fitted it."""
 
     def fit(k):
-        return _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k])
+        return _blur_outcome(views[k], _fit_blurred(grays[k], views[k], markers[k], c, noises[k], cameras[k]), c, cameras[k])
 
     kept, fits, here = [], {}, []
     for k, (g, r, mk, lim) in enumerate(zip(grays, views, markers, limits)):
@@ -983,7 +984,7 @@ def refine_blurred_views(grays: list, views: list, markers: list, c: dict, noise
                 here.append(k)
     done = {k: fit(k) for k in here}
     done.update({k: f.result() for k, f in fits.items()})
-    return [r if r is not None else _blur_outcome(views[k], done[k], c, cameras[k]) for k, r in enumerate(kept)]
+    return [r if r is not None else done[k] for k, r in enumerate(kept)]
 
 
 _WORKER = Worker()  # the second of two blurred-ring fits at once

@@ -536,6 +536,42 @@ def test_the_normal_equations_equal_those_of_the_projected_jacobian(blurred_view
     np.testing.assert_allclose(g, Jr.T @ (w * r), rtol=1e-7, atol=1e-9 * np.abs(g).max())
 
 
+def _numpy_lag_inflation(x, y, stride, r):
+    """The residuals' lag-one correlation inflation written with numpy: a NaN grid of the
+    samples, then each axis's neighbouring pairs where both are set."""
+    ix, iy = np.round((x - x.min()) / stride).astype(int), np.round((y - y.min()) / stride).astype(int)
+    grid = np.full((iy.max() + 1, ix.max() + 1), np.nan)
+    grid[iy, ix] = r
+    f = 1.0
+    for a, b in ((grid[:, 1:], grid[:, :-1]), (grid[1:], grid[:-1])):
+        both = np.isfinite(a) & np.isfinite(b)
+        if both.sum() >= 10:
+            rho = np.clip((a[both] * b[both]).sum() / np.sqrt((a[both] ** 2).sum() * (b[both] ** 2).sum()), 0.0, 0.9)
+            f *= (1 + rho) / (1 - rho)
+    return f
+
+
+@pytest.mark.parametrize("smooth", [0.0, 0.6, 0.97])
+def test_the_compiled_correlation_inflation_is_numpys(blurred_view, smooth):
+    """The covariances' inflation for residuals correlated between neighbouring samples
+    (:func:`blurfit._correlation_inflation`, compiled) against its numpy writing, on the
+    fit's own grid of samples (holes between the rings, a ragged border) and on residuals
+    from white (no inflation but chance) to strongly correlated (clipped at rho 0.9)."""
+    _, img, truth = blurred_view
+    prob = blurfit._Problem(C.to_gray(img), [geo.rect_to_cq(r) for r in _truth_rects(truth)], RHO, 2.0)
+    assert prob.pixels(6.0, stride=3, motion=(np.radians(70), 30.0))
+    rng = np.random.default_rng(4)
+    # A misfit that spans many samples (a slow wave over the grid) in white noise.
+    r = smooth * 3.0 * np.sin(prob.x / 15.0 + prob.y / 25.0) + (1 - smooth) * rng.normal(size=len(prob.x))
+    got = blurfit._correlation_inflation(prob, r)
+    assert got == pytest.approx(_numpy_lag_inflation(prob.x, prob.y, 3.0, r), rel=1e-12)
+    assert got >= 1.0
+    if smooth > 0.9:
+        assert got > 15.0  # (1 + 0.9) / (1 - 0.9) per axis at the clip
+    # Too few pairs along both axes: no inflation.
+    assert blurfit._correlation_inflation(prob, np.where(np.arange(len(r)) < 8, r, np.nan)) == 1.0
+
+
 def test_a_pixel_cap_samples_sparser_and_still_fits(blurred_view, monkeypatch):
     """Above ``max_pixels`` the fit samples a sparser grid: fewer pixels, the same answer
     to a fraction of a pixel (what keeps a large decoy from costing seconds)."""
