@@ -49,9 +49,11 @@ class Worker:
     def map(self, fn: Callable, items: list) -> list:
         """``[fn(item) for item in items]``, two at a time (:meth:`both`) where this process
         has two cores or more."""
+        if cores() < 2:
+            return [fn(item) for item in items]
         out: list = []
         for k in range(0, len(items), 2):
-            if k + 1 < len(items) and cores() >= 2:
+            if k + 1 < len(items):
                 out += self.both(functools.partial(fn, items[k]), functools.partial(fn, items[k + 1]))
             else:
                 out.append(fn(items[k]))

@@ -1,6 +1,7 @@
 """One call's working state (markerpose.frame.Frame)."""
 
 import numpy as np
+import pytest
 
 from markerpose.frame import Frame
 
@@ -80,3 +81,24 @@ def test_a_call_begun_on_the_worker_gives_its_value_or_its_error_at_result():
     assert nested[0] == nested[1]  # from the worker: run there, not queued behind itself
     with pytest.raises(ValueError, match="no fit"):
         w.submit(lambda: w.later(fails)).result().result()
+
+
+@pytest.mark.parametrize("n_cores", [1, 2])
+@pytest.mark.parametrize("n", [0, 1, 2, 3, 4])
+def test_the_workers_map_gives_every_items_value_on_one_core_or_two(monkeypatch, n_cores, n):
+    """``Worker.map`` returns one value per item, in order, whether the process may use one
+    core (everything here, in turn) or two (two at a time)."""
+    import threading
+
+    from markerpose import threads
+
+    monkeypatch.setattr(threads, "cores", lambda: n_cores)
+    w = threads.Worker()
+    seen = []
+
+    def square(x):
+        seen.append(threading.get_ident())
+        return x * x
+
+    assert w.map(square, list(range(n))) == [k * k for k in range(n)]
+    assert (len(set(seen)) > 1) == (n_cores >= 2 and n >= 2)
