@@ -38,6 +38,10 @@ default_conf = {
     #                       prediction in each view (:func:`shift`), and the prior's rings,
     #                       moved there, fitted as a tracked frame's are (0: no search)
     "shift_min_score": 0.4,  # ... the least normalised correlation that counts as found
+    "jump_ratio": 3.0,  # a pose found after the prior failed that moved the marker's rings more
+    #                     than this many times their move in the frame before it is a jump (the
+    #                     marker put down elsewhere, a cut): the next prior takes the marker as
+    #                     standing there, not as moving by that step again (0: always a velocity)
     "near_margin": 0.5,  # when the prior fails: stage 1 first looks only this many predicted
     #                      marker extents beyond the predicted marker in each view (0: the
     #                      whole images at once), then in the whole images
@@ -52,6 +56,7 @@ RULES = {
     "one_pass_move": number(0),
     "shift_margin": number(0),
     "shift_min_score": number(-1, 1),
+    "jump_ratio": number(0),
     "near_margin": number(0),
     "lost_change": number(0),
     "lost_block": number(1, integer=True),
@@ -332,6 +337,8 @@ class Tracker:
             self.right_prev, self.t_right_prev = [*self.right_prev[-1:], seen], [*self.t_right_prev[-1:], times[1]]
         else:
             self.right_prev, self.t_right_prev = [], []
+        if after_miss and est is not None and self._jumped(est.T):
+            history = []  # the step into this pose is no velocity: the marker stands here
         self.history = [*history, est.T][-3:] if est is not None else []
         if est is None:
             self.noise = (None, 0)  # lost: estimated afresh once the marker is found again
@@ -342,6 +349,22 @@ class Tracker:
         else:
             self.lost = (now or [blocks(g, c["lost_block"]) for g in grays], 0)
         return est
+
+    def _jumped(self, T: np.ndarray) -> bool:
+        """Whether pose ``T``, found after the prior failed, lies a jump from the last pose:
+        the marker's rings moved more than ``jump_ratio`` times as far as in the step
+        before (which needs two poses: with one, the step is taken as a velocity). A hand
+        speeds up over several frames; a marker put down elsewhere, or a cut, moves it in
+        one. The rings' move takes in translation and rotation alike (mm)."""
+        ratio = self.conf["jump_ratio"]
+        if not ratio or len(self.history) < 2:
+            return False
+        pts = self.marker.points3d
+
+        def move(a, b):
+            return float(np.abs((pts @ a[:3, :3].T + a[:3, 3]) - (pts @ b[:3, :3].T + b[:3, 3])).max())
+
+        return move(self.history[-1], T) > ratio * move(self.history[-2], self.history[-1])
 
     def expected(self, frame) -> list | None:
         """With a prior, the first step of :meth:`next`: the stream's noise for this pair and

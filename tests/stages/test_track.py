@@ -107,15 +107,19 @@ def test_track_with_the_classical_detector(rig, sequence):
 @needs_nets
 def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
     # The marker put down 15 mm away between two frames, then held still. The frame of the
-    # jump: the prior fails, the search by appearance finds the marker. The next one: the
-    # velocity the jump implies fails too, and the search starts from the found pose
-    # (standing still there, not moving on by the jump); the one after is tracked from the
-    # prior again. Without the search, stage 1's window finds the jump, and the prior is
-    # tried standing still at the found pose.
+    # jump: the prior fails, the search by appearance finds the marker (without the search,
+    # stage 1's window). Its step is many times the step before (a jump, ``jump_ratio``):
+    # the next prior takes the marker as standing at the found pose, and tracks it. With
+    # the step taken as a velocity (``jump_ratio`` 0), the next prior moves on by the jump
+    # and fails, and the search starts from the found pose instead (standing still there).
     frames, _ = sequence
     T = look_at_pose([10.0, -8.0, 555.0], 33, 45, 14)
     still = [render_stereo(rig, T, imaging=Imaging(alpha=0.8), seed=20 + k) for k in range(3)]
-    for conf, sources in (({}, ["tracked"] * 3), (NO_SEARCH, ["detected", "tracked", "tracked"])):
+    for conf, sources, searches in (
+        ({}, ["tracked"] * 3, 1),
+        (NO_SEARCH, ["detected", "tracked", "tracked"], 1),
+        ({"jump_ratio": 0.0}, ["tracked"] * 3, 2),
+    ):
         tracker = mp.MarkerPose(rig, track=conf)
         for f in frames[:4]:
             tracker.track(*f.images)
@@ -124,8 +128,29 @@ def test_after_a_jump_the_prior_restarts_from_the_found_pose(rig, sequence):
         found = [tracker.track(*f.images) for f in still]
         assert [e.source for e in found] == sources
         assert all(np.linalg.norm(e.t - T[:3, 3]) < 0.02 for e in found)
-        assert len(searched) == 2  # the jump and the frame after it; the third from the prior
-        np.testing.assert_allclose(searched[1], found[0].T)
+        assert len(searched) == searches  # the jump (and, where its step is a velocity, the frame after it)
+        if searches == 2:
+            np.testing.assert_allclose(searched[1], found[0].T)
+
+
+def test_a_step_found_after_a_failed_prior_is_a_jump_only_well_beyond_the_step_before(rig):
+    """``Tracker._jumped``: the rings' move into a pose found after the prior failed against
+    their move in the frame before, rotation counted as translation is; no judgement
+    without a step before, nor with ``jump_ratio`` 0."""
+    from markerpose.stages.track import Tracker
+
+    mk = mp.Marker()
+    tracker = Tracker(default_conf, rig, mk)
+    T = [look_at_pose([2.0 * k, 0.0, 560.0], 30, 45, 0) for k in range(3)]
+    tracker.history = T[:1]
+    assert not tracker._jumped(look_at_pose([40.0, 0.0, 560.0], 30, 45, 0))  # one pose: no step before
+    tracker.history = T[:2]
+    assert not tracker._jumped(T[2])  # the same step again: a velocity
+    assert not tracker._jumped(look_at_pose([7.5, 0.0, 560.0], 30, 45, 0))  # 2.75x the step: still one
+    assert tracker._jumped(look_at_pose([20.0, 0.0, 560.0], 30, 45, 0))  # 9x: a jump
+    assert tracker._jumped(look_at_pose([2.0, 0.0, 560.0], 30, 45, 25))  # turned in place by 25°: a jump
+    tracker.conf = {**default_conf, "jump_ratio": 0.0}
+    assert not tracker._jumped(look_at_pose([20.0, 0.0, 560.0], 30, 45, 0))
 
 
 def _view_shift(rig, T_from, T_to, view):
