@@ -186,7 +186,11 @@ def to_input_window(gray: np.ndarray, size, x0: int, y0: int, w: int, h: int) ->
     X0, Y0 = x0 // bx * bx, y0 // by * by
     X1, Y1 = min(-(-(x0 + w) // bx) * bx, W), min(-(-(y0 + h) // by) * by, H)
     crop = gray[Y0 * Hs // H : Y1 * Hs // H, X0 * Ws // W : X1 * Ws // W]
-    small = _unit(cv2.resize(crop, (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_AREA))
+    if gray.dtype == np.uint8 and (Hs, Ws) == (4 * H, 4 * W):  # the whole input's exact 4x4 resize, on the crop
+        small = np.empty((Y1 - Y0, X1 - X0), np.float32)
+        _quarter(np.ascontiguousarray(crop), _UNIT, small)
+    else:
+        small = _unit(cv2.resize(crop, (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_AREA))
     return small[y0 - Y0 : y0 - Y0 + h, x0 - X0 : x0 - X0 + w]
 
 

@@ -473,7 +473,7 @@ def test_look_inputs_are_kept_for_the_current_frames_only(rig):
 
 
 @pytest.mark.parametrize("shape", [(1024, 1280), (1080, 1920), (977, 1301)])
-@pytest.mark.parametrize("size", [(320, 240), (640, 480)])
+@pytest.mark.parametrize("size", [(320, 240), (640, 480), (320, 256)])  # (320, 256) of 1024x1280: the exact 4x4 path
 def test_a_window_of_the_input_resizes_only_its_part_of_the_image_to_the_same_values(shape, size):
     from markerpose.keypoints import to_input, to_input_window
 
