@@ -362,7 +362,7 @@ class Tracker:
         pts = self.marker.points3d
 
         def move(a, b):
-            return float(np.abs((pts @ a[:3, :3].T + a[:3, 3]) - (pts @ b[:3, :3].T + b[:3, 3])).max())
+            return float(np.linalg.norm((pts @ a[:3, :3].T + a[:3, 3]) - (pts @ b[:3, :3].T + b[:3, 3]), axis=1).max())
 
         return move(self.history[-1], T) > ratio * move(self.history[-2], self.history[-1])
 
