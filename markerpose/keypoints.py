@@ -128,10 +128,16 @@ def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]
     """
     w, h = size
     if gray.dtype == np.uint8 and gray.shape == (4 * h, 4 * w) and gray.flags.c_contiguous:
-        small = np.empty((h, w), np.float32)
-        _quarter(gray, _UNIT, small)
-        return small, input_scale(gray.shape, size)
+        return _quartered(gray), input_scale(gray.shape, size)
     return _unit(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)), input_scale(gray.shape, size)
+
+
+def _quartered(gray: np.ndarray) -> np.ndarray:
+    """The network's input of a C-contiguous uint8 image four times its size per axis
+    (:func:`_quarter`)."""
+    small = np.empty((gray.shape[0] // 4, gray.shape[1] // 4), np.float32)
+    _quarter(gray, _UNIT, small)
+    return small
 
 
 @compiled
@@ -187,8 +193,7 @@ def to_input_window(gray: np.ndarray, size, x0: int, y0: int, w: int, h: int) ->
     X1, Y1 = min(-(-(x0 + w) // bx) * bx, W), min(-(-(y0 + h) // by) * by, H)
     crop = gray[Y0 * Hs // H : Y1 * Hs // H, X0 * Ws // W : X1 * Ws // W]
     if gray.dtype == np.uint8 and (Hs, Ws) == (4 * H, 4 * W):  # the whole input's exact 4x4 resize, on the crop
-        small = np.empty((Y1 - Y0, X1 - X0), np.float32)
-        _quarter(np.ascontiguousarray(crop), _UNIT, small)
+        small = _quartered(np.ascontiguousarray(crop))
     else:
         small = _unit(cv2.resize(crop, (X1 - X0, Y1 - Y0), interpolation=cv2.INTER_AREA))
     return small[y0 - Y0 : y0 - Y0 + h, x0 - X0 : x0 - X0 + w]

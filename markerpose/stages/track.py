@@ -359,12 +359,8 @@ class Tracker:
         ratio = self.conf["jump_ratio"]
         if not ratio or len(self.history) < 2:
             return False
-        pts = self.marker.points3d
-
-        def move(a, b):
-            return float(np.linalg.norm((pts @ a[:3, :3].T + a[:3, 3]) - (pts @ b[:3, :3].T + b[:3, 3]), axis=1).max())
-
-        return move(self.history[-1], T) > ratio * move(self.history[-2], self.history[-1])
+        before, last, now = (self.marker.points3d @ P[:3, :3].T + P[:3, 3] for P in (self.history[-2], self.history[-1], T))
+        return bool(np.linalg.norm(now - last, axis=1).max() > ratio * np.linalg.norm(last - before, axis=1).max())
 
     def expected(self, frame) -> list | None:
         """With a prior, the first step of :meth:`next`: the stream's noise for this pair and
