@@ -167,6 +167,13 @@ class Frame:
         self._noise.update((id(g), (g, n)) for g, n in zip(new, classical.noise_sigmas(new)))
         return [self._noise[id(g)][1] for g in grays]
 
+    def estimate_noise(self, j: int) -> None:
+        """Estimate image ``j``'s noise sigma now, for :meth:`noises` (once per call; from
+        any thread: a cold detection's first look does it on each view's own thread)."""
+        g = self.grays[j]
+        if id(g) not in self._noise:
+            self._noise[id(g)] = (g, classical.noise_sigma(g))
+
     def finish(self) -> dict[str, float]:
         """The call's timings, with its total."""
         self.timings["total"] = time.perf_counter() - self._t0

@@ -409,6 +409,7 @@ class KeypointNet:
         near: list | None = None,
         window: int = 64,
         kept: list | None = None,
+        beside=None,
     ) -> list[np.ndarray]:
         """Every view's ``k`` best centre candidates, whatever their ID (one forward pass at
         ``zoom`` times 320x240; NMS radius in input px, None: ``conf["nms_radius"]``): per
@@ -421,6 +422,11 @@ class KeypointNet:
         ``kept``: the inputs one caller's frame has made so far (a list it owns; see
         :meth:`_input`): each image's input at each look is made once per frame (the
         evidence tests look again where the looks did). None: nothing kept.
+
+        ``beside``: a call ``beside(j)`` made once per view ``j`` after its candidates, on the
+        thread that made them, where a pair's two views run side by side on two threads
+        (the caller's other work on each image, done while the other view's network runs;
+        elsewhere it is not called).
         """
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
@@ -432,6 +438,8 @@ class KeypointNet:
             # other's, with no wait between the steps.
             def view(j):
                 small, scale = self._input(images[j], zoom, kept)
+                if beside is not None:  # while the image is still in the cache
+                    beside(j)
                 cand = peaks(halves[j](small[None, None])[0], threshold, k, r)[0]
                 cand[:, :2] = to_full(cand[:, :2], scale)
                 return cand

@@ -521,3 +521,27 @@ def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
         mp.MarkerPose(rig, preset="default-float32", propose=MID_FLOAT32, match={"transfer_masks": True}).estimate(right, left) is None
         and calls
     )
+
+
+def test_a_cold_detection_estimates_each_images_noise_in_stage_1_once(rig, monkeypatch):
+    """The images' noise (the edge fits' contrast floor) is estimated during stage 1, each
+    view's on the thread that runs its network where the two run side by side, and the
+    refine stage estimates none afresh: the same estimates, the same pose."""
+    import threading
+
+    from markerpose import classical
+    from markerpose.threads import cores
+
+    f = render_stereo(rig, look_at_pose([10, 5, 540], 25, 35, 20), imaging=Imaging(alpha=0.7), seed=12)
+    tr = mp.MarkerPose(rig)
+    before = tr.estimate(*f.images)
+    assert before is not None
+    single, batched = [], []
+    real_one, real_many = classical.noise_sigma, classical.noise_sigmas
+    monkeypatch.setattr(classical, "noise_sigma", lambda g: single.append((id(g), threading.get_ident())) or real_one(g))
+    monkeypatch.setattr(classical, "noise_sigmas", lambda grays: batched.extend(grays) or real_many(grays))
+    est = tr.estimate(*f.images)
+    assert est is not None and np.allclose(est.T, before.T, atol=1e-12)
+    assert len(single) == 2 and not batched  # one estimate per image, none in the refine stage
+    assert single[0][0] != single[1][0]  # the two images
+    assert (single[0][1] != single[1][1]) == (cores() >= 2)  # each view's own thread

@@ -54,7 +54,11 @@ class StereoDetector(NeuralDetector):
         """Stage 1's candidates of the look ``zoom`` (:meth:`~markerpose.stages.propose.NeuralProposer.candidates`),
         made once per call for every tool that asks with the same ``previous`` look."""
         key = ("look", zoom, None if previous is None else tuple(self.proposer.near_key(p) for p in previous))
-        return frame.shared(key, frame.timed, "propose", self.proposer.candidates, frame.grays, zoom, previous, frame.looked)
+        # The images' noise (what the edge fits need next) is estimated on each view's
+        # thread after its candidates, beside the other view's network, not after both.
+        return frame.shared(
+            key, frame.timed, "propose", self.proposer.candidates, frame.grays, zoom, previous, frame.looked, frame.estimate_noise
+        )
 
     def first(self, frame: Frame) -> tuple | None:
         """What :meth:`pairs` refines first, for refining it in one batch with other tools'

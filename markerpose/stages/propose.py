@@ -164,17 +164,21 @@ class NeuralProposer:
         )
 
     def candidates(
-        self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None
+        self, grays: list[np.ndarray], zoom: float = 1.0, previous: list | None = None, kept: list | None = None, beside=None
     ) -> list[np.ndarray]:
         """Per view, (N, 3) candidates (x, y, score) in full-resolution pixels, best first.
         A look with ``zoom`` > 1 given the ``previous`` look's candidates looks only near
         its best ones (``second_look_near``). ``kept``: the call's stage-1 inputs
-        (:attr:`markerpose.frame.Frame.looked`), made once per call."""
+        (:attr:`markerpose.frame.Frame.looked`), made once per call. ``beside``: per view
+        ``j``, ``beside(j)`` on that view's thread where the views run side by side
+        (:meth:`markerpose.keypoints.KeypointNet.candidates`)."""
         c = self.conf
         near = None
         if zoom > 1 and previous is not None:
             near = [p[:SECOND_LOOK_NEAR, :2] for p in previous]
-        return self.net.candidates(grays, c["threshold"], MAX_CANDIDATES, zoom, NMS_RADIUS, near=near, window=SECOND_LOOK_WINDOW, kept=kept)
+        return self.net.candidates(
+            grays, c["threshold"], MAX_CANDIDATES, zoom, NMS_RADIUS, near=near, window=SECOND_LOOK_WINDOW, kept=kept, beside=beside
+        )
 
     @staticmethod
     def near_key(previous: np.ndarray) -> bytes:
