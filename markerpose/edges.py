@@ -1030,20 +1030,27 @@ def fit_ellipses(P: np.ndarray, mask: np.ndarray, weights: np.ndarray | None = N
     valid = (mask.sum(1) >= 6) & (s > 0)
     M, T = np.empty((K, 3, 3)), np.empty((K, 3, 3))
     _reduced_scatter(mu, _S1, _S2, _S3, valid, M, T)
-    # The 3 x 3 eigenproblem stays with numpy: numba's eig refuses matrices whose
-    # eigenvalues turn out complex (a fit that is no ellipse), numpy returns them.
-    try:
-        _, V = np.linalg.eig(M)
-    except np.linalg.LinAlgError:
-        V = np.zeros((K, 3, 3))
-        for k in range(K):
-            try:
-                V[k] = np.real(np.linalg.eig(M[k])[1])
-            except np.linalg.LinAlgError:
-                valid[k] = False
+    # The 3 x 3 eigenproblems compiled, where their eigenvalues are real; numpy takes the
+    # rest (a fit that is no ellipse), whose eigenvectors' real parts it returns.
+    V, rest = np.zeros((K, 3, 3)), np.zeros(K, bool)
+    _eigvecs_rows(M, valid, V, rest)
+    for k in np.nonzero(rest)[0]:
+        try:
+            V[k] = np.real(np.linalg.eig(M[k])[1])
+        except np.linalg.LinAlgError:
+            valid[k] = False
     cen, Q = np.empty((K, 2)), np.empty((K, 2, 2))
-    _ellipse_from_conic(np.ascontiguousarray(np.real(V)), T, m, s, valid, cen, Q)
+    _ellipse_from_conic(V, T, m, s, valid, cen, Q)
     return cen, Q, valid
+
+
+@compiled
+def _eigvecs_rows(M, valid, V, rest):  # pragma: no cover - compiled
+    """V[k] <- the eigenvectors of M[k] for each valid k whose eigenvalues are real
+    (:func:`_real_eigvecs`); rest[k] set where they are not (V[k] untouched)."""
+    for k in range(M.shape[0]):
+        if valid[k] and not _real_eigvecs(M[k], V[k]):
+            rest[k] = True
 
 
 @compiled

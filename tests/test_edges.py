@@ -332,6 +332,40 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
                 np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
 
 
+def test_compiled_conic_eigenvectors_equal_numpys_also_where_eigenvalues_are_complex():
+    """fit_ellipses takes each reduced scatter matrix's eigenvectors from the compiled eig
+    where its eigenvalues are real and from numpy's where they are not (nearly a line or a
+    parabola): the fits are numpy's batched ones, and a set that is no ellipse is refused."""
+    rng = np.random.default_rng(4)
+    K, N = 12, 40
+    P, mask = np.zeros((K, N, 2)), np.zeros((K, N), bool)
+    t = np.linspace(0, 2 * np.pi, N, endpoint=False)
+    for k in range(K):
+        n = int(rng.integers(8, N))
+        if k % 3 == 2:  # nearly a line or a parabola
+            x = rng.normal(size=n) * 20
+            P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
+        else:
+            a, b = rng.uniform(15, 40), rng.uniform(10, 15)
+            P[k, :n] = np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+        mask[k, :n] = True
+    W = rng.uniform(0.5, 2, (K, N))
+    m, sc, mu = np.empty((K, 2)), np.empty(K), np.empty((K, len(edges._MOMENTS)))
+    edges._scatter(P, W, mask, m, sc, mu)
+    valid = (mask.sum(1) >= 6) & (sc > 0)
+    M, T = np.empty((K, 3, 3)), np.empty((K, 3, 3))
+    edges._reduced_scatter(mu, edges._S1, edges._S2, edges._S3, valid, M, T)
+    complex_eig = np.array([np.iscomplex(np.linalg.eigvals(M[k])).any() for k in range(K)])
+    assert complex_eig.any() and not complex_eig.all()
+    want_c, want_Q = np.empty((K, 2)), np.empty((K, 2, 2))
+    edges._ellipse_from_conic(np.ascontiguousarray(np.real(np.linalg.eig(M)[1])), T, m, sc, valid, want_c, want_Q)
+    cen, Q, ok = edges.fit_ellipses(P, mask, W)
+    np.testing.assert_array_equal(ok, valid)
+    assert ok[~complex_eig].all()
+    np.testing.assert_allclose(cen[ok], want_c[ok], rtol=1e-9, atol=1e-9)  # numba's and numpy's LAPACK builds may differ
+    np.testing.assert_allclose(Q[ok], want_Q[ok], rtol=1e-9, atol=1e-15)
+
+
 def _passes(monkeypatch) -> list:
     """Records, per call of edges.edge_points, how many ellipses it sampled and how many rays each had."""
     calls, real = [], edges.edge_points
