@@ -781,55 +781,174 @@ def edge_points(
         motion only, and the edges across it stay sharp (a low ratio); defocus widens them
         all alike (near 1).
     """
-    half = _per_ellipse(half, len(cen))
-    L, a, b, n, S, m = _ray_counts(Q, half, c)
+    # Three compiled steps (the rays, the levels, the edges) with the images' sampling and
+    # the rare smoothing between them: a pass runs for every fit of every frame, and the
+    # many small array steps between kernels cost as much as the kernels did.
+    K = len(cen)
+    half = _per_ellipse(half, K)
     cen = np.ascontiguousarray(cen, np.float64)
-    u, r, xy, lam, dl, ok, v, v_in, v_out = _sampled_rays(grays, view, cen, L, n, S, m, half)
+    view = np.asarray(view, np.intp)
+    hw = np.array([g.shape[:2] for g in grays], np.float64)[view]
+    u, r, xy, lam, dl, ok, n, S, m, a, b, v, v_in, v_out, ux, uy = _ray_setup(
+        np.ascontiguousarray(Q, np.float64).reshape(K, 2, 2),
+        cen,
+        half,
+        hw,
+        float(c["edge_spacing"]),
+        int(c["min_rays"]),
+        int(c["max_rays"]),
+        float(c["edge_step"]),
+        float(c["level_samples"]),
+    )
+    cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
+    for g in np.unique(view):
+        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(view == g)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
+    floor = np.ascontiguousarray(np.broadcast_to(np.asarray(floor, np.float64), (K,)))
+    kk, co, Qo = _neighbour_arrays(others)
+    plated, lines = _plate_arrays(plates, K)
+    w1090, width, far, n_use, keep, reached, clean, local_in, local_out, pen, planes = _levels_pass(
+        v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), half, xy, cen, a, b, n, kk, co, Qo, plated, lines,
+        float(c["min_free_frac"]), float(c["level_tol"]),
+    )  # fmt: skip
+    for k in np.nonzero(~planes)[0]:  # too few clean rays: the local levels smoothed along the ellipse
+        w = max(1, round(c["level_smooth"] * n[k]))
+        if w > 1:
+            v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
+            v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
+    aw = c["area_window"]
+    return _edges_pass(
+        v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), half, xy, cen, u, n_use, keep, reached, clean,
+        local_in, local_out, pen, planes, c["edge_method"] == "area", float(aw[0]), float(aw[1]), bool(c["edge_weights"]),
+    )  # fmt: skip
 
-    # Rays that a blurred neighbour may reach (decided with the first-pass blur width).
-    floor = np.asarray(floor, np.float64)
+
+@compiled
+def _ray_setup(Q, cen, half, hw, spacing, min_rays, max_rays, step, level_samples):  # pragma: no cover - compiled
+    """The rays of K ellipses Q (K, 2, 2) about ``cen`` (K, 2): even numbers of rays n (K,)
+    about ``spacing`` px apart along the perimeter, samples per ray S (K,) about ``step``
+    px apart over the window ``half``, samples per plateau level m (K,) (``level_samples``
+    of them), the semi-axes a, b (K,); the rays' frame (:func:`_ray_frame`: u (K, 2, N),
+    r (K, N), xy (K, N, 2), lam (K, Sm), dl (K,), ok (K, N); ``hw`` (K, 2) each ellipse's
+    image's height and width); the samples' arrays to fill (v (K, N, Sm), v_in, v_out
+    (K, N)) and the directions' coordinates ux, uy (K, N)."""
+    K = Q.shape[0]
+    L, eig = np.empty((K, 2, 2)), np.empty((K, 2))
+    _spd2_rows(Q, True, L, eig)  # Q^-1/2
+    a, b = np.empty(K), np.empty(K)
+    n, S, m = np.empty(K, np.int64), np.empty(K, np.int64), np.empty(K, np.intp)
+    for k in range(K):
+        a[k], b[k] = 1 / np.sqrt(eig[k, 0]), 1 / np.sqrt(eig[k, 1])
+        perim = np.pi * (3 * (a[k] + b[k]) - np.sqrt((3 * a[k] + b[k]) * (a[k] + 3 * b[k])))
+        rays = np.round(perim / spacing / 2)
+        n[k] = 2 * int(min(max(rays, min_rays // 2), max_rays // 2)) if np.isfinite(rays) else 2 * (min_rays // 2)
+        samples = np.ceil(2 * half[k] * a[k] / step)
+        S[k] = int(min(max(samples, 8.0), 200.0)) + 1 if np.isfinite(samples) else 9
+        m[k] = int(max(2.0, np.round(level_samples * S[k])))
+    N, Sm = max(n.max(), 1), S.max()
+    u, r, xy = np.empty((K, 2, N)), np.empty((K, N)), np.empty((K, N, 2))
+    lam, dl, ok = np.empty((K, Sm)), np.empty(K), np.empty((K, N), np.bool_)
+    _ray_frame(L, cen, n, S, half, hw, u, r, lam, dl, xy, ok)
+    ux, uy = u[:, 0].copy(), u[:, 1].copy()
+    v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
+    return u, r, xy, lam, dl, ok, n, S, m, a, b, v, v_in, v_out, ux, uy
+
+
+def _neighbour_arrays(others: list) -> tuple:
+    """The neighbours' outer ellipses of :func:`edge_points`' ``others`` as arrays: (ring
+    (P,), centre (P, 2), Q (P, 2, 2)) per pair of a ring and a neighbour."""
+    pairs = [(k, co, Qo) for k, oth in enumerate(others) for co, Qo in oth]
+    if not pairs:
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2))
+    return (
+        np.array([p[0] for p in pairs], np.int64),
+        np.array([p[1] for p in pairs], np.float64),
+        np.array([p[2] for p in pairs], np.float64),
+    )
+
+
+def _plate_arrays(plates: list | None, K: int) -> tuple:
+    """Which of the K rings have their plate's sides (K,), and those sides (K, 4, 3)."""
+    plated, lines = np.zeros(K, bool), np.zeros((K, 4, 3))
+    for k, p in enumerate(plates or []):
+        if p is not None:
+            plated[k], lines[k] = True, p
+    return plated, lines
+
+
+@compiled
+def _levels_pass(
+    v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, xy, cen, a, b, n, kk, co, Qo, plated, lines, min_free, level_tol
+):  # pragma: no cover - compiled
+    """:func:`edge_points`' plateau levels, in place in v_in, v_out. First the profiles
+    normalised by their own ends (:func:`_first_look`: each ray's 10-90 % width w1090 and
+    the rings' blur width); the rays that a blurred neighbour (ring kk[p]'s neighbour
+    co[p], Qo[p]) may reach (:func:`_neighbours`, decided with that first-look width) and
+    the plate's edge (the rings ``plated``, their sides ``lines``: :func:`_plate_rays`; it
+    leaves the levels and the fit, not the edges' width, which the blurred-ring fit's gate
+    reads); then planes fitted on the clean rays, the transition well inside the window
+    (:func:`_ray_levels`, ridge ``pen``), where enough are clean (``planes``; elsewhere
+    the caller smooths the local levels). Returns (w1090, width, far, n_use, keep, reached,
+    clean, the local levels v_in and v_out before the planes, pen, planes)."""
     K, N = r.shape
-    w1090, sane, width = np.empty((K, N)), np.empty((K, N), bool), np.empty(K)
-    _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, bool(dark_inside), w1090, sane, width)
-    far, n_use = _free_rays(others, xy, r, width, half, n, c, ok)
-    # The plate's edge: its rays leave the levels and the fit, not the edges' width (the
-    # blur the gate to the blurred-ring fit reads).
-    keep, reached = _clear_of_plate(plates, xy, r, width, half, n, c, ok, far, n_use)
-
-    # Plateau levels: planes fitted on the clean rays (transition well inside the window).
-    clean = sane & far & (w1090 < 1.2 * half[:, None] * r)
-    if keep is not None:
-        clean &= keep
-    local = (v_in.copy(), v_out.copy())
+    w1090, sane, width = np.empty((K, N)), np.empty((K, N), np.bool_), np.empty(K)
+    _first_look(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, w1090, sane, width)
+    far = np.ones((K, N), np.bool_)
+    n_use = n.copy()
+    if len(kk):
+        eig, root = np.empty((len(kk), 2)), np.empty((len(kk), 2, 2))
+        _spd2_rows(Qo, False, root, eig)
+        b_o = 1 / np.sqrt(eig[:, 1])
+        _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, min_free, ok, far, n_use)
+    keep, reached = np.ones((K, N), np.bool_), np.zeros(K, np.bool_)
+    if plated.any():
+        _plate_rays(xy, r, width, half, lines, plated, n, min_free, ok, far, keep, n_use, reached)
+    clean = np.empty((K, N), np.bool_)
+    for k in range(K):
+        for i in range(N):
+            clean[k, i] = sane[k, i] and far[k, i] and w1090[k, i] < 1.2 * half[k] * r[k, i] and keep[k, i]
+    local_in, local_out = v_in.copy(), v_out.copy()
     pen = (0.15 * np.sqrt(a * b)) ** 2
-    planes = _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c, ok)
-    e, W, w1090, width = _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside, half, c)
+    planes = np.empty(K, np.bool_)
+    _ray_levels(v_in, v_out, xy, cen, pen, clean, n, level_tol, ok, planes)
+    return w1090, width, far, n_use, keep, reached, clean, local_in, local_out, pen, planes
+
+
+@compiled
+def _edges_pass(
+    v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, xy, cen, u, n_use, keep, reached, clean,
+    local_in, local_out, pen, planes, area, aw0, aw1, weights,
+):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`edge_points`' edges from the plateau levels: each ray's edge, weight and
+    width (:func:`_ray_edges`), the widths' evenness, the rays the plate's edge reaches
+    left out (``keep``), the covariance of the edges' shared shift (:func:`_shared_covs`:
+    the planes' gradient errors move every edge of the ring together, each by the level
+    error over the contrast times the edge locator's reach: the integral's half window,
+    for the mid-level crossing the 10-90 % width over 1.6; zero where the levels are not
+    planes), the points compacted (:func:`_compact`). Returns :func:`edge_points`' tuple."""
+    K, N = r.shape
+    e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
+    _ray_edges(v, v_in, v_out, lam, dl, S, r, ok, floor, dark, half, area, aw0, aw1, weights, e, W, w1090, width)
     low = np.empty(K)
     _row_stats(w1090, ok, 25.0, 0.0, low)  # the 25th percentile, over the rays the 75th is over
-    even = np.divide(low, width, out=np.ones(K), where=width > 0)
-    if keep is not None:
-        ok &= keep
-    shared = _shared_shift(local, (v_in, v_out), xy, cen, pen, clean, planes, ok, width, c)
+    even = np.ones(K)
+    for k in range(K):
+        if width[k] > 0:
+            even[k] = low[k] / width[k]
+    use = np.empty((K, N), np.bool_)
+    for k in range(K):
+        for i in range(N):
+            ok[k, i] = ok[k, i] and keep[k, i]
+            use[k, i] = clean[k, i] and planes[k]
+    reach = (aw0 * width + aw1) if area else width / 1.6
+    shared = np.zeros((K, 2, 2))
+    _shared_covs(xy, cen, use, ok, local_in, local_out, v_in, v_out, reach, pen, shared)
     P, Wc, cnt = np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64)
     _compact(cen, u, e, W, ok, P, Wc, cnt)  # valid points first, in ray order
-    mask = np.arange(N)[None, :] < cnt[:, None]
+    mask = np.empty((K, N), np.bool_)
+    for k in range(K):
+        for i in range(N):
+            mask[k, i] = i < cnt[k]
     return P, mask, n_use, Wc, width, shared, reached, even
-
-
-def _shared_shift(local: tuple, fitted: tuple, xy, cen, pen, clean, planes, ok, width, c: dict) -> np.ndarray:
-    """(K, 2, 2) per ring, the covariance of ``g`` in the edges' shared shift g . (x - c), px:
-    the plateau planes' gradient errors (each plane's least-squares covariance from its
-    rays' scatter about it, the ridge included) move every edge of the ring together, each
-    by the level error over the contrast times the edge locator's reach (the integral's
-    half window; for the mid-level crossing, the 10-90 % width over 1.6). Zero where the
-    levels are not planes (too few clean rays). All rings at once."""
-    out = np.zeros((len(cen), 2, 2))
-    reach = (c["area_window"][0] * width + c["area_window"][1]) if c["edge_method"] == "area" else width / 1.6
-    use = np.ascontiguousarray(clean & planes[:, None])
-    _shared_covs(
-        xy, cen, use, ok, local[0], local[1], fitted[0], fitted[1], np.asarray(reach, np.float64), np.asarray(pen, np.float64), out
-    )
-    return out
 
 
 @compiled
@@ -878,77 +997,6 @@ def _per_ellipse(half, K: int) -> np.ndarray:
     return np.array(np.broadcast_to(np.asarray(half, np.float64), (K,)))
 
 
-def _ray_counts(Q: np.ndarray, half: np.ndarray, c: dict) -> tuple:
-    """The rays of the K ellipses Q (K, 2, 2): (L (K, 2, 2) = Q^-1/2, semi-axes a and b
-    (K,), even numbers of rays n (K,) about conf["edge_spacing"] px apart along the
-    perimeter, samples per ray S (K,) about conf["edge_step"] px apart, samples per
-    plateau level m (K,))."""
-    L, eig = _spd2(Q, -0.5)
-    a, b = 1 / np.sqrt(eig[:, 0]), 1 / np.sqrt(eig[:, 1])
-    perim = np.pi * (3 * (a + b) - np.sqrt((3 * a + b) * (a + 3 * b)))
-    n = 2 * np.clip(np.round(perim / c["edge_spacing"] / 2), c["min_rays"] // 2, c["max_rays"] // 2).astype(np.int64)  # even
-    S = np.clip(np.ceil(2 * half * a / c["edge_step"]), 8, 200).astype(np.int64) + 1
-    m = np.maximum(2, np.round(c["level_samples"] * S)).astype(np.intp)  # samples per plateau level
-    return L, a, b, n, S, m
-
-
-def _sampled_rays(
-    grays: list, view: np.ndarray, cen: np.ndarray, L: np.ndarray, n: np.ndarray, S: np.ndarray, m: np.ndarray, half: np.ndarray
-) -> tuple:
-    """The rays' frame (:func:`_ray_frame`: directions u (K, 2, N), radii r (K, N), points
-    on the ellipse xy (K, N, 2), samples lam (K, Sm), their spacing dl (K,), in the image
-    ok (K, N)) and their samples in the images (v (K, N, Sm), local levels inside and
-    outside v_in, v_out (K, N)); cen: (K, 2) float64."""
-    K = len(cen)
-    N, Sm = int(n.max()), int(S.max())
-    hw = np.array([grays[g].shape for g in range(len(grays))], np.float64)[view]
-    u, r, xy = np.empty((K, 2, N)), np.empty((K, N)), np.empty((K, N, 2))
-    lam, dl, ok = np.empty((K, Sm)), np.empty(K), np.empty((K, N), bool)
-    _ray_frame(np.ascontiguousarray(L), cen, n, S, half, hw, u, r, lam, dl, xy, ok)
-    v, v_in, v_out = np.empty((K, N, Sm)), np.empty((K, N)), np.empty((K, N))
-    ux, uy = np.ascontiguousarray(u[:, 0]), np.ascontiguousarray(u[:, 1])
-    cx, cy = cen[:, 0].copy(), cen[:, 1].copy()
-    for g in np.unique(view):
-        _sample_rays(np.ascontiguousarray(grays[g]), np.nonzero(view == g)[0], cx, cy, ux, uy, lam, S, m, v, v_in, v_out)
-    return u, r, xy, lam, dl, ok, v, v_in, v_out
-
-
-def _free_rays(
-    others: list, xy: np.ndarray, r: np.ndarray, width: np.ndarray, half: np.ndarray, n: np.ndarray, c: dict, ok: np.ndarray
-) -> tuple:
-    """(far (K, N): the rays whose window ends clear of every neighbour's blurred outer
-    ellipse, per ellipse the number of rays not dropped for a neighbour (K,)); ``ok`` is
-    updated in place (:func:`_neighbours`)."""
-    K, N = r.shape
-    far = np.ones((K, N), bool)
-    n_use = n.copy()
-    pairs = [(k, co, Qo) for k, oth in enumerate(others) for co, Qo in oth]
-    if pairs:
-        kk = np.array([p[0] for p in pairs], np.int64)
-        co = np.array([p[1] for p in pairs], np.float64)
-        Qo = np.array([p[2] for p in pairs], np.float64)
-        b_o = 1 / np.sqrt(_spd2(Qo, 0.5)[1][:, 1])
-        _neighbours(xy, r, width, half, kk, co, Qo, b_o, n, float(c["min_free_frac"]), ok, far, n_use)
-    return far, n_use
-
-
-def _clear_of_plate(plates: list | None, xy, r, width, half, n, c: dict, ok, far, n_use) -> tuple:
-    """((K, N) the rays to keep for the plate's edge, or None where no ring has its plate's
-    sides; (K,) the rings whose rays the plate's edge reached) (:func:`_plate_rays`;
-    ``n_use`` updated in place)."""
-    K, N = r.shape
-    reached = np.zeros(K, bool)
-    if plates is None or all(p is None for p in plates):
-        return None, reached
-    plated = np.array([p is not None for p in plates], bool)
-    lines = np.zeros((K, 4, 3))
-    for k in np.nonzero(plated)[0]:
-        lines[k] = plates[k]
-    keep = np.ones((K, N), bool)
-    _plate_rays(xy, r, width, half, lines, plated, n, float(c["min_free_frac"]), ok, far, keep, n_use, reached)
-    return keep, reached
-
-
 def plate_lines(corners: np.ndarray) -> np.ndarray:
     """The four lines (4, 3) of a convex quadrilateral's sides, ``corners`` (4, 2) in order:
     (a, b, c) with a x + b y + c the signed distance from the side, positive inside."""
@@ -962,52 +1010,6 @@ def plate_lines(corners: np.ndarray) -> np.ndarray:
             nrm = -nrm
         out[j] = nrm[0], nrm[1], -nrm @ P[j]
     return out
-
-
-def _plateau_levels(v_in, v_out, xy, cen, pen, clean, n, c: dict, ok) -> np.ndarray:
-    """The rays' plateau levels v_in, v_out (K, N), in place: planes fitted on the
-    ``clean`` rays (:func:`_ray_levels`, ridge penalty ``pen``) or, where too few are
-    clean, the local levels smoothed along the ellipse (circularly). Returns which rings
-    have planes (K,)."""
-    K = len(n)
-    planes = np.empty(K, bool)
-    _ray_levels(v_in, v_out, xy, cen, pen, clean, n, float(c["level_tol"]), ok, planes)
-    for k in np.nonzero(~planes)[0]:
-        w = max(1, round(c["level_smooth"] * n[k]))
-        if w > 1:
-            v_in[k, : n[k]] = _circular_smooth(v_in[k, : n[k]], w)
-            v_out[k, : n[k]] = _circular_smooth(v_out[k, : n[k]], w)
-    return planes
-
-
-def _ray_edge_fits(v, v_in, v_out, lam, dl, S, r, ok, floor, dark_inside: bool, half: np.ndarray, c: dict) -> tuple:
-    """The edge on each ray (:func:`_ray_edges`): (positions e, fit weights W, 10-90 %
-    widths (K, N), the 75th percentile of the valid widths per ellipse (K,))."""
-    K, N = r.shape
-    e, W, w1090, width = np.empty((K, N)), np.empty((K, N)), np.empty((K, N)), np.empty(K)
-    aw = c["area_window"]
-    _ray_edges(
-        v,
-        v_in,
-        v_out,
-        lam,
-        dl,
-        S,
-        r,
-        ok,
-        floor,
-        bool(dark_inside),
-        half,
-        c["edge_method"] == "area",
-        float(aw[0]),
-        float(aw[1]),
-        bool(c["edge_weights"]),
-        e,
-        W,
-        w1090,
-        width,
-    )
-    return e, W, w1090, width
 
 
 # --- ellipse fits ---------------------------------------------------------------------------------
@@ -1722,71 +1724,20 @@ def _warm_fits(K: int, N: int, f2, b2) -> None:
     _center_covs(ring.repeat(K, 0), np.ones((K, N)), np.tile(np.eye(2), (K, 1, 1)), np.zeros((K, 2, 2)), np.empty((K, 2, 2)))
 
 
-def _warm_rays(K: int, N: int, Sm: int, f2, b2, lam, v) -> None:
-    """Warm up :func:`edge_points`' kernels: the rays' frame, first look, neighbours,
-    plateau levels and edges."""
-    n, S1 = np.full(K, N, np.int64), np.full(K, Sm, np.int64)
-    u, xy, ok = np.empty((K, 2, N)), np.empty((K, N, 2)), np.empty((K, N), bool)
-    _ray_frame(
-        np.tile(np.eye(2), (K, 1, 1)),
-        np.zeros((K, 2)),
-        n,
-        S1,
-        np.full(K, 0.5),
-        np.ones((K, 2)),
-        u,
-        f2.copy(),
-        np.empty((K, Sm)),
-        np.empty(K),
-        xy,
-        ok,
-    )
-    _normalisers(f2, f2, True)
-    _first_look(v, f2, f2, lam, np.full(K, 1 / 3), S1, f2, b2, np.ones(K), True, f2.copy(), ok, np.empty(K))
-    _neighbours(
-        xy,
-        f2,
-        np.ones(K),
-        np.full(K, 0.5),
-        np.zeros(1, np.int64),
-        np.zeros((1, 2)),
-        np.tile(np.eye(2), (1, 1, 1)),
-        np.ones(1),
-        n,
-        0.25,
-        b2.copy(),
-        b2.copy(),
-        n.copy(),
-    )
-    _plate_rays(
-        xy, f2, np.ones(K), np.full(K, 0.5), np.zeros((K, 4, 3)), np.ones(K, bool), n, 0.25, b2, b2, b2.copy(), n.copy(), np.ones(K, bool)
-    )
-    _compact(np.zeros((K, 2)), u, f2, f2, b2, np.empty((K, N, 2)), np.empty((K, N)), np.empty(K, np.int64))
+def _warm_rays(K: int, N: int, f2, b2) -> None:
+    """Warm up :func:`edge_points`' kernels (the rays, the levels, the edges, and the
+    kernels they call, the neighbours' and the plate's included) on a drawn disk."""
+    yy, xx = np.mgrid[:40, :40]
+    img = np.where((xx - 20.0) ** 2 + (yy - 20.0) ** 2 < 100.0, 40, 200).astype(np.uint8)
+    c = {
+        "edge_spacing": 4.0, "min_rays": 8, "max_rays": 64, "edge_step": 0.5, "level_samples": 0.2, "min_free_frac": 0.25,
+        "level_tol": 0.25, "level_smooth": 0.1, "area_window": (0.5, 0.5), "edge_method": "area", "edge_weights": True,
+    }  # fmt: skip
+    Q = np.eye(2)[None] / 100.0
+    edge_points([img], np.zeros(1, np.intp), np.array([[20.0, 20.0]]), Q, 0.5, True, c, np.ones(1), [[(np.array([45.0, 20.0]), Q[0])]],
+                [plate_lines(np.array([[2.0, 2.0], [38.0, 2.0], [38.0, 38.0], [2.0, 38.0]]))])  # fmt: skip
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
-    _shared_covs(np.zeros((K, N, 2)), np.zeros((K, 2)), b2, b2, f2, f2, f2, f2, np.ones(K), np.ones(K), np.zeros((K, 2, 2)))
-    _ray_levels(f2.copy(), f2.copy(), np.zeros((K, N, 2)), np.zeros((K, 2)), np.ones(K), b2, n, 0.25, b2.copy(), np.empty(K, bool))
-    _ray_edges(
-        v,
-        f2,
-        np.zeros((K, N)),
-        lam,
-        np.full(K, 1 / 3),
-        S1,
-        f2,
-        b2.copy(),
-        np.ones(K),
-        True,
-        np.full(K, 0.5),
-        True,
-        0.5,
-        0.5,
-        True,
-        np.empty((K, N)),
-        np.empty((K, N)),
-        np.empty((K, N)),
-        np.empty(K),
-    )
 
 
 def warm_up() -> None:
@@ -1800,7 +1751,7 @@ def warm_up() -> None:
     lam, S, v = np.linspace(0.5, 1.5, Sm)[None], np.full(K, Sm, np.intp), np.zeros((K, N, Sm))
     _warm_profiles(K, ii, f2, lam, S, v)
     _warm_fits(K, N, f2, b2)
-    _warm_rays(K, N, Sm, f2, b2, lam, v)
+    _warm_rays(K, N, f2, b2)
     _WARM = True
 
 

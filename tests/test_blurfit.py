@@ -942,7 +942,8 @@ import numba
 import markerpose as mp
 from markerpose import blurfit, camera, classical, edges, evidence, geometry, keypoints, rigcheck
 inner = ("_select", "_normal", "_median", "sorted_stat", "_bilinear", "_step32", "_nan_stat32", "_unit32", "_lu_solve", "_lu_solve_det", "_real_eigvecs", "_add_disk_row", "_plane_normal_equations", "_eliminate3", "_disk_kernel", "_smooth_sqrt", "_cholesky", "_cholesky_solve", "_centre_step",
-         "distort_point", "undistort_point", "_undistort_pairs", "_least_singular_vector", "triangulate_ideal", "_ideal", "_symmetric_drop")  # called only from other kernels, compiled into them
+         "distort_point", "undistort_point", "_undistort_pairs", "_least_singular_vector", "triangulate_ideal", "_ideal", "_symmetric_drop",
+         "_ray_frame", "_normalisers", "_first_look", "_neighbours", "_plate_rays", "_compact", "_ray_levels", "_ray_edges", "_shared_covs")  # called only from other kernels, compiled into them
 kernels = [v for m in (edges, camera, geometry, blurfit, classical, rigcheck, keypoints, evidence) for name, v in vars(m).items()
            if isinstance(v, numba.core.registry.CPUDispatcher) and name not in inner]
 before = any(k.signatures for k in kernels)
