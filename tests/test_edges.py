@@ -347,7 +347,9 @@ def test_compiled_conic_eigenvectors_equal_numpys_also_where_eigenvalues_are_com
             P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
         else:
             a, b = rng.uniform(15, 40), rng.uniform(10, 15)
-            P[k, :n] = np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+            P[k, :n] = (
+                np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
+            )
         mask[k, :n] = True
     W = rng.uniform(0.5, 2, (K, N))
     m, sc, mu = np.empty((K, 2)), np.empty(K), np.empty((K, len(edges._MOMENTS)))
