@@ -775,7 +775,7 @@ def edge_points(
         (P (K, M, 2) edge points, valid first: mask (K, M), number of rays not dropped
         for a neighbour (K,), fit weights (K, M), the 75th percentile of the 10-90 % edge
         widths of the valid points in px (K,), the covariance of the edges' shared shift
-        (K, 2, 2), :func:`_shared_shift`, whether the plate's blurred edge reached the
+        (K, 2, 2), :func:`_shared_covs`, whether the plate's blurred edge reached the
         ring's rays (K,): left out, or kept where too many to leave out), and the widths'
         25th percentile over their 75th (K,): motion blur widens the edges along the
         motion only, and the edges across it stay sharp (a low ratio); defocus widens them
@@ -953,7 +953,9 @@ def _edges_pass(
 
 @compiled
 def _shared_covs(xy, cen, use, ok, lin, lout, fin, fout, reach, pen, out):  # pragma: no cover - compiled
-    """:func:`_shared_shift`'s kernel: per ring, the plane fit's covariance V = A^-1 X^T X A^-1
+    """The covariance of ``g`` in the edges' shared shift g . (x - c), px, per ring (the plateau
+    planes' gradient errors move every edge of the ring together, each by the level error
+    over the contrast times the edge locator's ``reach``): the plane fit's covariance V = A^-1 X^T X A^-1
     (A = X^T X + the ridge on the gradient), its residual variance s2 and the contrast
     (the median level difference of its rays in the image), ``out[k]`` = s2 (reach / contrast)^2
     V's gradient block; left zero where fewer than 6 clean rays or no contrast."""
@@ -1462,7 +1464,7 @@ def _fit_passes(
     the last fit's rays (K,), the widths' evenness (K,): :func:`edge_points`)."""
     K = len(cen)
     active = np.ones(K, bool)
-    found: list = [None] * K
+    last_fit: list = [None] * K  # per ellipse (its points, weights, which it kept) of its last fit
     width, even = np.zeros(K), np.ones(K)
     reached = np.zeros(K, bool)
     shared = np.zeros((K, 2, 2))
@@ -1489,6 +1491,11 @@ def _fit_passes(
     # start from the seed).
     wide_passes, wide_width = c.get("wide_edge_passes", 0), c.get("wide_edge_width", np.inf)
     motion_passes, motion_even, long_px, long_width, motion_coarse = c.get("motion_edges", (0, 0.0, np.inf, np.inf, False))
+    limits = (  # _take_fits' settings, typed alike in every call (one compiled version)
+        float(c["first_pass_max_width"]), float(c["rescreen_frac"]), float(c["refine_first_tol"]), float(tol),
+        bool(c["refine_predict"]), int(wide_passes), float(wide_width), int(motion_passes), float(motion_even), float(long_px),
+        float(long_width), bool(motion_coarse),
+    )  # fmt: skip
     passes = np.zeros(K, np.intp)
     for it in range(max(1, c["refine_iters"]) + (sparse > 0)):  # a coarse pass does not count
         a = np.nonzero(active)[0]
@@ -1517,50 +1524,82 @@ def _fit_passes(
                 continue
             break
         g = a[go]
-        Pg, Wg, wdg, shg, crg, evg = P[go], W[go], wd[go], sh[go], cr[go], ev[go]
-        cf, Qf, fitted, keep = fit_robust(Pg, M[go], c, (cen[g], Q[g]), Wg, screen[g])
-        nk, nm = keep.sum(1), M[go].sum(1)
-        okf = fitted & (nk >= need[go])
-        axes = _semi_axes(np.where(okf[:, None, None], Qf, Q[g]))  # (of the ellipses fitted)
-        minor = axes.min(1)
-        wide = wdg > wide_width * minor
-        motion = (evg <= motion_even) & (wide | ((wdg >= long_px) & (wdg >= long_width * minor)))
-        if coarse:
-            # Wide (blurred) edges need every ray, but for motion blur's the model fit follows.
-            okf &= (wdg < c["first_pass_max_width"] * _semi_axes(Q[g]).min(1)) | (motion_coarse & motion)
-        else:
-            active[g[~okf]] = False
-        screened = screen[g]
-        screen[g[okf]] = (nm - nk > c["rescreen_frac"] * nm)[okf]
-        # Largest displacement of the curve: centre shift plus change of the semi-axes (read
-        # for the ellipses kept only).
-        move = np.linalg.norm(cf - cen[g], axis=1) + np.abs(axes - _semi_axes(Q[g])).max(1)
-        for i in np.nonzero(okf)[0]:
-            k = g[i]
-            cen[k], Q[k] = cf[i], Qf[i]
-            found[k] = (Pg[i][keep[i]], Wg[i][keep[i]])
-            width[k], even[k] = wdg[i], evg[i]
-            reached[k] = crg[i]
-            shared[k] = shg[i]
-            if np.isinf(last[k]):  # the first fit this ellipse took
-                done = move[i] < c["refine_first_tol"] and (screened[i] or not screen[k])
-            else:
-                done = move[i] < tol or (c["refine_predict"] and move[i] < 10 * tol and move[i] ** 2 < tol * last[k])
-            last[k] = move[i]
-            passes[k] += 1
-            if (
-                done
-                or (wide_passes and passes[k] >= wide_passes and wide[i])
-                or (motion_passes and passes[k] >= motion_passes and motion[i])
-            ):
-                active[k] = False
+        Pg, Wg, Mg = P[go], W[go], M[go]
+        cf, Qf, fitted, keep = fit_robust(Pg, Mg, c, (cen[g], Q[g]), Wg, screen[g])
+        took = np.empty(len(g), bool)
+        _take_fits(
+            g, cf, Qf, fitted, keep, Mg, need[go], wd[go], ev[go], cr[go], sh[go], coarse, *limits, cen, Q, active, screen, width,
+            even, reached, shared, last, passes, took,
+        )  # fmt: skip
+        for i in np.nonzero(took)[0]:
+            last_fit[g[i]] = (Pg[i], Wg[i], keep[i])
+    found = [None if f is None else (f[0][f[2]], f[1][f[2]]) for f in last_fit]
     return found, width, shared, reached, even
+
+
+@compiled
+def _take_fits(
+    g, cf, Qf, fitted, keep, M, need, wd, ev, cr, sh, coarse, first_max, rescreen, first_tol, tol, predict, wide_passes,
+    wide_width, motion_passes, motion_even, long_px, long_width, motion_coarse, cen, Q, active, screen, width, even,
+    reached, shared, last, passes, took,
+):  # pragma: no cover - compiled  # fmt: skip
+    """:func:`_fit_passes`' step after a pass's fits (ellipses g, fitted cf, Qf, the points
+    each kept): which fits the ellipses take (``took``; enough points kept; in the coarse
+    pass, only where the edges are narrow, or motion blur's with ``motion_coarse``), each
+    one's state updated in place (ellipse, edge widths, shared shift, the least-median
+    screen of its next pass, its move) and whether it stops: it moved less than ``tol``
+    (after its first fit: ``first_tol``, screened), or its next move, extrapolated
+    (``predict``), is under ``tol``; or its wide or motion-blurred edges have had their
+    passes. A failed fit stops an ellipse, except in the coarse pass."""
+    G = len(g)
+    Qs = np.empty((G, 2, 2))
+    for i in range(G):
+        nk, nm = 0, 0
+        for j in range(keep.shape[1]):
+            nk += keep[i, j]
+            nm += M[i, j]
+        took[i] = fitted[i] and nk >= need[i]
+        Qs[i] = Qf[i] if took[i] else Q[g[i]]
+    root, eig, root0, eig0 = np.empty((G, 2, 2)), np.empty((G, 2)), np.empty((G, 2, 2)), np.empty((G, 2))
+    _spd2_rows(Qs, False, root, eig)
+    _spd2_rows(np.ascontiguousarray(Q[g]), False, root0, eig0)
+    for i in range(G):
+        k = g[i]
+        a0, a1 = np.sqrt(1 / eig[i, 0]), np.sqrt(1 / eig[i, 1])
+        b0, b1 = np.sqrt(1 / eig0[i, 0]), np.sqrt(1 / eig0[i, 1])
+        minor = min(a0, a1)
+        wide = wd[i] > wide_width * minor
+        motion = ev[i] <= motion_even and (wide or (wd[i] >= long_px and wd[i] >= long_width * minor))
+        if coarse:  # wide (blurred) edges need every ray, but for motion blur's the model fit follows
+            took[i] = took[i] and (wd[i] < first_max * min(b0, b1) or (motion_coarse and motion))
+        elif not took[i]:
+            active[k] = False
+        if not took[i]:
+            continue
+        nk, nm = 0, 0
+        for j in range(keep.shape[1]):
+            nk += keep[i, j]
+            nm += M[i, j]
+        screened = screen[k]
+        screen[k] = nm - nk > rescreen * nm
+        dx, dy = cf[i, 0] - cen[k, 0], cf[i, 1] - cen[k, 1]
+        move = np.sqrt(dx * dx + dy * dy) + max(abs(a0 - b0), abs(a1 - b1))  # the curve's largest displacement
+        cen[k], Q[k] = cf[i], Qf[i]
+        width[k], even[k], reached[k], shared[k] = wd[i], ev[i], cr[i], sh[i]
+        if np.isinf(last[k]):  # the first fit this ellipse took
+            done = move < first_tol and (screened or not screen[k])
+        else:
+            done = move < tol or (predict and move < 10 * tol and move**2 < tol * last[k])
+        last[k] = move
+        passes[k] += 1
+        if done or (wide_passes > 0 and passes[k] >= wide_passes and wide) or (motion_passes > 0 and passes[k] >= motion_passes and motion):
+            active[k] = False
 
 
 def center_covariances(fits: list) -> np.ndarray:
     """(K, 2, 2) covariances of ellipse centres from their fits' residuals: ``fits`` per
     ellipse (edge points (M, 2), weights (M,), centre (2,), Q (2, 2), optionally the
-    covariance (2, 2) of a shift g . (x - c) that all its edges share, :func:`_shared_shift`)
+    covariance (2, 2) of a shift g . (x - c) that all its edges share, :func:`_shared_covs`)
     of a weighted least-squares fit of (x - c)^T Q (x - c) = 1. Each point's geometric distance from
     the ellipse is linearised in the five parameters (c, Q); the covariance is the sandwich
     H^-1 B H^-1 (H = J^T W J, B from the weighted residuals: the weights are relative, the
@@ -1725,17 +1764,21 @@ def _warm_fits(K: int, N: int, f2, b2) -> None:
 
 
 def _warm_rays(K: int, N: int, f2, b2) -> None:
-    """Warm up :func:`edge_points`' kernels (the rays, the levels, the edges, and the
-    kernels they call, the neighbours' and the plate's included) on a drawn disk."""
+    """Warm up :func:`refine_edges`' kernels (the rays, the levels, the edges and the kernels
+    they call, the neighbours' and the plate's included; the fits' bookkeeping) on a drawn
+    disk, a coarse pass first."""
     yy, xx = np.mgrid[:40, :40]
     img = np.where((xx - 20.0) ** 2 + (yy - 20.0) ** 2 < 100.0, 40, 200).astype(np.uint8)
     c = {
         "edge_spacing": 4.0, "min_rays": 8, "max_rays": 64, "edge_step": 0.5, "level_samples": 0.2, "min_free_frac": 0.25,
         "level_tol": 0.25, "level_smooth": 0.1, "area_window": (0.5, 0.5), "edge_method": "area", "edge_weights": True,
+        "refine_iters": 2, "refine_tol": 0.005, "refine_first_tol": 0.0, "close_seed_screen": False, "refine_predict": True,
+        "first_pass_spacing": 6.0, "first_pass_max_width": 0.2, "min_valid_frac": 0.5, "rescreen_frac": 0.03,
+        "outlier_k": 3.0, "outlier_min_px": 0.15,
     }  # fmt: skip
     Q = np.eye(2)[None] / 100.0
-    edge_points([img], np.zeros(1, np.intp), np.array([[20.0, 20.0]]), Q, 0.5, True, c, np.ones(1), [[(np.array([45.0, 20.0]), Q[0])]],
-                [plate_lines(np.array([[2.0, 2.0], [38.0, 2.0], [38.0, 38.0], [2.0, 38.0]]))])  # fmt: skip
+    refine_edges([img], np.zeros(1, np.intp), np.array([[20.0, 20.0]]), Q, 0.5, True, c, np.ones(1), [[(np.array([45.0, 20.0]), Q[0])]],
+                 plates=[plate_lines(np.array([[2.0, 2.0], [38.0, 2.0], [38.0, 38.0], [2.0, 38.0]]))])  # fmt: skip
     masked_median(f2, b2)
     plane_levels(np.zeros((K, N, 2)), f2, b2, np.zeros((K, 2)), np.ones(K), np.ones(K))
 
