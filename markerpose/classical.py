@@ -58,7 +58,7 @@ import numpy as np
 from . import edges
 from .camera import Camera
 from .geometry import cq_to_conic, cq_to_rect, layout_affine, minor_semi_axis, rect_to_cq, ring_diameter, sqrtm_spd, view_poses
-from .images import as_gray
+from .images import RESIDUAL_BINS, as_gray
 from .jit import compiled
 from .marker import Marker
 from .results import Detection
@@ -302,30 +302,45 @@ def _residual_histogram(g, k, hist):  # pragma: no cover - compiled
             hist[abs(r)] += 1
 
 
+def noise_stride(shape: tuple) -> int:
+    """The step of :func:`noise_sigma`'s grid of pixels for an image of ``shape`` (H, W):
+    about 60k residuals suffice."""
+    return max(1, int(np.sqrt(shape[0] * shape[1] / 60_000)))
+
+
+def noise_from_residuals(hist: np.ndarray) -> float:
+    """:func:`noise_sigma` from the histogram of the grid's residuals (``hist[v]``: how many
+    have |4 I - (sum of the 4 neighbours)| = v; :data:`~markerpose.images.RESIDUAL_BINS` bins): 4 x the residual
+    is an integer, so their exact median (the float computation's) comes from the counts."""
+    cum = np.cumsum(hist)
+    n = cum[-1]
+    mid = np.searchsorted(cum, [(n - 1) // 2 + 1, n // 2 + 1])  # the two middle order statistics
+    return _sigma_from_mad(np.float32(0.125 * (mid[0] + mid[1])))
+
+
+def _sigma_from_mad(med) -> float:
+    # var(r) = sigma^2 (1 + 4/16) for white noise; MAD → sigma for a Gaussian.
+    return float(1.4826 * med / np.sqrt(1.25))
+
+
 def noise_sigma(gray: np.ndarray) -> float:
     """Robust estimate of the per-pixel noise sigma (grey levels) of a grey image (float,
     or uint8 as it is).
 
-    Median absolute value of ``I - mean(4-neighbours)`` over a subsampled grid (edges and
-    texture are a minority of pixels, so the median sees the noise).
+    Median absolute value of ``I - mean(4-neighbours)`` over a subsampled grid
+    (:func:`noise_stride`; edges and texture are a minority of pixels, so the median sees
+    the noise).
     """
-    # Residuals at every k-th pixel (with its direct neighbours): ~60k samples suffice.
-    k = max(1, int(np.sqrt(gray.size / 60_000)))
+    k = noise_stride(gray.shape)
     g = gray
     if g.dtype == np.uint8:
-        # 4 x the residual is an integer: its exact median from a histogram (equal to the
-        # float computation's), counted in one compiled pass over the grid.
-        hist = np.zeros(4 * 255 + 1, np.int64)
+        # Counted in one compiled pass over the grid (stage 1's exact quarter-size input
+        # counts them in its own pass: keypoints.to_input's ``residuals``).
+        hist = np.zeros(RESIDUAL_BINS, np.int64)
         _residual_histogram(g, k, hist)
-        cum = np.cumsum(hist)
-        n = cum[-1]
-        mid = np.searchsorted(cum, [(n - 1) // 2 + 1, n // 2 + 1])  # the two middle order statistics
-        med = np.float32(0.125 * (mid[0] + mid[1]))
-    else:
-        r = g[1:-1:k, 1:-1:k] - 0.25 * (g[:-2:k, 1:-1:k] + g[2::k, 1:-1:k] + g[1:-1:k, :-2:k] + g[1:-1:k, 2::k])
-        med = np.median(np.abs(r))
-    # var(r) = sigma^2 (1 + 4/16) for white noise; MAD → sigma for a Gaussian.
-    return float(1.4826 * med / np.sqrt(1.25))
+        return noise_from_residuals(hist)
+    r = g[1:-1:k, 1:-1:k] - 0.25 * (g[:-2:k, 1:-1:k] + g[2::k, 1:-1:k] + g[1:-1:k, :-2:k] + g[1:-1:k, 2::k])
+    return _sigma_from_mad(np.median(np.abs(r)))
 
 
 def warm_up() -> None:
@@ -1396,6 +1411,8 @@ __all__ = [
     "default_conf",
     "to_gray",
     "noise_sigma",
+    "noise_stride",
+    "noise_from_residuals",
     "noise_sigmas",
     "binarize",
     "find_rings",

@@ -167,11 +167,17 @@ class Frame:
         self._noise.update((id(g), (g, n)) for g, n in zip(new, classical.noise_sigmas(new)))
         return [self._noise[id(g)][1] for g in grays]
 
-    def estimate_noise(self, j: int) -> None:
+    def estimate_noise(self, j: int, residuals=None) -> None:
         """Estimate image ``j``'s noise sigma now, for :meth:`noises` (once per call; from
-        any thread: a cold detection's first look does it on each view's own thread)."""
+        any thread: a cold detection's first look does it on each view's own thread), from
+        ``residuals`` where they are the histogram of the estimate's own grid (stage 1's
+        input counted them: :func:`markerpose.keypoints.to_input`), else from the image."""
         g = self.grays[j]
-        if id(g) not in self._noise:
+        if id(g) in self._noise:
+            return
+        if residuals is not None and classical.noise_stride(g.shape) == 4:
+            self._noise[id(g)] = (g, classical.noise_from_residuals(residuals))
+        else:
             self._noise[id(g)] = (g, classical.noise_sigma(g))
 
     def finish(self) -> dict[str, float]:

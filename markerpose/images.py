@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 
 MIN_SIDE = 16  # px: no marker fits in less
+RESIDUAL_BINS = 4 * 255 + 1  # |4 I - (sum of the 4 neighbours)| of a uint8 image: 0 ... 1020 (the noise estimate's)
 
 
 def as_gray(image, name: str = "image", allow_float: bool = False) -> np.ndarray:

@@ -29,6 +29,7 @@ from . import evidence
 from .decode import CELL, ID_MODES, decode, peaks
 from .decode import default_conf as decode_defaults
 from .evidence import ring_evidence
+from .images import RESIDUAL_BINS
 from .jit import compiled
 from .marker import Marker
 from .nets import detector_only_path, load_network
@@ -120,34 +121,45 @@ def network_for(meta: dict):
     return build_network(float(meta["width"]), meta.get("stem_width"), meta.get("stem", "pool"))
 
 
-def to_input(gray: np.ndarray, size=INPUT_SIZE) -> tuple[np.ndarray, np.ndarray]:
+def to_input(gray: np.ndarray, size=INPUT_SIZE, residuals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A full-resolution gray image → the network's input and the scale back.
+
+    ``residuals``: a zeroed int64 histogram of :data:`~markerpose.images.RESIDUAL_BINS` bins: where the input is the image's
+    exact quarter (uint8), the same pass over the image also counts, at each 4x4 block's
+    pixel (1, 1), the residuals |4 I - (sum of the 4 neighbours)|, the grid that
+    :func:`markerpose.classical.noise_sigma` reads at a stride of 4 (its histogram, for
+    the noise estimate without a second pass); elsewhere it stays zero.
 
     Returns:
         (image (H, W) float32 in [0, 1] at ``size``, scale (2,) = full / input, per axis).
     """
     w, h = size
     if gray.dtype == np.uint8 and gray.shape == (4 * h, 4 * w) and gray.flags.c_contiguous:
-        return _quartered(gray), input_scale(gray.shape, size)
+        return _quartered(gray, residuals), input_scale(gray.shape, size)
     return _unit(cv2.resize(gray, (w, h), interpolation=cv2.INTER_AREA)), input_scale(gray.shape, size)
 
 
-def _quartered(gray: np.ndarray) -> np.ndarray:
+_NO_COUNTS = np.zeros(0, np.int64)
+
+
+def _quartered(gray: np.ndarray, residuals: np.ndarray | None = None) -> np.ndarray:
     """The network's input of a C-contiguous uint8 image four times its size per axis
-    (:func:`_quarter`)."""
+    (:func:`_quarter`), with ``residuals`` counted where given (:func:`to_input`)."""
     small = np.empty((gray.shape[0] // 4, gray.shape[1] // 4), np.float32)
-    _quarter(gray, _UNIT, small)
+    _quarter(gray, _UNIT, small, _NO_COUNTS if residuals is None else residuals)
     return small
 
 
 @compiled
-def _quarter(gray, table, out):  # pragma: no cover - compiled
+def _quarter(gray, table, out, hist):  # pragma: no cover - compiled
     """out[y, x] = table[mean of gray's 4x4 block (y, x), rounded half to even] (uint8 gray):
     OpenCV's area resize by exactly 4 (it rounds these means half to even), in one pass
     with the table lookup and without the uint8 image between (the default first look at
-    1280x1024: 320x256)."""
+    1280x1024: 320x256). Where ``hist`` has bins, hist[v] += how many blocks' pixel (1, 1)
+    has |4 I - (sum of its 4 neighbours)| = v: all within the block's rows 0-2."""
     h, w = out.shape
     cols = np.empty(w * 4, np.int32)
+    count = hist.shape[0] > 0
     for y in range(h):
         r0, r1, r2, r3 = gray[4 * y], gray[4 * y + 1], gray[4 * y + 2], gray[4 * y + 3]
         for X in range(w * 4):  # the block rows' column sums: contiguous, vectorised
@@ -157,6 +169,11 @@ def _quarter(gray, table, out):  # pragma: no cover - compiled
             q, r = s >> 4, s & 15
             q += (r > 8) | ((r == 8) & (q & 1))
             out[y, x] = table[q]
+        if count:
+            for x in range(w):
+                X = 4 * x + 1
+                v = 4 * np.int32(r1[X]) - (np.int32(r0[X]) + np.int32(r2[X]) + np.int32(r1[X - 1]) + np.int32(r1[X + 1]))
+                hist[abs(v)] += 1
 
 
 def warm_up() -> None:
@@ -364,14 +381,17 @@ class KeypointNet:
                 return small, scale
         return None
 
-    def _input(self, image: np.ndarray, zoom: float, kept: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _input(
+        self, image: np.ndarray, zoom: float, kept: list | None = None, residuals: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """:func:`to_input` of an image at the look ``zoom``. ``kept``: one call's inputs,
-        (image, size, input, scale), which it reuses and adds to (None: none kept)."""
+        (image, size, input, scale), which it reuses and adds to (None: none kept).
+        ``residuals``: as in :func:`to_input`, counted only where the input is made."""
         size = self.look_size(zoom, image.shape)
         found = self._kept(image, size, kept)
         if found is not None:
             return found
-        small, scale = to_input(image, size)
+        small, scale = to_input(image, size, residuals)
         if kept is not None:
             kept.append((image, size, small, scale))
         return small, scale
@@ -423,10 +443,11 @@ class KeypointNet:
         :meth:`_input`): each image's input at each look is made once per frame (the
         evidence tests look again where the looks did). None: nothing kept.
 
-        ``beside``: a call ``beside(j)`` made once per view ``j`` after its candidates, on the
-        thread that made them, where a pair's two views run side by side on two threads
-        (the caller's other work on each image, done while the other view's network runs;
-        elsewhere it is not called).
+        ``beside``: a call ``beside(j, residuals)`` made once per view ``j`` after its input,
+        on the thread that makes its candidates, where a pair's two views run side by side
+        on two threads (the caller's other work on each image, done while the other view's
+        network runs; elsewhere it is not called): ``residuals`` the histogram of the
+        image's noise residuals that making the input counted (:func:`to_input`), or None.
         """
         r = self.conf["nms_radius"] if nms_radius is None else nms_radius
         if near is not None:
@@ -437,9 +458,10 @@ class KeypointNet:
             # the input, the network's half and the decoding of one view run beside the
             # other's, with no wait between the steps.
             def view(j):
-                small, scale = self._input(images[j], zoom, kept)
-                if beside is not None:  # while the image is still in the cache
-                    beside(j)
+                counts = None if beside is None else np.zeros(RESIDUAL_BINS, np.int64)
+                small, scale = self._input(images[j], zoom, kept, counts)
+                if beside is not None:
+                    beside(j, counts if counts.any() else None)
                 cand = peaks(halves[j](small[None, None])[0], threshold, k, r)[0]
                 cand[:, :2] = to_full(cand[:, :2], scale)
                 return cand

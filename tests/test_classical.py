@@ -577,3 +577,29 @@ def test_the_blur_fit_is_due_for_wide_edges_or_long_blur(minor, width, plate, ev
     )
     without = C._blur_fit_due(rings, marker, {**c, "blur_fit_long_px": 0.0})
     assert without is (width >= (0.2 if plate else 0.4) * minor)
+
+
+@pytest.mark.parametrize("shape", [(1024, 1280), (960, 1280), (480, 640)])
+def test_the_quarter_inputs_pass_counts_the_noise_estimates_residuals(shape):
+    """Where the input is the image's exact quarter, making it also counts the residuals on
+    the noise estimate's grid (its stride 4 at 1280x1024 and 1280x960): the histogram
+    classical.noise_sigma counts, its sigma the same; the input is unchanged; another
+    size leaves the counts zero."""
+    from markerpose import classical, keypoints
+    from markerpose.images import RESIDUAL_BINS
+
+    rng = np.random.default_rng(3)
+    gray = np.clip(rng.normal(120, 9, shape) + np.linspace(0, 80, shape[1])[None], 0, 255).astype(np.uint8)
+    gray[100:180, 200:330] //= 3  # an edge or two
+    size = (shape[1] // 4, shape[0] // 4)
+    counts = np.zeros(RESIDUAL_BINS, np.int64)
+    small, scale = keypoints.to_input(gray, size, counts)
+    np.testing.assert_array_equal(small, keypoints.to_input(gray, size)[0])
+    want = np.zeros(RESIDUAL_BINS, np.int64)
+    classical._residual_histogram(gray, 4, want)
+    np.testing.assert_array_equal(counts, want)
+    if classical.noise_stride(shape) == 4:
+        assert classical.noise_from_residuals(counts) == classical.noise_sigma(gray)
+    other = np.zeros(RESIDUAL_BINS, np.int64)
+    keypoints.to_input(gray, (size[0] - 8, size[1] - 8), other)  # not the exact quarter: nothing counted
+    assert not other.any()

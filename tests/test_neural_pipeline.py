@@ -525,8 +525,9 @@ def test_the_transfer_fits_do_without_the_masks(rig, monkeypatch):
 
 def test_a_cold_detection_estimates_each_images_noise_in_stage_1_once(rig, monkeypatch):
     """The images' noise (the edge fits' contrast floor) is estimated during stage 1, each
-    view's on the thread that runs its network where the two run side by side, and the
-    refine stage estimates none afresh: the same estimates, the same pose."""
+    view's on the thread that runs its network where the two run side by side, from the
+    residuals its input's pass counted (the exact quarter-size input of 1280x1024), and
+    the refine stage estimates none afresh: the estimates are noise_sigma's, the pose the same."""
     import threading
 
     from markerpose import classical
@@ -536,12 +537,25 @@ def test_a_cold_detection_estimates_each_images_noise_in_stage_1_once(rig, monke
     tr = mp.MarkerPose(rig)
     before = tr.estimate(*f.images)
     assert before is not None
-    single, batched = [], []
-    real_one, real_many = classical.noise_sigma, classical.noise_sigmas
-    monkeypatch.setattr(classical, "noise_sigma", lambda g: single.append((id(g), threading.get_ident())) or real_one(g))
-    monkeypatch.setattr(classical, "noise_sigmas", lambda grays: batched.extend(grays) or real_many(grays))
+    seen, batched, used = [], [], []
+    real_estimate, real_noises = Frame.estimate_noise, Frame.noises
+
+    def estimate(frame, j, residuals=None):
+        seen.append((j, threading.get_ident(), residuals is not None))
+        return real_estimate(frame, j, residuals)
+
+    def noises(frame, grays, known=None):
+        out = real_noises(frame, grays, known)
+        used.extend(zip([id(g) for g in grays], out))
+        return out
+
+    monkeypatch.setattr(Frame, "estimate_noise", estimate)
+    monkeypatch.setattr(Frame, "noises", noises)
+    monkeypatch.setattr(classical, "noise_sigmas", lambda grays: batched.extend(grays) or [])
     est = tr.estimate(*f.images)
     assert est is not None and np.allclose(est.T, before.T, atol=1e-12)
-    assert len(single) == 2 and not batched  # one estimate per image, none in the refine stage
-    assert single[0][0] != single[1][0]  # the two images
-    assert (single[0][1] != single[1][1]) == (cores() >= 2)  # each view's own thread
+    assert sorted(j for j, _, _ in seen) == [0, 1] and all(counted for _, _, counted in seen)
+    assert (seen[0][1] != seen[1][1]) == (cores() >= 2)  # each view's own thread
+    assert not batched  # none estimated in the refine stage
+    grays = [cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) if im.ndim == 3 else im for im in f.images]
+    assert sorted({s for _, s in used}) == sorted(classical.noise_sigma(g) for g in grays)

@@ -55,7 +55,8 @@ class StereoDetector(NeuralDetector):
         made once per call for every tool that asks with the same ``previous`` look."""
         key = ("look", zoom, None if previous is None else tuple(self.proposer.near_key(p) for p in previous))
         # The images' noise (what the edge fits need next) is estimated on each view's
-        # thread after its candidates, beside the other view's network, not after both.
+        # thread from the residuals its input's pass counted, beside the other view's
+        # network, not after both.
         return frame.shared(
             key, frame.timed, "propose", self.proposer.candidates, frame.grays, zoom, previous, frame.looked, frame.estimate_noise
         )

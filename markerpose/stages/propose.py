@@ -170,7 +170,7 @@ class NeuralProposer:
         A look with ``zoom`` > 1 given the ``previous`` look's candidates looks only near
         its best ones (``second_look_near``). ``kept``: the call's stage-1 inputs
         (:attr:`markerpose.frame.Frame.looked`), made once per call. ``beside``: per view
-        ``j``, ``beside(j)`` on that view's thread where the views run side by side
+        ``j``, ``beside(j, residuals)`` on that view's thread where the views run side by side
         (:meth:`markerpose.keypoints.KeypointNet.candidates`)."""
         c = self.conf
         near = None
