@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import importlib
 
-__version__ = "0.56.0"
+__version__ = "0.57.0"
 
 # The public names and the modules that define them, imported on first use: ``import
 # markerpose`` stays light, so that the command line starts at once (and a Ctrl-C while it
