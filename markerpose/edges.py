@@ -1553,12 +1553,12 @@ def _take_fits(
     passes. A failed fit stops an ellipse, except in the coarse pass."""
     G = len(g)
     Qs = np.empty((G, 2, 2))
+    nk, nm = np.zeros(G, np.int64), np.zeros(G, np.int64)  # points kept, points
     for i in range(G):
-        nk, nm = 0, 0
         for j in range(keep.shape[1]):
-            nk += keep[i, j]
-            nm += M[i, j]
-        took[i] = fitted[i] and nk >= need[i]
+            nk[i] += keep[i, j]
+            nm[i] += M[i, j]
+        took[i] = fitted[i] and nk[i] >= need[i]
         Qs[i] = Qf[i] if took[i] else Q[g[i]]
     root, eig, root0, eig0 = np.empty((G, 2, 2)), np.empty((G, 2)), np.empty((G, 2, 2)), np.empty((G, 2))
     _spd2_rows(Qs, False, root, eig)
@@ -1576,12 +1576,8 @@ def _take_fits(
             active[k] = False
         if not took[i]:
             continue
-        nk, nm = 0, 0
-        for j in range(keep.shape[1]):
-            nk += keep[i, j]
-            nm += M[i, j]
         screened = screen[k]
-        screen[k] = nm - nk > rescreen * nm
+        screen[k] = nm[i] - nk[i] > rescreen * nm[i]
         dx, dy = cf[i, 0] - cen[k, 0], cf[i, 1] - cen[k, 1]
         move = np.sqrt(dx * dx + dy * dy) + max(abs(a0 - b0), abs(a1 - b1))  # the curve's largest displacement
         cen[k], Q[k] = cf[i], Qf[i]

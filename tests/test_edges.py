@@ -277,13 +277,10 @@ def test_spd2_closed_forms_agree_with_numpy():
         np.testing.assert_allclose(eig, np.linalg.eigvalsh(Q), rtol=1e-9)
 
 
-def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues():
-    """fit_robust (compiled, ring by ring) gives numpy's batched result exactly, with and
-    without the least-median screen, also for point sets whose reduced scatter matrix has
-    complex eigenvalues (nearly a parabola or a line): numba's eig refuses those and they
-    take numpy's path."""
-    rng = np.random.default_rng(1)
-    K, N = 12, 40
+def _rings_and_lines(rng, K: int, N: int, outliers: bool) -> tuple:
+    """K point sets (K, N, 2) of 8 to N points, valid first (mask (K, N)): every third nearly a
+    line or a parabola (its reduced scatter matrix's eigenvalues complex), the others noisy
+    rings, with ``outliers`` an eighth of their points thrown off."""
     P, mask = np.zeros((K, N, 2)), np.zeros((K, N), bool)
     t = np.linspace(0, 2 * np.pi, N, endpoint=False)
     for k in range(K):
@@ -291,13 +288,25 @@ def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues(
         if k % 3 == 2:  # nearly a line or a parabola
             x = rng.normal(size=n) * 20
             P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
-        else:  # a ring with noise and a few outliers
+        else:
             a, b = rng.uniform(15, 40), rng.uniform(10, 15)
             P[k, :n] = (
                 np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
             )
-            P[k, : n // 8] += rng.normal(scale=3, size=(n // 8, 2))
+            if outliers:
+                P[k, : n // 8] += rng.normal(scale=3, size=(n // 8, 2))
         mask[k, :n] = True
+    return P, mask
+
+
+def test_compiled_robust_fit_equals_numpy_and_falls_back_on_complex_eigenvalues():
+    """fit_robust (compiled, ring by ring) gives numpy's batched result exactly, with and
+    without the least-median screen, also for point sets whose reduced scatter matrix has
+    complex eigenvalues (nearly a parabola or a line): numba's eig refuses those and they
+    take numpy's path."""
+    rng = np.random.default_rng(1)
+    K, N = 12, 40
+    P, mask = _rings_and_lines(rng, K, N, outliers=True)
     W = rng.uniform(0.5, 2, (K, N))
     c = {"outlier_k": 3.0, "outlier_min_px": 0.15}
     frame = (P[:, :8].mean(1), np.tile(np.eye(2) / 400, (K, 1, 1)))
@@ -338,19 +347,7 @@ def test_compiled_conic_eigenvectors_equal_numpys_also_where_eigenvalues_are_com
     parabola): the fits are numpy's batched ones, and a set that is no ellipse is refused."""
     rng = np.random.default_rng(4)
     K, N = 12, 40
-    P, mask = np.zeros((K, N, 2)), np.zeros((K, N), bool)
-    t = np.linspace(0, 2 * np.pi, N, endpoint=False)
-    for k in range(K):
-        n = int(rng.integers(8, N))
-        if k % 3 == 2:  # nearly a line or a parabola
-            x = rng.normal(size=n) * 20
-            P[k, :n] = np.column_stack([x, (0.5 * x if k % 2 else x**2 / 40) + rng.normal(size=n) * 1e-9])
-        else:
-            a, b = rng.uniform(15, 40), rng.uniform(10, 15)
-            P[k, :n] = (
-                np.column_stack([a * np.cos(t[:n]), b * np.sin(t[:n])]) + rng.normal(scale=0.05, size=(n, 2)) + rng.uniform(0, 100, 2)
-            )
-        mask[k, :n] = True
+    P, mask = _rings_and_lines(rng, K, N, outliers=False)
     W = rng.uniform(0.5, 2, (K, N))
     m, sc, mu = np.empty((K, 2)), np.empty(K), np.empty((K, len(edges._MOMENTS)))
     edges._scatter(P, W, mask, m, sc, mu)
